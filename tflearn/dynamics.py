@@ -1,0 +1,295 @@
+"""Batched, differentiable rigid-body algorithms on a :class:`~tflearn.body.Body`.
+
+Every function accepts any leading batch shape ``...`` and works in the input's dtype
+(float64 throughout tflearn). Coordinates ``q`` (...×nv) are rotation vectors for ball
+joints and angles for hinges; velocities ``v``, accelerations ``a`` and torques ``tau``
+(...×nv) follow the layout described in :mod:`tflearn.body`.
+
+Spatial quantities are kept as (angular, linear) pairs of 3-vectors in each link's frame
+(Featherstone's body-frame formulation). Algorithms:
+
+* :func:`rnea` — inverse dynamics τ = M(q) a + h(q, v) (recursive Newton–Euler),
+* :func:`mass_matrix` — M(q), from RNEA columns with v = 0 and no gravity,
+* :func:`bias_forces` — h(q, v) = τ(q, v, 0) (Coriolis, centrifugal, gravity),
+* :func:`forward_dynamics` — a = M⁻¹(τ − h) by a Cholesky solve,
+* :func:`forward_kinematics` — world rotations and joint positions, hand tip last,
+* :func:`kinetic_energy`, :func:`potential_energy`.
+
+The ``*_rot`` variants take the joints' own rotations (a list with one ...×3×3 matrix per
+link, ``None`` for hinges and fixed joints, from which the hinge angle is read in ``q``)
+so that :mod:`tflearn.simulate` can drive them from quaternions.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import roma
+import torch
+
+from .body import Body
+
+
+@lru_cache(maxsize=64)
+def _constants(body: Body, dtype: torch.dtype, device: torch.device) -> dict:
+    """Per-link constant tensors: joint origins, zero orientations, axes, inertias."""
+    def t(x):
+        return torch.as_tensor(x, dtype=dtype, device=device)
+    return {
+        "origin": [t(l.origin) for l in body.links],
+        "R0": [rotvec_to_rotmat(t(l.offset)) for l in body.links],
+        "axis": [t(l.axis) for l in body.links],
+        "mass": [float(l.mass) for l in body.links],
+        "com": [t(l.com) for l in body.links],
+        "Ic": [t(l.inertia) for l in body.links],
+        "gravity": t(body.gravity),
+        "tip": t(body.tip_point),
+    }
+
+
+def rotvec_to_rotmat(v: torch.Tensor) -> torch.Tensor:
+    """R = exp([v]×) (...×3 → ...×3×3), exact and smooth at v = 0 (via a unit quaternion)."""
+    return roma.unitquat_to_rotmat(roma.rotvec_to_unitquat(v))
+
+
+def hinge_rotmat(axis: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: R = I + sin θ [a]× + (1 − cos θ)[a]×² for a unit axis a; θ (...) → ...×3×3."""
+    return rotvec_to_rotmat(theta[..., None] * axis)
+
+
+def _mv(E, x):
+    return (E @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def _mtv(E, x):
+    return (E.transpose(-1, -2) @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def _broadcast(rots: list, *xs: torch.Tensor):
+    """Expand joint rotations and vectors (...×k) to their common batch shape."""
+    batch = torch.broadcast_shapes(*(x.shape[:-1] for x in xs),
+                                   *(R.shape[:-2] for R in rots if R is not None))
+    rots = [None if R is None else R.expand(batch + (3, 3)) for R in rots]
+    return (rots, *(x.expand(batch + x.shape[-1:]) for x in xs))
+
+
+def joint_rotations(body: Body, q: torch.Tensor) -> list:
+    """The joints' own rotations exp([v]×) (ball) or None (hinge, fixed); q (...×nv)."""
+    return [rotvec_to_rotmat(q[..., body.slice(i)]) if l.joint == "ball" else None
+            for i, l in enumerate(body.links)]
+
+
+def _relative_rotations(body: Body, rots: list, q: torch.Tensor) -> list:
+    """R_i = R0_i · R_joint,i: each link frame relative to its parent (...×3×3)."""
+    C = _constants(body, q.dtype, q.device)
+    out = []
+    for i, link in enumerate(body.links):
+        R0 = C["R0"][i]
+        if link.joint == "ball":
+            out.append(R0 @ rots[i])
+        elif link.joint == "hinge":
+            out.append(R0 @ hinge_rotmat(C["axis"][i], q[..., body.slice(i)][..., 0]))
+        else:
+            out.append(R0.expand(q.shape[:-1] + (3, 3)))
+    return out
+
+
+def _joint_motion(body: Body, i: int, x: torch.Tensor) -> torch.Tensor:
+    """S_i x: the angular velocity a joint rate x produces, in the child frame."""
+    link = body.links[i]
+    xs = x[..., body.slice(i)]
+    if link.joint == "ball":
+        return xs
+    if link.joint == "hinge":
+        return xs * _constants(body, x.dtype, x.device)["axis"][i]
+    return torch.zeros(x.shape[:-1] + (3,), dtype=x.dtype, device=x.device)
+
+
+def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.Tensor,
+             gravity=True) -> torch.Tensor:
+    """Recursive Newton–Euler inverse dynamics, τ = M(q)a + C(q,v)v + g(q).
+
+    Forward pass (link i, parent p, E = R_iᵀ, r the joint origin in the parent):
+        ω_i = E ω_p + S q̇,                  v_i = E(v_p + ω_p × r)
+        ω̇_i = E ω̇_p + S q̈ + ω_i × S q̇,     v̇_i = E(v̇_p + ω̇_p × r) + v_i × S q̇
+    with base acceleration (0, −g) (``gravity``: True for the body's g, False for none, or
+    a ...×3 tensor of per-batch gravity vectors). Link wrench (c the centre of mass, Ic its inertia):
+        p = m(v + ω×c), L = Ic ω + c×p,  h = m(v̇ + ω̇×c),  n = Ic ω̇ + c×h
+        f_i = (n + ω×L + v×p,  h + ω×p)
+    Backward pass: τ_i = Sᵀ n_i; parent gets (Eᵀn + r×Eᵀf, Eᵀf).
+    """
+    C = _constants(body, q.dtype, q.device)
+    rots, q, v, a = _broadcast(rots, q, v, a)
+    zero = torch.zeros(q.shape[:-1] + (3,), dtype=q.dtype, device=q.device)
+    Rrel = _relative_rotations(body, rots, q)
+    if isinstance(gravity, torch.Tensor):
+        g = gravity
+    else:
+        g = C["gravity"] if gravity else torch.zeros_like(C["gravity"])
+    n_links = len(body.links)
+    w, vl, dw, dv, E = [None] * n_links, [None] * n_links, [None] * n_links, [None] * n_links, [None] * n_links
+    for i, link in enumerate(body.links):
+        E[i] = Rrel[i].transpose(-1, -2)
+        r = C["origin"][i]
+        if link.parent < 0:
+            wp, vp, dwp, dvp = zero, zero, zero, zero - g
+        else:
+            p = link.parent
+            wp, vp, dwp, dvp = w[p], vl[p], dw[p], dv[p]
+        wj = _joint_motion(body, i, v)
+        w[i] = _mv(E[i], wp) + wj
+        vl[i] = _mv(E[i], vp + torch.cross(wp, r.expand_as(wp), dim=-1))
+        dw[i] = _mv(E[i], dwp) + _joint_motion(body, i, a) + torch.cross(w[i], wj, dim=-1)
+        dv[i] = (_mv(E[i], dvp + torch.cross(dwp, r.expand_as(dwp), dim=-1))
+                 + torch.cross(vl[i], wj, dim=-1))
+    n, f = [None] * n_links, [None] * n_links
+    for i, link in enumerate(body.links):
+        m, c, Ic = C["mass"][i], C["com"][i].expand_as(w[i]), C["Ic"][i]
+        p = m * (vl[i] + torch.cross(w[i], c, dim=-1))
+        L = _mv(Ic, w[i]) + torch.cross(c, p, dim=-1)
+        h = m * (dv[i] + torch.cross(dw[i], c, dim=-1))
+        nn_ = _mv(Ic, dw[i]) + torch.cross(c, h, dim=-1)
+        n[i] = nn_ + torch.cross(w[i], L, dim=-1) + torch.cross(vl[i], p, dim=-1)
+        f[i] = h + torch.cross(w[i], p, dim=-1)
+    tau = [None] * n_links
+    for i in reversed(range(n_links)):
+        link = body.links[i]
+        if link.joint == "ball":
+            tau[i] = n[i]
+        elif link.joint == "hinge":
+            tau[i] = (n[i] * C["axis"][i]).sum(-1, keepdim=True)
+        if link.parent >= 0:
+            fp = _mtv(E[i], f[i])
+            r = C["origin"][i].expand_as(fp)
+            n[link.parent] = n[link.parent] + _mtv(E[i], n[i]) + torch.cross(r, fp, dim=-1)
+            f[link.parent] = f[link.parent] + fp
+    return torch.cat([t for t in tau if t is not None], dim=-1)
+
+
+def mass_matrix_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
+    """M(q) (...×nv×nv): column k is RNEA(q, v=0, a=e_k) without gravity."""
+    nv = body.nv
+    eye = torch.eye(nv, dtype=q.dtype, device=q.device)
+    qe = q.unsqueeze(-2)
+    rots_e = [None if R is None else R.unsqueeze(-3) for R in rots]
+    cols = rnea_rot(body, rots_e, qe, torch.zeros_like(eye), eye, gravity=False)
+    M = cols.transpose(-1, -2)
+    return 0.5 * (M + M.transpose(-1, -2))
+
+
+def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor,
+                         tau: torch.Tensor) -> torch.Tensor:
+    """a = M(q)⁻¹ (τ − h(q, v)) by Cholesky factorisation (M is symmetric positive definite).
+
+    One batched RNEA pass gives both: nv columns (v = 0, a = e_k, no gravity) for M and
+    one (v, a = 0, gravity) for h.
+    """
+    nv = body.nv
+    rots, q, v, tau = _broadcast(rots, q, v, tau)
+    eye = torch.eye(nv, dtype=q.dtype, device=q.device)
+    acc = torch.cat([eye, torch.zeros_like(eye[:1])], dim=0)
+    vel = torch.cat([torch.zeros(q.shape[:-1] + (nv, nv), dtype=q.dtype, device=q.device),
+                     v.unsqueeze(-2)], dim=-2)
+    g = _constants(body, q.dtype, q.device)["gravity"]
+    grav = torch.cat([torch.zeros(nv, 3, dtype=q.dtype, device=q.device), g[None]], dim=0)
+    out = rnea_rot(body, [None if R is None else R.unsqueeze(-3) for R in rots],
+                   q.unsqueeze(-2), vel, acc, gravity=grav)
+    M = out[..., :nv, :].transpose(-1, -2)
+    M = 0.5 * (M + M.transpose(-1, -2))
+    h = out[..., nv, :]
+    Lc = torch.linalg.cholesky(M)
+    return torch.cholesky_solve((tau - h).unsqueeze(-1), Lc).squeeze(-1)
+
+
+def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):
+    """World rotations (list of ...×3×3) and positions of joint origins plus the tip.
+
+    R_i = R_p R_rel,i, x_i = x_p + R_p r_i; the tip is x_t + R_t · tip_point.
+    Returns (rotations, positions) with positions ...×(n_links+1)×3, tip last.
+    """
+    C = _constants(body, q.dtype, q.device)
+    rots, q = _broadcast(rots, q)
+    Rrel = _relative_rotations(body, rots, q)
+    Rw, xw = [], []
+    for i, link in enumerate(body.links):
+        r = C["origin"][i]
+        if link.parent < 0:
+            Rw.append(Rrel[i])
+            xw.append(r.expand(q.shape[:-1] + (3,)))
+        else:
+            p = link.parent
+            Rw.append(Rw[p] @ Rrel[i])
+            xw.append(xw[p] + _mv(Rw[p], r.expand(q.shape[:-1] + (3,))))
+    t = body.tip_link
+    tip = xw[t] + _mv(Rw[t], C["tip"].expand(q.shape[:-1] + (3,)))
+    return Rw, torch.stack(xw + [tip], dim=-2)
+
+
+def kinetic_energy_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """T = Σ_i ½ m_i|v_i + ω_i×c_i|² + ½ ω_iᵀ Ic_i ω_i  (= ½ vᵀ M v) (...)."""
+    C = _constants(body, q.dtype, q.device)
+    rots, q, v = _broadcast(rots, q, v)
+    Rrel = _relative_rotations(body, rots, q)
+    zero = torch.zeros(q.shape[:-1] + (3,), dtype=q.dtype, device=q.device)
+    w, vl, T = [], [], 0.0
+    for i, link in enumerate(body.links):
+        E = Rrel[i].transpose(-1, -2)
+        r = C["origin"][i]
+        wp, vp = (zero, zero) if link.parent < 0 else (w[link.parent], vl[link.parent])
+        w.append(_mv(E, wp) + _joint_motion(body, i, v))
+        vl.append(_mv(E, vp + torch.cross(wp, r.expand_as(wp), dim=-1)))
+        vc = vl[i] + torch.cross(w[i], C["com"][i].expand_as(w[i]), dim=-1)
+        T = T + 0.5 * C["mass"][i] * (vc * vc).sum(-1) + 0.5 * (w[i] * _mv(C["Ic"][i], w[i])).sum(-1)
+    return T
+
+
+def potential_energy_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
+    """V = −Σ_i m_i g·x_com,i (...)."""
+    C = _constants(body, q.dtype, q.device)
+    Rw, x = forward_kinematics_rot(body, rots, q)
+    V = 0.0
+    for i in range(len(body.links)):
+        xc = x[..., i, :] + _mv(Rw[i], C["com"][i].expand_as(x[..., i, :]))
+        V = V - C["mass"][i] * (xc * C["gravity"]).sum(-1)
+    return V
+
+
+# Public API on rotation-vector coordinates.
+
+def rnea(body: Body, q, v, a, gravity: bool = True):
+    """Inverse dynamics τ(q, v, a) (...×nv); see :func:`rnea_rot`."""
+    return rnea_rot(body, joint_rotations(body, q), q, v, a, gravity)
+
+
+def mass_matrix(body: Body, q):
+    """Joint-space inertia matrix M(q) (...×nv×nv), symmetric positive definite."""
+    return mass_matrix_rot(body, joint_rotations(body, q), q)
+
+
+def bias_forces(body: Body, q, v):
+    """h(q, v) = C(q, v)v + g(q) (...×nv): the torque that gives zero acceleration."""
+    return rnea(body, q, v, torch.zeros_like(v))
+
+
+def forward_dynamics(body: Body, q, v, tau):
+    """Accelerations a = M⁻¹(τ − h) (...×nv); damping is not included here."""
+    return forward_dynamics_rot(body, joint_rotations(body, q), q, v, tau)
+
+
+def forward_kinematics(body: Body, q):
+    """Positions of the joint origins and the tip, ...×(n_links+1)×3 (tip last)."""
+    return forward_kinematics_rot(body, joint_rotations(body, q), q)[1]
+
+
+def tip_position(body: Body, q):
+    """End-effector (hand tip) position ...×3."""
+    return forward_kinematics(body, q)[..., -1, :]
+
+
+def kinetic_energy(body: Body, q, v):
+    """½ vᵀ M(q) v (...)."""
+    return kinetic_energy_rot(body, joint_rotations(body, q), q, v)
+
+
+def potential_energy(body: Body, q):
+    """Gravitational potential −Σ m g·x_com (...)."""
+    return potential_energy_rot(body, joint_rotations(body, q), q)

@@ -1,0 +1,224 @@
+"""Torque fields (thesis §3.2–3.3): shared basis fields, time profiles, per-motion weights.
+
+A field i is the gradient of a Gaussian over coordinates ν (n = nv):
+
+    χ_i(ν) = −K_i (ν − η_i) · exp(−½ (ν − η_i)ᵀ K_i (ν − η_i))
+
+with K_i positive definite by construction in one of four kinds: ``scalar`` (k·I),
+``diag``, ``block`` (one full block per joint, e.g. 3×3, 1×1, 3×3 for the arm) or ``full``
+(K = L Lᵀ with L lower triangular and a positive diagonal).
+
+Motion j is driven by
+    τ_j(t) = Σ_i (a_ji ψ((t − s_ji)/d_ji) + b_ji φ((t − p_ji)/e_ji)) χ_i(ν(t))
+with the smooth step ψ(u) = u − sin(2πu)/2π on [0, 1] (0 before, 1 after) and the cosine
+pulse φ(u) = ½(1 − cos 2πu) on [0, 1] (0 elsewhere); a, b ≥ 0. Onsets s, p default to 0
+and durations d, e to the motion's duration λ (the thesis' fixed phase).
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence
+
+import torch
+from torch import nn
+
+K_KINDS = ("scalar", "diag", "block", "full")
+
+
+def step_profile(u: torch.Tensor) -> torch.Tensor:
+    """ψ(u) = u − sin(2πu)/(2π) on [0, 1], 0 for u < 0, 1 for u > 1 (C¹ everywhere)."""
+    u = u.clamp(0.0, 1.0)
+    return u - torch.sin(2 * math.pi * u) / (2 * math.pi)
+
+
+def pulse_profile(u: torch.Tensor) -> torch.Tensor:
+    """φ(u) = ½(1 − cos 2πu) on [0, 1], 0 elsewhere (C¹ everywhere)."""
+    u = u.clamp(0.0, 1.0)
+    return 0.5 * (1 - torch.cos(2 * math.pi * u))
+
+
+def _block_mask(blocks: Sequence[int], kind: str) -> torch.Tensor:
+    n = sum(blocks)
+    if kind == "full":
+        return torch.ones(n, n, dtype=torch.bool).tril()
+    if kind == "diag":
+        return torch.eye(n, dtype=torch.bool)
+    mask = torch.zeros(n, n, dtype=torch.bool)
+    k = 0
+    for b in blocks:
+        mask[k:k + b, k:k + b] = True
+        k += b
+    return mask.tril()
+
+
+class Stiffness(nn.Module):
+    """M positive-definite stiffness matrices K (M×n×n).
+
+    ``scalar``: K = exp(κ) I.  Others: K = L Lᵀ with L lower triangular on the kind's
+    sparsity pattern and diag(L) = exp(diagonal parameters) > 0.
+    """
+
+    def __init__(self, K: torch.Tensor, kind: str = "diag",
+                 blocks: Optional[Sequence[int]] = None):
+        super().__init__()
+        if kind not in K_KINDS:
+            raise ValueError(f"unknown stiffness kind {kind!r} (expected one of {K_KINDS})")
+        K = torch.as_tensor(K, dtype=torch.get_default_dtype())
+        M, n = K.shape[0], K.shape[-1]
+        self.kind, self.n = kind, n
+        blocks = list(blocks) if blocks is not None else [n]
+        if sum(blocks) != n:
+            raise ValueError(f"stiffness blocks {blocks} do not add up to {n}")
+        if kind == "scalar":
+            k = torch.diagonal(K, dim1=-2, dim2=-1).mean(-1)
+            self.raw = nn.Parameter(torch.log(k))
+            self.register_buffer("mask", torch.zeros(0, dtype=torch.bool))
+        else:
+            mask = _block_mask(blocks, kind)
+            Kp = torch.where(mask | mask.T, K, torch.zeros_like(K))
+            L = torch.linalg.cholesky(Kp)
+            raw = torch.where(mask, L, torch.zeros_like(L))
+            idx = torch.arange(n)
+            raw[:, idx, idx] = torch.log(L[:, idx, idx])
+            self.raw = nn.Parameter(raw)
+            self.register_buffer("mask", mask)
+
+    def factor(self) -> torch.Tensor:
+        """L (M×n×n), lower triangular with positive diagonal (not for ``scalar``)."""
+        n = self.n
+        eye = torch.eye(n, dtype=torch.bool, device=self.raw.device)
+        off = torch.where(self.mask & ~eye, self.raw, torch.zeros_like(self.raw))
+        return off + torch.diag_embed(torch.exp(torch.diagonal(self.raw, dim1=-2, dim2=-1)))
+
+    def forward(self) -> torch.Tensor:
+        if self.kind == "scalar":
+            eye = torch.eye(self.n, dtype=self.raw.dtype, device=self.raw.device)
+            return torch.exp(self.raw)[:, None, None] * eye
+        L = self.factor()
+        return L @ L.transpose(-1, -2)
+
+
+class FieldBasis(nn.Module):
+    """M shared torque fields over n coordinates: centres η (M×n) and stiffnesses K.
+
+    ``forward(q)`` maps coordinates q (...×n) to the field values χ (...×M×n).
+    """
+
+    def __init__(self, eta: torch.Tensor, K: torch.Tensor, kind: str = "diag",
+                 blocks: Optional[Sequence[int]] = None):
+        super().__init__()
+        eta = torch.as_tensor(eta, dtype=torch.get_default_dtype())
+        K = torch.as_tensor(K, dtype=eta.dtype)
+        if eta.ndim != 2 or K.shape != eta.shape + eta.shape[-1:]:
+            raise ValueError(f"FieldBasis: eta must be M×n and K M×n×n, got "
+                             f"{tuple(eta.shape)} and {tuple(K.shape)}")
+        self.eta = nn.Parameter(eta.clone())
+        self.stiffness = Stiffness(K, kind, blocks)
+
+    @property
+    def M(self) -> int:
+        return self.eta.shape[0]
+
+    @property
+    def n(self) -> int:
+        return self.eta.shape[1]
+
+    def K(self) -> torch.Tensor:
+        """Stiffness matrices (M×n×n)."""
+        return self.stiffness()
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:
+        """χ_i(q) = −K_i d exp(−½ dᵀK_i d), d = q − η_i; q (...×n) → (...×M×n)."""
+        d = q.unsqueeze(-2) - self.eta
+        Kd = (self.K() @ d.unsqueeze(-1)).squeeze(-1)
+        g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
+        return -Kd * g
+
+
+class MotionWeights(nn.Module):
+    """Per-motion weights for N motions and M fields.
+
+    Holds step weights a and pulse weights b (N×M, non-negative: the module reads them
+    through a clamp at zero and :meth:`project_` keeps the stored values there), step
+    onsets/durations and pulse onsets/durations (N×M), and motion durations λ (N).
+    """
+
+    def __init__(self, a: torch.Tensor, b: torch.Tensor, duration: torch.Tensor,
+                 step_onset=None, step_duration=None, pulse_onset=None, pulse_duration=None,
+                 names: Optional[Sequence[str]] = None):
+        super().__init__()
+        a = torch.as_tensor(a, dtype=torch.get_default_dtype())
+        b = torch.as_tensor(b, dtype=a.dtype)
+        duration = torch.as_tensor(duration, dtype=a.dtype).reshape(-1)
+        if a.ndim != 2 or b.shape != a.shape or duration.shape[0] != a.shape[0]:
+            raise ValueError("MotionWeights: a and b must be N×M and duration N")
+        lam = duration[:, None].expand_as(a)
+
+        def init(x, default):
+            return (torch.as_tensor(x, dtype=a.dtype) if x is not None else default).clone()
+        self.a_raw = nn.Parameter(a.clone())
+        self.b_raw = nn.Parameter(b.clone())
+        self.step_onset = nn.Parameter(init(step_onset, torch.zeros_like(a)))
+        self.step_duration = nn.Parameter(init(step_duration, lam))
+        self.pulse_onset = nn.Parameter(init(pulse_onset, torch.zeros_like(a)))
+        self.pulse_duration = nn.Parameter(init(pulse_duration, lam))
+        self.register_buffer("duration", duration.clone())
+        self.names = list(names) if names is not None else [f"motion{j}" for j in range(len(duration))]
+        self.project_()
+
+    @property
+    def a(self) -> torch.Tensor:
+        return self.a_raw.clamp(min=0.0)
+
+    @property
+    def b(self) -> torch.Tensor:
+        return self.b_raw.clamp(min=0.0)
+
+    @property
+    def N(self) -> int:
+        return self.a_raw.shape[0]
+
+    def phase_parameters(self) -> list:
+        return [self.step_onset, self.step_duration, self.pulse_onset, self.pulse_duration]
+
+    @torch.no_grad()
+    def project_(self, min_duration: float = 1e-2) -> None:
+        """Project onto the feasible set: a, b ≥ 0, durations ≥ ``min_duration``."""
+        self.a_raw.clamp_(min=0.0)
+        self.b_raw.clamp_(min=0.0)
+        self.step_duration.clamp_(min=min_duration)
+        self.pulse_duration.clamp_(min=min_duration)
+
+    def profiles(self, t: torch.Tensor):
+        """ψ_ji(t), φ_ji(t): (N×M) each for a scalar t, or (T×N×M) for t (T)."""
+        t = torch.as_tensor(t, dtype=self.a_raw.dtype)
+        tt = t[..., None, None] if t.ndim else t
+        psi = step_profile((tt - self.step_onset) / self.step_duration)
+        phi = pulse_profile((tt - self.pulse_onset) / self.pulse_duration)
+        return psi, phi
+
+    def activation(self, t: torch.Tensor) -> torch.Tensor:
+        """w_ji(t) = a_ji ψ_ji(t) + b_ji φ_ji(t): (N×M), or (T×N×M) for t (T)."""
+        psi, phi = self.profiles(t)
+        return self.a * psi + self.b * phi
+
+
+class FieldProgram(nn.Module):
+    """The torque program of N motions: τ(t, ν) = Σ_i w_ji(t) χ_i(ν) for each motion j.
+
+    Called as ``program(t, q, v)`` with q (...×N×n) — the motion index on the last batch
+    dimension — it returns τ (...×N×n). ``index`` restricts it to some motions.
+    """
+
+    def __init__(self, basis: FieldBasis, weights: MotionWeights,
+                 index: Optional[Sequence[int]] = None):
+        super().__init__()
+        self.basis, self.weights = basis, weights
+        self.index = None if index is None else torch.as_tensor(index, dtype=torch.long)
+
+    def forward(self, t, q, v=None):
+        w = self.weights.activation(t)
+        if self.index is not None:
+            w = w[..., self.index, :]
+        chi = self.basis(q)
+        return (w.unsqueeze(-1) * chi).sum(-2)
