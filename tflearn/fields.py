@@ -25,6 +25,13 @@ from torch import nn
 K_KINDS = ("scalar", "diag", "block", "full")
 
 
+def as_float(x, like: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """A floating tensor: keeps a floating tensor's dtype, else float64 (or ``like``'s)."""
+    if isinstance(x, torch.Tensor) and x.is_floating_point():
+        return x
+    return torch.as_tensor(x, dtype=like.dtype if like is not None else torch.float64)
+
+
 def step_profile(u: torch.Tensor) -> torch.Tensor:
     """ψ(u) = u − sin(2πu)/(2π) on [0, 1], 0 for u < 0, 1 for u > 1 (C¹ everywhere)."""
     u = u.clamp(0.0, 1.0)
@@ -63,7 +70,7 @@ class Stiffness(nn.Module):
         super().__init__()
         if kind not in K_KINDS:
             raise ValueError(f"unknown stiffness kind {kind!r} (expected one of {K_KINDS})")
-        K = torch.as_tensor(K, dtype=torch.get_default_dtype())
+        K = as_float(K)
         M, n = K.shape[0], K.shape[-1]
         self.kind, self.n = kind, n
         blocks = list(blocks) if blocks is not None else [n]
@@ -107,8 +114,8 @@ class FieldBasis(nn.Module):
     def __init__(self, eta: torch.Tensor, K: torch.Tensor, kind: str = "diag",
                  blocks: Optional[Sequence[int]] = None):
         super().__init__()
-        eta = torch.as_tensor(eta, dtype=torch.get_default_dtype())
-        K = torch.as_tensor(K, dtype=eta.dtype)
+        eta = as_float(eta)
+        K = as_float(K, eta).to(eta.dtype)
         if eta.ndim != 2 or K.shape != eta.shape + eta.shape[-1:]:
             raise ValueError(f"FieldBasis: eta must be M×n and K M×n×n, got "
                              f"{tuple(eta.shape)} and {tuple(K.shape)}")
@@ -147,15 +154,15 @@ class MotionWeights(nn.Module):
                  step_onset=None, step_duration=None, pulse_onset=None, pulse_duration=None,
                  names: Optional[Sequence[str]] = None):
         super().__init__()
-        a = torch.as_tensor(a, dtype=torch.get_default_dtype())
-        b = torch.as_tensor(b, dtype=a.dtype)
-        duration = torch.as_tensor(duration, dtype=a.dtype).reshape(-1)
+        a = as_float(a)
+        b = as_float(b, a).to(a.dtype)
+        duration = as_float(duration, a).to(a.dtype).reshape(-1)
         if a.ndim != 2 or b.shape != a.shape or duration.shape[0] != a.shape[0]:
             raise ValueError("MotionWeights: a and b must be N×M and duration N")
         lam = duration[:, None].expand_as(a)
 
         def init(x, default):
-            return (torch.as_tensor(x, dtype=a.dtype) if x is not None else default).clone()
+            return (as_float(x, a).to(a.dtype) if x is not None else default).clone()
         self.a_raw = nn.Parameter(a.clone())
         self.b_raw = nn.Parameter(b.clone())
         self.step_onset = nn.Parameter(init(step_onset, torch.zeros_like(a)))
