@@ -120,7 +120,8 @@ class FieldBasis(nn.Module):
             raise ValueError(f"FieldBasis: eta must be M×n and K M×n×n, got "
                              f"{tuple(eta.shape)} and {tuple(K.shape)}")
         self.eta = nn.Parameter(eta.clone())
-        self.stiffness = Stiffness(K, kind, blocks)
+        self.blocks = list(blocks) if blocks is not None else [eta.shape[1]]
+        self.stiffness = Stiffness(K, kind, self.blocks)
 
     @property
     def M(self) -> int:
@@ -202,6 +203,13 @@ class MotionWeights(nn.Module):
         tt = t[..., None, None] if t.ndim else t
         psi = step_profile((tt - self.step_onset) / self.step_duration)
         phi = pulse_profile((tt - self.pulse_onset) / self.pulse_duration)
+        return psi, phi
+
+    def profiles_per_motion(self, t: torch.Tensor):
+        """ψ, φ at each motion's own times: t (N×T) → (N×T×M) each."""
+        tt = t.unsqueeze(-1)
+        psi = step_profile((tt - self.step_onset[:, None]) / self.step_duration[:, None])
+        phi = pulse_profile((tt - self.pulse_onset[:, None]) / self.pulse_duration[:, None])
         return psi, phi
 
     def activation(self, t: torch.Tensor) -> torch.Tensor:

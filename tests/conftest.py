@@ -1,0 +1,183 @@
+"""Shared helpers for the tflearn tests.
+
+Everything is float64 and passed explicitly (``dtype=DT``); the global default dtype is
+left alone. Pinocchio (PyPI ``pin``) is the reference implementation for the dynamics
+tests and is imported lazily so that the tests that do not need it run without it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tflearn import body as tb
+
+DT = torch.float64
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _single_thread():
+    """Run torch on one thread for the session.
+
+    The tensors here are tiny (a few 7-vectors); intra-op threading only adds overhead
+    (one ODE right-hand side costs ~8 ms on 2 threads against ~1.5 ms on one), and the
+    simulation tests make thousands of such calls.
+    """
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture
+def rng():
+    """A seeded numpy generator (fresh per test, so tests do not depend on order)."""
+    return np.random.default_rng(20240611)
+
+
+@pytest.fixture
+def gen():
+    """A seeded torch generator (fresh per test)."""
+    return torch.Generator().manual_seed(20240611)
+
+
+# ----------------------------------------------------------------------------- bodies
+
+ARM_OFFSETS = [[0.1, 0.2, -0.3], [0.3, -0.1, 0.2], [-0.2, 0.4, 0.1]]
+GRAVITY = (0.0, 0.0, -9.81)
+
+
+def random_spd3(rng, scale=0.05):
+    """A random symmetric positive-definite 3x3 inertia (well conditioned)."""
+    A = rng.normal(size=(3, 3))
+    return scale * (A @ A.T + 0.5 * np.eye(3))
+
+
+def unit(rng, n=3):
+    x = rng.normal(size=n)
+    return x / np.linalg.norm(x)
+
+
+def make_tree(gravity=(0.0, 0.0, 0.0), seed=7) -> tb.Body:
+    """A branching tree with general link data: off-axis centres of mass, full inertia
+    matrices, unaligned hinge axes, random joint origins and zero orientations.
+
+    parents [-1, 0, 1, 0, 3], joints [ball, hinge, ball, hinge, ball] (nv = 11).
+    """
+    r = np.random.default_rng(seed)
+    parents = [-1, 0, 1, 0, 3]
+    joints = ["ball", "hinge", "ball", "hinge", "ball"]
+    links = []
+    for i, (p, j) in enumerate(zip(parents, joints)):
+        links.append(tb.Link(
+            name=f"l{i}", parent=p, joint=j,
+            origin=tuple(r.normal(scale=0.2, size=3)) if p >= 0 else (0.0, 0.0, 0.0),
+            mass=float(r.uniform(0.5, 2.0)),
+            com=tuple(r.normal(scale=0.1, size=3)),
+            inertia=tuple(map(tuple, random_spd3(r))),
+            offset=tuple(r.uniform(-1.0, 1.0, size=3)),
+            axis=tuple(unit(r))))
+    return tb.Body(links=tuple(links), gravity=tuple(gravity), tip_link=2,
+                   tip_point=tuple(r.normal(scale=0.2, size=3)), name="tree")
+
+
+def make_body(name: str, gravity=(0.0, 0.0, 0.0)) -> tb.Body:
+    if name == "arm":
+        return tb.arm(gravity=list(gravity))
+    if name == "arm_offsets":
+        return tb.arm(gravity=list(gravity), offsets=ARM_OFFSETS)
+    if name == "chain3_ball":
+        return tb.chain(3, "ball", gravity=gravity)
+    if name == "chain4_hinge":
+        return tb.chain(4, "hinge", gravity=gravity)
+    if name == "tree":
+        return make_tree(gravity)
+    raise KeyError(name)
+
+
+BODY_NAMES = ["arm", "arm_offsets", "chain3_ball", "chain4_hinge", "tree"]
+
+
+# ------------------------------------------------------------------------ pinocchio
+
+def to_pin(body: tb.Body):
+    """The Pinocchio model of a body; link i is Pinocchio joint i + 1."""
+    import pinocchio as pin
+
+    model = pin.Model()
+    ids = []
+    for link in body.links:
+        if link.joint == "fixed":
+            raise NotImplementedError("to_pin: fixed joints are not converted")
+        parent = 0 if link.parent < 0 else ids[link.parent]
+        place = pin.SE3(pin.exp3(np.array(link.offset, dtype=float)),
+                        np.array(link.origin, dtype=float))
+        jm = (pin.JointModelSpherical() if link.joint == "ball"
+              else pin.JointModelRevoluteUnaligned(np.array(link.axis, dtype=float)))
+        jid = model.addJoint(parent, jm, place, link.name)
+        model.appendBodyToJoint(
+            jid, pin.Inertia(link.mass, np.array(link.com, dtype=float),
+                             np.array(link.inertia, dtype=float)), pin.SE3.Identity())
+        ids.append(jid)
+    assert ids == list(range(1, len(body.links) + 1))
+    model.gravity.linear = np.array(body.gravity, dtype=float)
+    return model
+
+
+def q_to_pin(body: tb.Body, q) -> np.ndarray:
+    """tflearn coordinates ν (nv,) → Pinocchio configuration (quaternions XYZW for balls)."""
+    import pinocchio as pin
+
+    q = np.asarray(q, dtype=float)
+    parts = []
+    for i, link in enumerate(body.links):
+        s = q[body.slice(i)]
+        if link.joint == "ball":
+            parts.append(pin.Quaternion(pin.exp3(s)).coeffs())
+        elif link.joint == "hinge":
+            parts.append(s)
+    return np.concatenate(parts)
+
+
+def full_symmetric(upper: np.ndarray) -> np.ndarray:
+    """pin.crba fills only the upper triangle; mirror it."""
+    return np.triu(upper) + np.triu(upper, 1).T
+
+
+# --------------------------------------------------------------------------- states
+
+# Ball-joint rotation angles for the first states: π, just below π, tiny, zero; then π
+# again about a signed coordinate axis, so that |v| is π to the last bit.
+SPECIAL_ANGLES = [math.pi, math.pi - 1e-9, 1e-9, 0.0, math.pi]
+
+
+def random_coords(body: tb.Body, rng, n: int) -> np.ndarray:
+    """n coordinate vectors (n×nv). Ball angles: the special ones first (each ball joint
+    of state k < 5 gets SPECIAL_ANGLES[k]), then uniform in (0, π]; random axes (state 4:
+    random signed coordinate axes). Hinge angles uniform in [−2π, 2π]."""
+    q = np.zeros((n, body.nv))
+    for k in range(n):
+        for i, link in enumerate(body.links):
+            s = body.slice(i)
+            if link.joint == "ball":
+                ang = SPECIAL_ANGLES[k] if k < len(SPECIAL_ANGLES) else math.pi - rng.uniform(0.0, math.pi)
+                axis = unit(rng)
+                if k == 4:
+                    axis = np.sign(rng.normal()) * np.eye(3)[rng.integers(3)]
+                q[k, s] = ang * axis
+            elif link.joint == "hinge":
+                q[k, s] = rng.uniform(-2 * math.pi, 2 * math.pi)
+    return q
+
+
+def max_rel_err(x, ref) -> float:
+    """max |x − ref| / max(1, max |ref|)."""
+    x, ref = np.asarray(x), np.asarray(ref)
+    return float(np.abs(x - ref).max() / max(1.0, np.abs(ref).max()))
+
+
+def wrap_angle(theta):
+    """Wrap to (−π, π]."""
+    return math.pi - np.mod(math.pi - np.asarray(theta), 2 * math.pi)
