@@ -153,14 +153,18 @@ def test_basis_gradcheck(gen):
     assert gradcheck(f, (q, eta, raw))
 
 
-def test_basis_keeps_float32(gen):
+def test_modules_are_float64_and_convert_with_to(gen):
     eta = torch.randn(2, 7, generator=gen).float()
     K = torch.eye(7).expand(2, 7, 7).float()
     basis = F.FieldBasis(eta, K, kind="diag")
-    assert basis.eta.dtype == torch.float32 and basis(torch.zeros(7)).dtype == torch.float32
-    # Non-tensor input is read as float64.
-    b64 = F.FieldBasis([[0.0] * 7], [torch.eye(7).tolist()], kind="scalar")
-    assert b64.eta.dtype == torch.float64 and b64.K().dtype == torch.float64
+    assert basis.eta.dtype == torch.float64
+    assert basis(torch.zeros(7, dtype=torch.float64)).dtype == torch.float64
+    w = F.MotionWeights(torch.tensor([[3.0, 0.0]]), torch.tensor([[0.0, 1.0]]), torch.tensor([3.0]))
+    assert w.a.dtype == torch.float64
+    assert torch.allclose(F.FieldProgram(basis, w)(torch.tensor(1.0), torch.zeros(1, 7, dtype=torch.float64)),
+                          F.FieldProgram(basis, w)(1.0, torch.zeros(1, 7, dtype=torch.float64)))
+    b32 = basis.float()
+    assert b32(torch.zeros(7)).dtype == torch.float32
 
 
 # ------------------------------------------------------------------------- weights

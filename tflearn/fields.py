@@ -26,10 +26,8 @@ K_KINDS = ("scalar", "diag", "block", "full")
 
 
 def as_float(x, like: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """A floating tensor: keeps a floating tensor's dtype, else float64 (or ``like``'s)."""
-    if isinstance(x, torch.Tensor) and x.is_floating_point():
-        return x
-    return torch.as_tensor(x, dtype=like.dtype if like is not None else torch.float64)
+    """x as a float64 tensor (modules are built in float64; use ``.to()`` for others)."""
+    return torch.as_tensor(x, dtype=torch.float64)
 
 
 def step_profile(u: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,1 @@
+"""File formats: basis.json (the learned model, readable without tflearn)."""

@@ -1,0 +1,537 @@
+"""Sampled limb motions: a container, ``.npz`` files, splines and inverse-dynamics torques.
+
+A :class:`Motion` holds T samples of a body's coordinates ν (T×nv, the layout of
+:mod:`tflearn.body`: rotation vectors for ball joints, angles for hinges) at strictly
+increasing times t (T), and optionally the velocities (T×nv, body convention: a ball
+joint's is the child's angular velocity relative to its parent in the child frame, a
+hinge's is θ̇). Everything is float64 torch.
+
+Files are ``.npz`` archives holding float arrays ``t`` (T), ``q`` (T×nv) and optionally
+``qd`` (T×nv); the motion is named after the file stem. Bad files raise
+:class:`MotionFileError` naming the file and the problem.
+
+Torques (thesis appendix A). The samples are joined by a quintic interpolating spline
+(C⁴, exact derivatives) and inverse dynamics is applied to it. The thesis splines unit
+quaternions with a C¹ Hermite scheme (so its ω̇ jumps at the knots); here ball joints
+have two exact alternatives (``method``):
+
+* ``"quat"`` (default): the samples' quaternions, sign-aligned along the sequence, are
+  splined component-wise and ω = 2 vec(p̄ṗ)/|p|², ω̇ = 2 vec(p̄p̈)/|p|² − 2ω (p·ṗ)/|p|²
+  (exact for the non-unit spline p). Regular everywhere on SO(3).
+* ``"rotvec"``: the rotation vectors are unwrapped along the sequence
+  (:func:`unwrap_rotvec`: the principal vector may jump to an equivalent (|v| + 2πk) v̂
+  when |v| crosses π), splined, and mapped with the right Jacobian of SO(3):
+
+      ω = J_r(v) v̇,      ω̇ = J_r(v) v̈ + (d/dt J_r(v)) v̇,
+      J_r(v) = I − a(θ) [v]× + b(θ) [v]×²,  a = (1 − cos θ)/θ², b = (θ − sin θ)/θ³,
+
+  which satisfies [ω]× = Rᵀ Ṙ for R = exp([v]×) and is smooth at v = 0 (a and b are
+  even in θ, by Taylor series in θ² near 0). The chart is singular at |v| = 2π, which
+  an unwrapped sequence reaches when the joint comes back near its rest rotation after
+  crossing π; the derivatives there are poorly conditioned (measured: 100× the torque
+  error of ``"quat"`` on such a motion), hence the quaternion default.
+
+Hinges: the angle is splined directly.
+
+τ = RNEA(ν, ω, ω̇) + c·ω then gives the torque the program must have applied (the body's
+gravity is included; c is the body's viscous damping, which the simulator subtracts).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import roma
+import torch
+from scipy.interpolate import make_interp_spline
+
+from . import dynamics
+from .body import Body, arm
+
+DTYPE = torch.float64
+ARRAYS = ("t", "q", "qd")
+MIN_SAMPLES = 4
+TAYLOR_THETA2 = 0.25  # below θ² = 0.25 the J_r coefficients use their Taylor series
+
+
+# ----------------------------------------------------------------------------------------
+# SO(3) helpers (batched torch, any leading shape ...)
+# ----------------------------------------------------------------------------------------
+
+def hat(v: torch.Tensor) -> torch.Tensor:
+    """Skew matrix [v]× (...×3 → ...×3×3), [v]× w = v × w."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(v.shape + (3,))
+
+
+# Taylor coefficients in s = θ²: a = Σ (−s)ⁿ/(2n+2)!, b = Σ (−s)ⁿ/(2n+3)!, and d/ds.
+_A = [(-1) ** n / math.factorial(2 * n + 2) for n in range(8)]
+_B = [(-1) ** n / math.factorial(2 * n + 3) for n in range(8)]
+_DA = [(n + 1) * c for n, c in enumerate(_A[1:])]
+_DB = [(n + 1) * c for n, c in enumerate(_B[1:])]
+
+
+def _series(coef, s):
+    """Σ coef[n] sⁿ by Horner's rule."""
+    out = torch.full_like(s, coef[-1])
+    for c in reversed(coef[:-1]):
+        out = out * s + c
+    return out
+
+
+def _jr_coefficients(s: torch.Tensor):
+    """a(s), b(s) and their derivatives da/ds, db/ds at s = θ² (... each).
+
+    a = (1 − cos θ)/θ²,   b = (θ − sin θ)/θ³,
+    da/ds = (θ sin θ/2 − (1 − cos θ))/θ⁴,   db/ds = (θ(1 − cos θ) − 3(θ − sin θ))/(2θ⁵),
+    with 1 − cos θ = 2 sin²(θ/2). Below s = ``TAYLOR_THETA2`` (θ < 0.5), where the closed
+    forms cancel, their Taylor series (8 terms; relative error < 1e-14 everywhere) are
+    used; the closed forms are evaluated at a safe θ there so that values and autograd
+    derivatives stay finite at v = 0.
+    """
+    small = s < TAYLOR_THETA2
+    th = torch.sqrt(torch.where(small, torch.ones_like(s), s))
+    sn, omc = torch.sin(th), 2 * torch.sin(th / 2) ** 2
+    closed = (omc / th**2, (th - sn) / th**3, (th * sn / 2 - omc) / th**4,
+              (th * omc - 3 * (th - sn)) / (2 * th**5))
+    series = (_series(_A, s), _series(_B, s), _series(_DA, s), _series(_DB, s))
+    return tuple(torch.where(small, x, y) for x, y in zip(series, closed))
+
+
+def right_jacobian(v: torch.Tensor) -> torch.Tensor:
+    """J_r(v) = I − a [v]× + b [v]×² (...×3 → ...×3×3), so that ω = J_r(v) v̇ is the
+    body-frame angular velocity of R = exp([v]×) ([ω]× = Rᵀ Ṙ). J_r(0) = I."""
+    a, b, _, _ = _jr_coefficients((v * v).sum(-1))
+    K = hat(v)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device)
+    return eye - a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def body_velocity(v: torch.Tensor, vd: torch.Tensor) -> torch.Tensor:
+    """ω = J_r(v) v̇ = v̇ − a v×v̇ + b v×(v×v̇)  (...×3, ...×3 → ...×3)."""
+    a, b, _, _ = _jr_coefficients((v * v).sum(-1))
+    vxvd = torch.cross(v, vd, dim=-1)
+    return vd - a[..., None] * vxvd + b[..., None] * torch.cross(v, vxvd, dim=-1)
+
+
+def body_acceleration(v: torch.Tensor, vd: torch.Tensor, vdd: torch.Tensor) -> torch.Tensor:
+    """ω̇ = J_r(v) v̈ + (d/dt J_r) v̇ (...×3 each → ...×3).
+
+    With K = [v]×, K̇ = [v̇]× and K̇ v̇ = 0:
+        (d/dt J_r) v̇ = −ȧ v×v̇ + ḃ v×(v×v̇) + b v̇×(v×v̇),   ȧ = 2 (v·v̇) da/ds, ḃ likewise.
+    """
+    a, b, da, db = _jr_coefficients((v * v).sum(-1))
+    sd = 2 * (v * vd).sum(-1)
+    vxvd = torch.cross(v, vd, dim=-1)
+    jdot_vd = (-(da * sd)[..., None] * vxvd + (db * sd)[..., None] * torch.cross(v, vxvd, dim=-1)
+               + b[..., None] * torch.cross(vd, vxvd, dim=-1))
+    return body_velocity(v, vdd) + jdot_vd
+
+
+def _nearest_equivalent(v: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """The rotation vector (|v| + 2πk) v̂ equivalent to v that is closest to ref (...×3).
+
+    All vectors on v's axis with length ≡ |v| (mod 2π) give the same rotation; the
+    closest to ref along that line has k = round((v̂·ref − |v|)/2π). For v = 0 the axis
+    is taken from ref (x̂ when ref = 0 too).
+    """
+    th = v.norm(dim=-1, keepdim=True)
+    rn = ref.norm(dim=-1, keepdim=True)
+    ex = torch.zeros_like(v)
+    ex[..., 0] = 1.0
+    ref_axis = torch.where(rn > 0, ref / torch.where(rn > 0, rn, 1.0), ex)
+    axis = torch.where(th > 0, v / torch.where(th > 0, th, 1.0), ref_axis)
+    k = torch.round(((axis * ref).sum(-1, keepdim=True) - th) / (2 * math.pi))
+    return (th + 2 * math.pi * k) * axis
+
+
+def unwrap_rotvec(v: torch.Tensor) -> torch.Tensor:
+    """Unwrap a sequence of rotation vectors (...×T×3, time on dim −2) so that it is
+    continuous across |v| = π.
+
+    The sample of smallest |v| (per sequence) is kept as it is; going forwards and then
+    backwards from it, each sample is replaced by its equivalent (|v| + 2πk) v̂ closest to
+    its already unwrapped neighbour. Anchoring at the smallest rotation keeps the lift
+    away from the chart's singular shell |v| = 2π unless the motion really winds
+    (leaves the rest rotation, crosses π and comes back near it).
+    """
+    T = v.shape[-2]
+    anchor = v.norm(dim=-1).argmin(dim=-1, keepdim=True)    # ...×1
+    out = list(v.unbind(-2))
+    for i in range(1, T):
+        out[i] = torch.where(anchor < i, _nearest_equivalent(out[i], out[i - 1]), out[i])
+    for i in range(T - 2, -1, -1):
+        out[i] = torch.where(anchor > i, _nearest_equivalent(out[i], out[i + 1]), out[i])
+    return torch.stack(out, dim=-2)
+
+
+def wrap_rotvec(v: torch.Tensor) -> torch.Tensor:
+    """The principal rotation vector (|v| ≤ π) of the same rotation (...×3)."""
+    th = v.norm(dim=-1, keepdim=True)
+    phi = th - 2 * math.pi * torch.round(th / (2 * math.pi))
+    return torch.where(th > 0, v * (phi / torch.where(th > 0, th, 1.0)), v)
+
+
+# ----------------------------------------------------------------------------------------
+# Motions and their validation
+# ----------------------------------------------------------------------------------------
+
+class MotionError(ValueError):
+    """An invalid motion. ``problem`` is the message without the motion's name."""
+
+    def __init__(self, where: str, problem: str):
+        super().__init__(f"{where}: {problem}")
+        self.where, self.problem = where, problem
+
+
+class MotionFileError(MotionError):
+    """A motion file (or directory of files) that cannot be loaded; names the file(s)."""
+
+
+class _Problem(Exception):
+    """Internal: one validation problem, to be wrapped with the motion's or file's name."""
+
+
+def _as_array(name: str, x) -> np.ndarray:
+    """x as a float64 numpy array (raises _Problem for a non-numeric array)."""
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    arr = np.asarray(x)
+    if arr.dtype.kind not in "iuf":
+        raise _Problem(f"array {name!r} is not a real numeric array (dtype {arr.dtype})")
+    return arr.astype(np.float64)
+
+
+def _check_finite(name: str, arr: np.ndarray) -> None:
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        idx = idx[0] if len(idx) == 1 else idx
+        raise _Problem(f"array {name!r} contains NaN or Inf (first at index {idx})")
+
+
+def _validate(t, q, qd, body: Body):
+    """Check and convert (t, q, qd) to float64 numpy; raises _Problem with the first issue."""
+    t = _as_array("t", t)
+    if t.ndim != 1:
+        raise _Problem(f"array 't' has shape {t.shape}, expected a 1-D array of T times")
+    T = t.shape[0]
+    if T < MIN_SAMPLES:
+        raise _Problem(f"has {T} samples, at least {MIN_SAMPLES} are needed")
+    _check_finite("t", t)
+    dt = np.diff(t)
+    if (dt <= 0).any():
+        i = int(np.argmax(dt <= 0)) + 1
+        raise _Problem(f"times 't' are not strictly increasing "
+                       f"(t[{i}] = {float(t[i])!r} <= t[{i - 1}] = {float(t[i - 1])!r})")
+    expected = (T, body.nv)
+    q = _as_array("q", q)
+    if q.shape != expected:
+        raise _Problem(f"array 'q' has shape {q.shape}, expected {expected} "
+                       f"for the {body.name} body")
+    _check_finite("q", q)
+    if qd is not None:
+        qd = _as_array("qd", qd)
+        if qd.shape != expected:
+            raise _Problem(f"array 'qd' has shape {qd.shape}, expected {expected} "
+                           f"(the shape of 'q')")
+        _check_finite("qd", qd)
+    return t, q, qd
+
+
+@dataclass(eq=False)
+class Motion:
+    """A sampled motion of a body.
+
+    Attributes:
+        name: motion name (a file's stem).
+        t: sample times (T), strictly increasing, T ≥ 4.
+        q: coordinates ν (T×nv); for the arm [shoulder rotation vector (3), elbow angle
+            (1), wrist rotation vector (3)].
+        qd: optional velocities (T×nv), body convention (see :mod:`tflearn.body`).
+        body: the body the coordinates belong to (default: :func:`tflearn.body.arm`).
+    Arrays are converted to float64 torch tensors and validated on construction
+    (:class:`MotionError` names the motion and the problem).
+    """
+
+    name: str
+    t: torch.Tensor
+    q: torch.Tensor
+    qd: Optional[torch.Tensor] = None
+    body: Optional[Body] = None
+
+    def __post_init__(self):
+        self.name = str(self.name)
+        if self.body is None:
+            self.body = arm()
+        try:
+            t, q, qd = _validate(self.t, self.q, self.qd, self.body)
+        except _Problem as err:
+            raise MotionError(f"motion {self.name!r}", str(err)) from None
+        self.t = torch.from_numpy(t)
+        self.q = torch.from_numpy(q)
+        self.qd = None if qd is None else torch.from_numpy(qd)
+
+    @property
+    def T(self) -> int:
+        """Number of samples."""
+        return self.t.shape[0]
+
+    @property
+    def nv(self) -> int:
+        return self.q.shape[1]
+
+    @property
+    def duration(self) -> float:
+        """t[-1] − t[0], seconds."""
+        return float(self.t[-1] - self.t[0])
+
+    @property
+    def rate(self) -> float:
+        """Samples per second, 1 / median(Δt)."""
+        return float(1.0 / torch.median(torch.diff(self.t)))
+
+    @property
+    def q0(self) -> torch.Tensor:
+        """Initial coordinates (nv)."""
+        return self.q[0]
+
+    @property
+    def qd0(self) -> torch.Tensor:
+        """Initial velocities (nv): qd[0] if the motion has them, else the spline's."""
+        if self.qd is not None:
+            return self.qd[0]
+        return kinematics(self.body, self, self.t[:1])[1][0]
+
+
+# ----------------------------------------------------------------------------------------
+# Files
+# ----------------------------------------------------------------------------------------
+
+def _read_npz(path: Path) -> dict:
+    """The arrays of an .npz file (raises _Problem when unreadable or malformed)."""
+    if not path.is_file():
+        raise _Problem("no such file" if not path.exists() else "not a regular file")
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as err:  # noqa: BLE001 - any reader failure means "unreadable"
+        raise _Problem(f"not a readable .npz file ({type(err).__name__}: {err})") from None
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise _Problem("not an .npz archive (a single .npy array?)")
+    try:
+        with data:
+            arrays = {k: data[k] for k in data.files}
+    except Exception as err:  # noqa: BLE001 - e.g. a pickled (object) array, a bad member
+        raise _Problem(f"not a readable .npz file ({type(err).__name__}: {err})") from None
+    missing = [k for k in ("t", "q") if k not in arrays]
+    if missing:
+        raise _Problem(f"missing array {' and '.join(map(repr, missing))} "
+                       f"(found {sorted(arrays)})")
+    extra = sorted(set(arrays) - set(ARRAYS))
+    if extra:
+        raise _Problem(f"unexpected array(s) {', '.join(map(repr, extra))} "
+                       f"(expected 't', 'q' and optionally 'qd')")
+    return arrays
+
+
+def load(path, body: Optional[Body] = None) -> Motion:
+    """Read a motion from an ``.npz`` file with arrays t (T), q (T×nv), optional qd (T×nv).
+
+    ``body`` (default: the arm) fixes nv. Raises :class:`MotionFileError` naming the file
+    and the problem (unreadable file, missing array, wrong shape, NaN/Inf, non-increasing
+    t, fewer than 4 samples).
+    """
+    path = Path(path)
+    body = arm() if body is None else body
+    try:
+        arrays = _read_npz(path)
+        t, q, qd = _validate(arrays["t"], arrays["q"], arrays.get("qd"), body)
+    except _Problem as err:
+        raise MotionFileError(str(path), str(err)) from None
+    return Motion(path.stem, t, q, qd, body)
+
+
+def save(motion: Motion, path) -> None:
+    """Write a motion to ``path`` (.npz, exactly that name) as float64 t, q and qd if any."""
+    arrays = {"t": motion.t.numpy(), "q": motion.q.numpy()}
+    if motion.qd is not None:
+        arrays["qd"] = motion.qd.numpy()
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def load_dir(path, body: Optional[Body] = None) -> list[Motion]:
+    """All ``*.npz`` motions in a directory, sorted by name.
+
+    Every file is tried; if any fails, one :class:`MotionFileError` lists all the bad
+    files with their problems (one per line).
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise MotionFileError(str(path), "not a directory")
+    motions, errors = [], []
+    for file in sorted(path.glob("*.npz")):
+        try:
+            motions.append(load(file, body))
+        except MotionFileError as err:
+            errors.append(str(err))
+    if errors:
+        raise MotionFileError(str(path), f"{len(errors)} bad motion file(s):\n  "
+                              + "\n  ".join(errors))
+    return sorted(motions, key=lambda m: m.name)
+
+
+# ----------------------------------------------------------------------------------------
+# Splines, kinematics and torques
+# ----------------------------------------------------------------------------------------
+
+SPLINE_METHODS = ("quat", "rotvec")
+
+
+def align_quaternions(quat: torch.Tensor) -> torch.Tensor:
+    """Flip signs along a sequence of unit quaternions (...×T×4, time on dim −2) so that
+    successive ones have a non-negative dot product (q and −q are the same rotation)."""
+    dots = (quat[..., 1:, :] * quat[..., :-1, :]).sum(-1)
+    flips = torch.cat([torch.ones_like(dots[..., :1]), torch.where(dots < 0, -1.0, 1.0)], -1)
+    return quat * torch.cumprod(flips, dim=-1)[..., None]
+
+
+def quat_body_motion(p: torch.Tensor, pd: torch.Tensor, pdd: torch.Tensor):
+    """Body angular velocity and acceleration of a non-unit quaternion path p(t) (XYZW,
+    ...×4), R(t) = R(p/|p|):
+
+        ω = 2 vec(p̄ ṗ)/|p|²,    ω̇ = 2 vec(p̄ p̈)/|p|² − ω · 2(p·ṗ)/|p|²
+
+    (vec(conj(ṗ) ṗ) = 0). For a unit path this is thesis eq. A.1, ω = 2 q̄ q̇, in the body
+    frame (q̇ = ½ q ⊗ (ω, 0), as in :mod:`tflearn.simulate`). Returns (ω, ω̇), ...×3 each.
+    """
+    n2 = (p * p).sum(-1, keepdim=True)
+    pc = roma.quat_conjugation(p)
+    w = 2 * roma.quat_product(pc, pd)[..., :3] / n2
+    n2dot = 2 * (p * pd).sum(-1, keepdim=True)
+    wd = 2 * roma.quat_product(pc, pdd)[..., :3] / n2 - w * (n2dot / n2)
+    return w, wd
+
+
+class MotionSpline:
+    """A C⁴ quintic interpolating spline (k = 5, not-a-knot ends; cubic for T < 6) through
+    a motion's samples, with exact derivatives mapped to body velocities.
+
+    Ball joints, two parametrisations (``method``):
+
+    * ``"quat"`` (default): the samples' unit quaternions, sign-aligned along the sequence
+      (:func:`align_quaternions`), are splined component-wise; the spline p(t) is not
+      exactly unit, which :func:`quat_body_motion` accounts for exactly. No singularity
+      anywhere on SO(3).
+    * ``"rotvec"``: the rotation vectors, unwrapped (:func:`unwrap_rotvec`), are splined
+      and mapped with the right Jacobian (:func:`body_velocity`,
+      :func:`body_acceleration`). Exact too, but the chart is singular at |v| = 2π: a
+      motion whose unwrapped vector nears 2π (one that turns back to the rest rotation
+      "the long way round") gets large, badly conditioned derivatives there.
+
+    Hinges: the angle is splined directly. Only positions are interpolated; a motion's
+    ``qd`` is not used (see :func:`torques`).
+
+    Calling it at times t (T', within [t[0], t[-1]]) returns (ν, velocity, acceleration,
+    rotations): ν principal coordinates (T'×nv, |v| ≤ π), velocity and acceleration
+    (T'×nv) in the body convention, and the ball joints' rotation matrices as the list
+    :func:`tflearn.dynamics.rnea_rot` takes (T'×3×3 per ball joint, None otherwise).
+    """
+
+    def __init__(self, body: Body, motion: Motion, method: str = "quat"):
+        if motion.nv != body.nv:
+            raise ValueError(f"motion {motion.name!r} has nv = {motion.nv}, "
+                             f"the {body.name} body has nv = {body.nv}")
+        if method not in SPLINE_METHODS:
+            raise ValueError(f"unknown spline method {method!r} "
+                             f"(expected one of {SPLINE_METHODS})")
+        self.body, self.name, self.method = body, motion.name, method
+        self.t0, self.t1 = float(motion.t[0]), float(motion.t[-1])
+        cols, self.columns, k = [], [], 0
+        for i, link in enumerate(body.links):
+            x = motion.q[:, body.slice(i)]
+            if link.joint == "ball":
+                x = (align_quaternions(roma.rotvec_to_unitquat(x)) if method == "quat"
+                     else unwrap_rotvec(x))
+            cols.append(x)
+            self.columns.append(slice(k, k + x.shape[-1]))
+            k += x.shape[-1]
+        degree = 5 if motion.T >= 6 else 3
+        self.spline = make_interp_spline(motion.t.numpy(), torch.cat(cols, -1).numpy(),
+                                         k=degree, axis=0)
+        self.d1, self.d2 = self.spline.derivative(1), self.spline.derivative(2)
+
+    def _times(self, t) -> np.ndarray:
+        t = np.atleast_1d(np.asarray(torch.as_tensor(t, dtype=DTYPE).cpu(), dtype=np.float64))
+        tol = 1e-9 * max(1.0, abs(self.t0), abs(self.t1))
+        if t.ndim != 1 or (t < self.t0 - tol).any() or (t > self.t1 + tol).any():
+            raise ValueError(f"motion {self.name!r}: times must be a 1-D array within "
+                             f"[{self.t0}, {self.t1}]")
+        return np.clip(t, self.t0, self.t1)
+
+    def __call__(self, t):
+        t = self._times(t)
+        x, xd, xdd = (torch.from_numpy(np.ascontiguousarray(f(t))) for f in
+                      (self.spline, self.d1, self.d2))
+        q, v, a, rots = [], [], [], []
+        for i, link in enumerate(self.body.links):
+            c = self.columns[i]
+            p, pd, pdd = x[:, c], xd[:, c], xdd[:, c]
+            if link.joint != "ball":
+                q.append(p), v.append(pd), a.append(pdd), rots.append(None)
+            elif self.method == "quat":
+                unit = roma.quat_normalize(p)
+                w, wd = quat_body_motion(p, pd, pdd)
+                q.append(roma.unitquat_to_rotvec(unit, shortest_arc=True))
+                v.append(w), a.append(wd), rots.append(roma.unitquat_to_rotmat(unit))
+            else:
+                q.append(wrap_rotvec(p)), v.append(body_velocity(p, pd))
+                a.append(body_acceleration(p, pd, pdd))
+                rots.append(dynamics.rotvec_to_rotmat(p))
+        return torch.cat(q, -1), torch.cat(v, -1), torch.cat(a, -1), rots
+
+
+def kinematics(body: Optional[Body], motion: Motion, t=None, method: str = "quat"):
+    """Spline coordinates ν (principal), velocities and accelerations (each T'×nv, body
+    convention) of a motion at times t (T', default the motion's own t); see
+    :class:`MotionSpline`. ``body`` None means ``motion.body``."""
+    body = motion.body if body is None else body
+    return MotionSpline(body, motion, method)(motion.t if t is None else t)[:3]
+
+
+def torques(body: Optional[Body], motion: Motion, t=None, method: str = "quat"):
+    """Inverse-dynamics torques of a sampled motion (thesis appendix A).
+
+    τ = RNEA(ν, ω, ω̇) + c ω with ν, ω, ω̇ from :class:`MotionSpline` at times t (T',
+    default motion.t), the body's gravity and damping c (``body`` None: motion.body).
+    The motion's own ``qd`` is not used: the quintic position spline already recovers ω
+    and ω̇ to high order (torque errors ~1e-5 relative at 100 Hz on simulated arm
+    motions), while a cubic Hermite spline through the positions and the exact velocities
+    measured 1.5e-3 to 7.6e-3 on the same motions (its second derivative is only
+    first-order accurate).
+    Returns (τ, ω, ω̇), float64 tensors T'×nv (ω, ω̇ the body-convention velocities and
+    accelerations: angular for ball joints, angle rates for hinges).
+    """
+    body = motion.body if body is None else body
+    q, v, a, rots = MotionSpline(body, motion, method)(motion.t if t is None else t)
+    tau = dynamics.rnea_rot(body, rots, q, v, a)
+    if body.damping:
+        tau = tau + body.damping * v
+    return tau, v, a
+
+
+def resample(motion: Motion, rate: float, body: Optional[Body] = None,
+             method: str = "quat") -> Motion:
+    """The motion sampled at ``rate`` Hz from t[0] (last sample ≤ t[-1]) on its spline,
+    with the spline's velocities as qd."""
+    if not rate > 0:
+        raise ValueError(f"resample: rate must be positive, got {rate}")
+    body = motion.body if body is None else body
+    n = int(math.floor(motion.duration * rate + 1e-9)) + 1
+    t = motion.t[0] + torch.arange(n, dtype=DTYPE) / rate
+    q, v, _ = kinematics(body, motion, t, method)
+    return Motion(motion.name, t, q, v, body)
