@@ -1,7 +1,13 @@
-"""The ``tflearn`` command line: ``tflearn SUBCOMMAND ...``."""
+"""The command line: ``tflearn SUBCOMMAND ...`` and ``train CONFIG [key=value ...]``.
+
+Subcommands: ``gestures`` (write the gesture library), ``train`` (learn a basis),
+``evaluate`` (re-simulate a run's basis against motions), ``simulate`` (play one motion's
+torque program from a basis.json).
+"""
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -15,8 +21,44 @@ def _gestures(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tflearn", description=__doc__)
+def _train(args) -> int:
+    import torch
+    from . import config, train
+    cfg = config.load(args.config, args.overrides)
+    torch.set_num_threads(args.threads)
+    metrics = train.run(cfg, restart=args.restart)
+    overall = metrics["overall"]
+    for name, m in metrics["motions"].items():
+        print(f"{name:>24s}: rmse {m['rmse']:.4f} rad, tip {100 * m['tip']:.2f} cm, "
+              f"torque error {100 * m['torque_rel_rms']:.2f}%{'' if m['success'] else '  (not reproduced)'}")
+    print(f"M = {overall['M']}, overall rmse {overall['rmse']:.4f} rad, max tip error "
+          f"{100 * overall['tip']:.2f} cm, {overall['wall_time_s']:.0f} s -> {cfg['out']}")
+    return 0 if overall["success"] else 1
+
+
+def _evaluate(args) -> int:
+    import torch
+    from . import evaluate
+    torch.set_num_threads(args.threads)
+    metrics = evaluate.evaluate_run(args.run, data=args.data, out=args.out)
+    for name, m in metrics["motions"].items():
+        tag = " (synthesized)" if m.get("synthesized") else ""
+        print(f"{name:>24s}: rmse {m['rmse']:.4f} rad, tip {100 * m['tip']:.2f} cm{tag}")
+    print(json.dumps(metrics["overall"]))
+    return 0
+
+
+def _simulate(args) -> int:
+    from . import evaluate
+    path = evaluate.simulate_basis_motion(args.basis, args.motion, args.out, rate=args.rate,
+                                          duration=args.duration)
+    print(path)
+    return 0
+
+
+def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("gestures", help="generate the thesis' gesture library (npz + json + png)")
@@ -24,16 +66,57 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=100.0, help="sampling rate in Hz (default 100)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.set_defaults(func=_gestures)
+
+    p = sub.add_parser("train", help="learn a shared basis of torque fields (see configs/)")
+    _train_args(p)
+
+    p = sub.add_parser("evaluate", help="re-simulate a run's basis against motions")
+    p.add_argument("run", type=Path, help="a run folder (with basis.json and config.yaml)")
+    p.add_argument("--data", default=None, help="motions to evaluate (default: the run's data)")
+    p.add_argument("--out", type=Path, default=None, help="metrics file (default RUN/evaluation.json)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.set_defaults(func=_evaluate)
+
+    p = sub.add_parser("simulate", help="play one motion's torque program from a basis.json")
+    p.add_argument("basis", type=Path)
+    p.add_argument("--motion", required=True, help="motion name in the basis")
+    p.add_argument("--out", type=Path, required=True, help="output .npz")
+    p.add_argument("--rate", type=float, default=None, help="samples per second (default: the motion's)")
+    p.add_argument("--duration", type=float, default=None, help="seconds (default: the motion's)")
+    p.set_defaults(func=_simulate)
     return parser
+
+
+def _train_args(p) -> None:
+    p.add_argument("config", type=Path, help="YAML config (e.g. configs/gestures.yaml)")
+    p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. seed=3 out=runs/x")
+    p.add_argument("--restart", action="store_true", help="discard a checkpoint in the output folder")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads (default 1: the tensors are small, threads only add overhead)")
+    p.set_defaults(func=_train)
+
+
+def _run(args, command: str) -> int:
+    from .config import ConfigError
+    from .io.basis import BasisFileError
+    from .motion import MotionError
+    try:
+        return args.func(args)
+    except (ConfigError, MotionError, BasisFileError, FileNotFoundError, KeyError) as err:
+        print(f"{command}: error: {err}", file=sys.stderr)
+        return 2
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except (ValueError, FileNotFoundError, KeyError) as err:
-        print(f"tflearn {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    return _run(args, f"tflearn {args.command}")
+
+
+def train_main(argv=None) -> int:
+    """The ``train`` console script: ``train CONFIG [key=value ...]``."""
+    p = argparse.ArgumentParser(prog="train", description="Learn a shared basis of torque fields.")
+    _train_args(p)
+    return _run(p.parse_args(argv), "train")
 
 
 if __name__ == "__main__":

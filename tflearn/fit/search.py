@@ -1,0 +1,252 @@
+"""Global search for a basis: data-driven centres, batched multi-start, greedy growth.
+
+The thesis found local descent fails from poor guesses (§4.1, §4.4). tflearn needs no
+guess: fields are added one at a time (matching pursuit over torque residuals),
+
+1. candidate centres come from the data — each motion's *torque-line centre* (a field
+   with isotropic K pushes along η − ν, so the lines ν_t + s·r_t through the samples along
+   the residual torques r_t meet at η; least squares gives
+   (Σ w_t P_t + εI) η = Σ w_t P_t ν_t + ε ν_end, P_t = I − r̂_t r̂_tᵀ, w_t = ‖r_t‖² Δt,
+   over the whole motion and over each half), the postures it settles at and passes
+   through, points beyond them along the residual torque, and seeded random
+   perturbations of all of these;
+2. each candidate is scored with every stiffness of a coarse-to-fine grid by the exact
+   NNLS torque cost of the enlarged basis (no simulation), all candidates in one batch;
+3. the best joins the basis and EM refines all fields together (:func:`~.torque.em`).
+
+:func:`grow` runs this loop for a set of motions, :func:`pool` joins per-motion fits
+into one basis, :func:`merge_close` merges fields whose centres and stiffnesses nearly
+coincide, and :func:`field_shares` ranks fields for backward elimination.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+
+from ..fields import FieldBasis, MotionWeights, step_profile
+from .nnls import nnls
+from .targets import Targets
+from .torque import design, normal_equations
+
+
+def empty_model(tg: Targets, n: int, kind: str, blocks) -> tuple:
+    """A basis with no fields and matching empty weights."""
+    z = torch.zeros(0, n, dtype=torch.float64)
+    basis = FieldBasis(z, torch.zeros(0, n, n, dtype=torch.float64), kind=kind, blocks=blocks)
+    w = torch.zeros(tg.N, 0, dtype=torch.float64)
+    return basis, MotionWeights(w, w, tg.duration, names=tg.names)
+
+
+def add_field(basis: FieldBasis, weights: MotionWeights, eta: torch.Tensor, K: torch.Tensor):
+    """A new (basis, weights) with one more field (weights zero, default phases)."""
+    with torch.no_grad():
+        new_basis = FieldBasis(torch.cat([basis.eta, eta[None]]), torch.cat([basis.K(), K[None]]),
+                               kind=basis.stiffness.kind, blocks=_blocks(basis))
+        z = torch.zeros(weights.N, 1, dtype=torch.float64)
+        lam = weights.duration[:, None]
+
+        def cat(x, fill):
+            return torch.cat([x, fill], dim=1)
+        new_w = MotionWeights(cat(weights.a, z), cat(weights.b, z), weights.duration,
+                              cat(weights.step_onset, z), cat(weights.step_duration, lam),
+                              cat(weights.pulse_onset, z), cat(weights.pulse_duration, lam),
+                              names=weights.names)
+    return new_basis, new_w
+
+
+def keep_fields(basis: FieldBasis, weights: MotionWeights, keep: list):
+    """A new (basis, weights) with only the fields in ``keep``."""
+    idx = torch.as_tensor(keep, dtype=torch.long)
+    with torch.no_grad():
+        nb = FieldBasis(basis.eta[idx], basis.K()[idx], kind=basis.stiffness.kind,
+                        blocks=_blocks(basis))
+        nw = MotionWeights(weights.a[:, idx], weights.b[:, idx], weights.duration,
+                           weights.step_onset[:, idx], weights.step_duration[:, idx],
+                           weights.pulse_onset[:, idx], weights.pulse_duration[:, idx],
+                           names=weights.names)
+    return nb, nw
+
+
+def _blocks(basis: FieldBasis):
+    return basis.blocks
+
+
+def residual_torques(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
+    """T_j(t) − F_j(t) (N×T×n) at the current weights."""
+    with torch.no_grad():
+        if basis.M == 0:
+            return tg.tau.clone()
+        x = torch.cat([weights.a, weights.b], -1)
+        return tg.tau - (design(basis, weights, tg) @ x[:, None, :, None]).squeeze(-1)
+
+
+def torque_line_centre(q: torch.Tensor, r: torch.Tensor, w: torch.Tensor,
+                       anchor: torch.Tensor, eps: float = 1e-3) -> torch.Tensor:
+    """Least-squares meeting point of the lines {q_t + s r_t}; q, r (T×n), w (T) → (n).
+
+    Solves (Σ w_t P_t + ε S I) η = Σ w_t P_t q_t + ε S anchor, P_t = I − r̂ r̂ᵀ,
+    w_t ← w_t ‖r_t‖², S = Σ w_t (the ridge fixes directions the lines leave free)."""
+    n = q.shape[-1]
+    norm = r.norm(dim=-1, keepdim=True)
+    u = r / norm.clamp_min(1e-12)
+    wt = w * norm.squeeze(-1) ** 2
+    P = torch.eye(n, dtype=q.dtype) - u.unsqueeze(-1) * u.unsqueeze(-2)
+    S = wt.sum().clamp_min(1e-12)
+    A = (wt[:, None, None] * P).sum(0) + eps * S * torch.eye(n, dtype=q.dtype)
+    b = (wt[:, None, None] * P @ q.unsqueeze(-1)).squeeze(-1).sum(0) + eps * S * anchor
+    return torch.linalg.solve(A, b)
+
+
+def candidate_centres(tg: Targets, residual: torch.Tensor, count: int,
+                      generator: torch.Generator) -> torch.Tensor:
+    """Data-driven candidate centres (count×n), see the module docstring."""
+    cands = []
+    for j in range(tg.N):
+        m = tg.mask[j]
+        q, r, w = tg.q[j][m], residual[j][m], tg.w[j][m]
+        T = q.shape[0]
+        q_end = q[-1]
+        for lo, hi in ((0, T), (0, T // 2), (T // 2, T)):
+            cands.append(torque_line_centre(q[lo:hi], r[lo:hi], w[lo:hi], q[min(hi, T) - 1]))
+        mag = r.norm(dim=-1)
+        late = r[T // 2:].mean(0)
+        late_dir = late / late.norm().clamp_min(1e-12)
+        k = int(mag.argmax())
+        peak_dir = r[k] / mag[k].clamp_min(1e-12)
+        for s in (0.0, 0.3, 0.7):
+            cands.append(q_end + s * late_dir)
+            cands.append(q[k] + (s + 0.3) * peak_dir)
+        cands.append(q[T // 2])
+    base = torch.stack(cands)
+    extra = max(count - base.shape[0], 0)
+    if extra:
+        pick = torch.randint(0, base.shape[0], (extra,), generator=generator)
+        noise = 0.3 * torch.randn(extra, base.shape[1], generator=generator, dtype=base.dtype)
+        base = torch.cat([base, base[pick] + noise])
+    return base
+
+
+@torch.no_grad()
+def score_candidates(basis: FieldBasis, weights: MotionWeights, tg: Targets,
+                     centres: torch.Tensor, stiffnesses) -> torch.Tensor:
+    """Summed NNLS torque cost of the basis plus each candidate field (C×S).
+
+    The candidates' normal equations share the existing fields' block:
+    G = [[G_oo, G_on], [G_noᵀ, G_nn]], h = [h_o, h_n]; all C·S are solved in one
+    batched NNLS."""
+    M = basis.M
+    ks = torch.as_tensor(stiffnesses, dtype=torch.float64)
+    u = (tg.t / tg.duration[:, None]).clamp(0, 1)
+    psi = step_profile(u)                                                  # N×T
+    phi = 0.5 * (1 - torch.cos(2 * torch.pi * u))
+    d = tg.q.unsqueeze(0) - centres[:, None, None, :]                      # C×N×T×n
+    sq = (d ** 2).sum(-1)
+    chi = -(ks[:, None, None, None, None] * d.unsqueeze(0)) * \
+        torch.exp(-0.5 * ks[:, None, None, None] * sq.unsqueeze(0)).unsqueeze(-1)  # S×C×N×T×n
+    new = torch.stack([psi[..., None] * chi, phi[..., None] * chi], dim=-1)  # S×C×N×T×n×2
+    ws = tg.w / tg.torque_scale()[:, None]                                  # N×T
+    G_nn = torch.einsum("nt,scntdi,scntdj->scnij", ws, new, new)
+    h_n = torch.einsum("nt,scntdi,ntd->scni", ws, new, tg.tau)
+    if M:
+        G_oo, h_o = normal_equations(basis, weights, tg)                   # N×2M×2M, N×2M
+        Phi0 = design(basis, weights, tg)                                  # N×T×n×2M
+        G_on = torch.einsum("nt,ntdi,scntdj->scnij", ws, Phi0, new)        # S×C×N×2M×2
+        top = torch.cat([G_oo.expand(G_on.shape[:3] + G_oo.shape[-2:]), G_on], -1)
+        bottom = torch.cat([G_on.transpose(-1, -2), G_nn], -1)
+        G = torch.cat([top, bottom], -2)
+        h = torch.cat([h_o.expand(h_n.shape[:3] + h_o.shape[-1:]), h_n], -1)
+    else:
+        G, h = G_nn, h_n
+    x = nnls(G, h)
+    cost = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1))[..., 0, 0]
+    return cost.sum(-1).transpose(0, 1)                                    # C×S
+
+
+def best_candidate(basis, weights, tg, count: int, stiffnesses, generator,
+                   chunk: int = 16):
+    """(centre, stiffness, cost) of the best new field among data-driven candidates."""
+    residual = residual_torques(basis, weights, tg)
+    centres = candidate_centres(tg, residual, count, generator)
+    costs = torch.cat([score_candidates(basis, weights, tg, centres[i:i + chunk], stiffnesses)
+                       for i in range(0, centres.shape[0], chunk)])
+    flat = int(costs.argmin())
+    c, s = divmod(flat, costs.shape[1])
+    return centres[c], float(stiffnesses[s]), float(costs[c, s])
+
+
+@torch.no_grad()
+def field_shares(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
+    """Share of each field in the total model torque energy (M), summing to ≤ 1 per motion."""
+    Phi = design(basis, weights, tg)
+    M = basis.M
+    x = torch.cat([weights.a, weights.b], -1)
+    per = (Phi[..., :M] * x[:, None, None, :M] + Phi[..., M:] * x[:, None, None, M:])  # N×T×n×M
+    e = (tg.w[..., None] * (per ** 2).sum(-2)).sum(1)                                 # N×M
+    return (e / e.sum(-1, keepdim=True).clamp_min(1e-300)).amax(0)
+
+
+def merge_close(basis, weights, tg, distance: float):
+    """Merge pairs of fields whose centres are within ``distance`` (rad, Euclidean) and
+    whose stiffnesses differ by less than ``distance`` relatively; the merged field takes
+    the mean centre and stiffness. Returns (basis, weights, merged pairs)."""
+    with torch.no_grad():
+        eta, K = basis.eta, basis.K()
+        merged, used = [], set()
+        for i in range(basis.M):
+            for k in range(i + 1, basis.M):
+                if i in used or k in used:
+                    continue
+                close = (eta[i] - eta[k]).norm() < distance
+                similar = (K[i] - K[k]).norm() < distance * K[i].norm()
+                if bool(close and similar):
+                    merged.append((i, k))
+                    used |= {i, k}
+        if not merged:
+            return basis, weights, []
+        new_eta = eta.clone()
+        new_K = K.clone()
+        for i, k in merged:
+            new_eta[i] = 0.5 * (eta[i] + eta[k])
+            new_K[i] = 0.5 * (K[i] + K[k])
+        keep = [i for i in range(basis.M) if i not in {k for _, k in merged}]
+        basis.eta.copy_(new_eta)
+        nb, nw = keep_fields(basis, weights, keep)
+        nb2 = FieldBasis(nb.eta.detach(), new_K[torch.as_tensor(keep)], kind=basis.stiffness.kind,
+                         blocks=_blocks(basis))
+    return nb2, nw, merged
+
+
+def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates: int,
+         stiffnesses, generator: torch.Generator, em_steps: int, lr: float,
+         phases: bool = False, basis=None, weights=None):
+    """Greedy growth: add the best data-driven field and refine by EM, until every
+    motion's relative torque cost is ≤ ``tol`` or there are ``max_fields`` fields.
+
+    Returns (basis, weights, costs per motion)."""
+    from .torque import em, solve_weights
+    n = tg.q.shape[-1]
+    if basis is None:
+        basis, weights = empty_model(tg, n, kind, blocks)
+    costs = torch.ones(tg.N, dtype=torch.float64)
+    while basis.M < max_fields:
+        c, s, _ = best_candidate(basis, weights, tg, candidates, stiffnesses, generator)
+        basis, weights = add_field(basis, weights, c, s * torch.eye(n, dtype=torch.float64))
+        em(basis, weights, tg, steps=em_steps, lr=lr, phases=phases)
+        costs = solve_weights(basis, weights, tg)
+        if bool((costs <= tol).all()):
+            break
+    return basis, weights, costs
+
+
+def pool(tg: Targets, fits: list, kind: str, blocks):
+    """One basis holding the fields of several per-motion fits [(eta M_j×n, K M_j×n×n)],
+    with every motion's weights solved over all of them."""
+    from .torque import solve_weights
+    eta = torch.cat([e for e, _ in fits])
+    K = torch.cat([k for _, k in fits])
+    basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
+    z = torch.zeros(tg.N, basis.M, dtype=torch.float64)
+    weights = MotionWeights(z, z, tg.duration, names=tg.names)
+    solve_weights(basis, weights, tg)
+    return basis, weights

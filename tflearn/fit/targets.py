@@ -1,0 +1,84 @@
+"""Motions prepared for fitting: padded tensors of samples, velocities and torques."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .. import motion as motion_mod
+from ..body import Body
+
+
+@dataclass
+class Targets:
+    """N motions, each shifted to start at t = 0 and padded to a common length T.
+
+    names (N); t (N×T) sample times; mask (N×T) real samples; w (N×T) trapezoid
+    quadrature weights (zero on padding); q, v, tau (N×T×n) coordinates, body velocities
+    and inverse-dynamics torques; duration (N); q0, qd0 (N×n); grid (G) the union of all
+    sample times, index (N×T) each sample's position in it (for batched simulation)."""
+
+    names: list
+    t: torch.Tensor
+    mask: torch.Tensor
+    w: torch.Tensor
+    q: torch.Tensor
+    v: torch.Tensor
+    tau: torch.Tensor
+    duration: torch.Tensor
+    q0: torch.Tensor
+    qd0: torch.Tensor
+    grid: torch.Tensor
+    index: torch.Tensor
+
+    @property
+    def N(self) -> int:
+        return len(self.names)
+
+    def torque_scale(self) -> torch.Tensor:
+        """Σ_t w ‖τ‖² per motion (N): the normaliser of relative torque costs."""
+        return (self.w * (self.tau ** 2).sum(-1)).sum(-1).clamp_min(1e-12)
+
+    def select(self, idx) -> "Targets":
+        """The targets of some motions (a list of indices)."""
+        idx = torch.as_tensor(idx, dtype=torch.long)
+        sub = {k: getattr(self, k)[idx] for k in ("t", "mask", "w", "q", "v", "tau", "duration",
+                                                  "q0", "qd0", "index")}
+        return Targets(names=[self.names[i] for i in idx.tolist()], grid=self.grid, **sub)
+
+
+def _trapezoid(t: torch.Tensor) -> torch.Tensor:
+    dt = t[1:] - t[:-1]
+    w = torch.zeros_like(t)
+    w[:-1] += dt / 2
+    w[1:] += dt / 2
+    return w
+
+
+def prepare(body: Body, motions: list) -> Targets:
+    """Inverse-dynamics torques and padded tensors for a list of :class:`~tflearn.motion.Motion`."""
+    if not motions:
+        raise ValueError("no motions to fit")
+    N, T, n = len(motions), max(len(m.t) for m in motions), body.nv
+    z = dict(dtype=torch.float64)
+    t = torch.zeros(N, T, **z)
+    mask = torch.zeros(N, T, dtype=torch.bool)
+    w = torch.zeros(N, T, **z)
+    q, v, tau = (torch.zeros(N, T, n, **z) for _ in range(3))
+    for j, m in enumerate(motions):
+        k = len(m.t)
+        tj = torch.as_tensor(m.t, **z)
+        tau_j, vel_j, _ = motion_mod.torques(body, m)
+        t[j, :k] = tj - tj[0]
+        t[j, k:] = t[j, k - 1]
+        mask[j, :k] = True
+        w[j, :k] = _trapezoid(tj)
+        q[j, :k] = torch.as_tensor(m.q, **z)
+        v[j, :k] = torch.as_tensor(m.qd, **z) if m.qd is not None else vel_j
+        tau[j, :k] = tau_j
+        q[j, k:], v[j, k:], tau[j, k:] = q[j, k - 1], v[j, k - 1], tau[j, k - 1]
+    grid, inverse = torch.unique(torch.round(t * 1e9) / 1e9, sorted=True, return_inverse=True)
+    duration = t.amax(-1)
+    return Targets(names=[m.name for m in motions], t=t, mask=mask, w=w, q=q, v=v, tau=tau,
+                   duration=duration, q0=q[:, 0].clone(), qd0=v[:, 0].clone(),
+                   grid=grid, index=inverse)
