@@ -257,9 +257,22 @@ def test_program_is_weighted_sum_of_fields(gen):
     assert torch.equal(program(t, q, torch.zeros_like(v)), tau)
     # index= picks motions: row j of the result is motion index[j].
     single = F.FieldProgram(basis, w, index=[1])
-    assert torch.equal(single(t, q[:, 1:2], v[:, 1:2]), tau[:, 1:2])
+    assert float((single(t, q[:, 1:2], v[:, 1:2]) - tau[:, 1:2]).abs().max()) <= 1e-15
     swapped = F.FieldProgram(basis, w, index=[1, 0])
     tau_sw = swapped(t, q.flip(-2), v)
     assert float((tau_sw - tau.flip(-2)).abs().max()) <= 1e-15
     # Motion 0's weights on motion 1's coordinates give something else (index matters).
     assert float((F.FieldProgram(basis, w, index=[0])(t, q[:, 1:2]) - tau[:, 1:2]).abs().max()) > 1e-3
+
+
+@pytest.mark.parametrize("kind", ["scalar", "diag", "block", "full"])
+def test_project_bounds_stiffness_and_centres(kind):
+    K = torch.stack([1e4 * torch.eye(7, dtype=torch.float64), 1e-5 * torch.eye(7, dtype=torch.float64)])
+    basis = F.FieldBasis(torch.full((2, 7), 50.0, dtype=torch.float64), K, kind=kind, blocks=[3, 1, 3])
+    basis.project_()
+    eig = torch.linalg.eigvalsh(basis.K().detach())
+    lo, hi = F.K_RANGE
+    assert eig.min() >= lo * (1 - 1e-12) and eig.max() <= 7 * hi
+    assert torch.allclose(torch.diagonal(basis.K().detach(), dim1=-2, dim2=-1)[0],
+                          torch.full((7,), hi, dtype=torch.float64))
+    assert float(basis.eta.detach().abs().max()) == pytest.approx(F.ETA_MAX)

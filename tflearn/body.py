@@ -231,7 +231,9 @@ def from_config(cfg: dict | None) -> Body:
                     spec.pop("origin"), spec.pop("length"), spec.pop("mass"),
                     spec.pop("radius"),
                     **{k: tuple(v) if isinstance(v, list) else v for k, v in spec.items()}))
-            except (KeyError, TypeError) as err:
+            except KeyError as err:
+                raise ValueError(f"body.links[{i}]: missing key {err}") from None
+            except TypeError as err:
                 raise ValueError(f"body.links[{i}]: {err}") from None
         tip = cfg.pop("tip", {"link": len(links) - 1, "point": [0, 0, -links[-1].length]})
         body = Body(links=tuple(links), gravity=tuple(cfg.pop("gravity", (0, 0, 0))),

@@ -31,7 +31,8 @@ DEFAULTS: dict = {
             "stiffness_grid": [0.25, 0.5, 1.0, 2.0, 4.0, 8.0],
         },
         "each": {"max_fields": 3, "tol": 1e-5},   # per-motion growth: fields, relative torque cost
-        "em": {"steps": 300, "lr": 0.03},
+        # Levenberg–Marquardt steps per EM refinement; stop when a step gains < tol (relative)
+        "em": {"steps": 100, "tol": 1e-6},
         "path": {
             "steps": 20, "lr": 0.003,
             "method": "dopri5", "rtol": 1e-6, "atol": 1e-8,

@@ -23,6 +23,8 @@ import torch
 from torch import nn
 
 K_KINDS = ("scalar", "diag", "block", "full")
+K_RANGE = (1e-2, 20.0)      # bounds on the stiffness factors kept by FieldBasis.project_
+ETA_MAX = 2 * math.pi       # bound on |η_k| kept by FieldBasis.project_
 
 
 def as_float(x, like: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -95,6 +97,20 @@ class Stiffness(nn.Module):
         off = torch.where(self.mask & ~eye, self.raw, torch.zeros_like(self.raw))
         return off + torch.diag_embed(torch.exp(torch.diagonal(self.raw, dim1=-2, dim2=-1)))
 
+    @torch.no_grad()
+    def project_(self, k_min: float = K_RANGE[0], k_max: float = K_RANGE[1]) -> None:
+        """Keep k (scalar) or each diag(L)² in [k_min, k_max] and |L_ij| ≤ √k_max, so K stays
+        well conditioned (its eigenvalues ≤ n·k_max): a stiffness no motion constrains
+        cannot run off and make simulations stiff."""
+        if self.kind == "scalar":
+            self.raw.clamp_(math.log(k_min), math.log(k_max))
+            return
+        n = self.n
+        idx = torch.arange(n)
+        diag = self.raw[:, idx, idx].clamp(0.5 * math.log(k_min), 0.5 * math.log(k_max))
+        self.raw.clamp_(-math.sqrt(k_max), math.sqrt(k_max))
+        self.raw[:, idx, idx] = diag
+
     def forward(self) -> torch.Tensor:
         if self.kind == "scalar":
             eye = torch.eye(self.n, dtype=self.raw.dtype, device=self.raw.device)
@@ -133,10 +149,16 @@ class FieldBasis(nn.Module):
         """Stiffness matrices (M×n×n)."""
         return self.stiffness()
 
+    @torch.no_grad()
+    def project_(self) -> None:
+        """Keep |η_k| ≤ ETA_MAX and the stiffness within K_RANGE (see Stiffness.project_)."""
+        self.eta.clamp_(-ETA_MAX, ETA_MAX)
+        self.stiffness.project_()
+
     def forward(self, q: torch.Tensor) -> torch.Tensor:
         """χ_i(q) = −K_i d exp(−½ dᵀK_i d), d = q − η_i; q (...×n) → (...×M×n)."""
         d = q.unsqueeze(-2) - self.eta
-        Kd = (self.K() @ d.unsqueeze(-1)).squeeze(-1)
+        Kd = torch.einsum("mij,...mj->...mi", self.K(), d)
         g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
         return -Kd * g
 

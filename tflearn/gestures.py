@@ -54,6 +54,37 @@ GESTURES = {g.name: g for g in (
 )}
 
 
+SUPPORTED = {
+    "fields": (1, 2),               # fields per motion (the second one a pulse field)
+    "shoulder": (-1.6, 1.6),        # each shoulder rotation-vector component of η (rad)
+    "elbow": (-2.4, 0.0),           # elbow angle of η (rad)
+    "wrist": (-0.8, 0.8),           # each wrist rotation-vector component of η (rad)
+    "k": (0.5, 3.0),                # scalar stiffness
+    "a": (1.0, 3.0),                # step weight of the first field
+    "b": (0.5, 2.5),                # pulse weight of the second field
+    "duration": (2.0, 4.0),         # seconds
+}
+
+
+def random_gestures(count: int, seed: int = 0, ranges: dict | None = None) -> list:
+    """``count`` random torque-field programs within :data:`SUPPORTED` (or ``ranges``):
+    one step field, and with probability ½ a second, pulse field; from rest at ν = 0."""
+    r = dict(SUPPORTED, **(ranges or {}))
+    g = torch.Generator().manual_seed(seed)
+
+    def u(key, shape=()):
+        lo, hi = r[key]
+        return (lo + (hi - lo) * torch.rand(shape, generator=g, dtype=torch.float64)).tolist()
+    out = []
+    for i in range(count):
+        m = int(torch.randint(r["fields"][0], r["fields"][1] + 1, (), generator=g))
+        eta = tuple(tuple(u("shoulder", (3,)) + [u("elbow")] + u("wrist", (3,))) for _ in range(m))
+        out.append(Gesture(f"random{seed}_{i}", eta=eta, k=tuple(u("k") for _ in range(m)),
+                           a=(u("a"),) + (0.0,) * (m - 1), b=(0.0,) + tuple(u("b") for _ in range(m - 1)),
+                           duration=round(u("duration"), 2)))
+    return out
+
+
 def library_model(gestures=None, body: Body | None = None):
     """One FieldBasis holding every gesture's fields and MotionWeights selecting them.
 
@@ -89,7 +120,7 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
     gestures = list(gestures or GESTURES.values())
     basis, weights, spans = library_model(gestures, body)
     lam = max(g.duration for g in gestures)
-    t = torch.linspace(0.0, lam, int(round(lam * rate)) + 1, dtype=torch.float64)
+    t = torch.arange(0, int(round(lam * rate)) + 1, dtype=torch.float64) / rate
     q0 = torch.zeros(len(gestures), body.nv, dtype=torch.float64)
     with torch.no_grad():
         tr = sim.simulate(body, FieldProgram(basis, weights), q0, q0, t, method="dopri8",

@@ -37,11 +37,12 @@ def n_position(body: Body) -> int:
 
 def pack(body: Body, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Coordinates ν (...×nv) and velocities v (...×nv) → ODE state (...×(n_pos+nv))."""
+    batch = torch.broadcast_shapes(q.shape[:-1], v.shape[:-1])
+    q, v = q.expand(batch + q.shape[-1:]), v.expand(batch + v.shape[-1:])
     parts = []
     for i, link in enumerate(body.links):
         s = q[..., body.slice(i)]
         parts.append(roma.rotvec_to_unitquat(s) if link.joint == "ball" else s)
-    v = v.expand(q.shape[:-1] + v.shape[-1:])
     return torch.cat(parts + [v], dim=-1)
 
 

@@ -81,7 +81,6 @@ class Run:
     def __init__(self, cfg: dict, stop_after: int | None = None, progress: bool | None = None):
         self.cfg = cfg
         self.out = Path(cfg["out"])
-        self.out.mkdir(parents=True, exist_ok=True)
         self.body = from_config(cfg["body"])
         self.stop_after = stop_after
         self.checkpoints = 0
@@ -157,11 +156,12 @@ class Run:
     def execute(self, restart: bool = False) -> dict:
         torch.manual_seed(self.cfg["seed"])
         self._t0 = time.time()
+        motions = load_motions(self.cfg["data"], self.body)
+        tg = prepare(self.body, motions)
+        self.out.mkdir(parents=True, exist_ok=True)
         if restart and self.ckpt_path.exists():
             self.ckpt_path.unlink()
         state = self.load()
-        motions = load_motions(self.cfg["data"], self.body)
-        tg = prepare(self.body, motions)
         if state is None:
             gen = torch.Generator().manual_seed(self.cfg["seed"])
             state = {"config": self.cfg, "stage": "each", "cursor": 0, "fits": [], "model": None,
@@ -200,7 +200,8 @@ class Run:
         b, w, costs = search.grow(tg.select([j]), m["stiffness"], self.body.blocks,
                                   c["each"]["max_fields"], c["each"]["tol"],
                                   c["init"]["candidates"], c["init"]["stiffness_grid"], gen,
-                                  c["em"]["steps"], c["em"]["lr"], phases=m["phases"] == "variable")
+                                  c["em"]["steps"], phases=m["phases"] == "variable",
+                                  em_tol=c["em"]["tol"])
         state["fits"].append((b.eta.detach().clone(), b.K().detach().clone()))
         state["rng"] = gen.get_state()
         state["step"] += 1
@@ -216,7 +217,7 @@ class Run:
         def cb(step, costs):
             state["step"] += 1
             self.scalar("torque/cost_total", costs.sum(), state["step"])
-        return torque.em(basis, weights, tg, steps=steps or c["steps"], lr=c["lr"],
+        return torque.em(basis, weights, tg, steps=steps or c["steps"], tol=c["tol"],
                          phases=self.cfg["model"]["phases"] == "variable", callback=cb)
 
     def _metrics(self, basis, weights, tg, state, figures=False):

@@ -123,6 +123,8 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
         failed = not torch.isfinite(loss)
     except AssertionError:
         failed, value = True, float("inf")
+    if best is None and failed:
+        raise RuntimeError("path matching: the simulation fails at the starting point")
     if best is not None and (failed or value > best["loss"]):
         basis.load_state_dict(best["basis"])
         weights.load_state_dict(best["weights"])
@@ -131,6 +133,8 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
     opt.zero_grad()
     loss.backward()
     opt.step()
+    if fields:
+        basis.project_()
     weights.project_()
     return {"loss": value, "lr": lr, "best": best, "optimizer": opt.state_dict()}
 

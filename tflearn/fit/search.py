@@ -104,7 +104,7 @@ def candidate_centres(tg: Targets, residual: torch.Tensor, count: int,
     cands = []
     for j in range(tg.N):
         m = tg.mask[j]
-        q, r, w = tg.q[j][m], residual[j][m], tg.w[j][m]
+        q, r, w = tg.q[j][m], residual[j][m], tg.wt[j][m]
         T = q.shape[0]
         q_end = q[-1]
         for lo, hi in ((0, T), (0, T // 2), (T // 2, T)):
@@ -145,7 +145,7 @@ def score_candidates(basis: FieldBasis, weights: MotionWeights, tg: Targets,
     chi = -(ks[:, None, None, None, None] * d.unsqueeze(0)) * \
         torch.exp(-0.5 * ks[:, None, None, None] * sq.unsqueeze(0)).unsqueeze(-1)  # S×C×N×T×n
     new = torch.stack([psi[..., None] * chi, phi[..., None] * chi], dim=-1)  # S×C×N×T×n×2
-    ws = tg.w / tg.torque_scale()[:, None]                                  # N×T
+    ws = tg.wt / tg.torque_scale()[:, None]                                  # N×T
     G_nn = torch.einsum("nt,scntdi,scntdj->scnij", ws, new, new)
     h_n = torch.einsum("nt,scntdi,ntd->scni", ws, new, tg.tau)
     if M:
@@ -182,7 +182,7 @@ def field_shares(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torc
     M = basis.M
     x = torch.cat([weights.a, weights.b], -1)
     per = (Phi[..., :M] * x[:, None, None, :M] + Phi[..., M:] * x[:, None, None, M:])  # N×T×n×M
-    e = (tg.w[..., None] * (per ** 2).sum(-2)).sum(1)                                 # N×M
+    e = (tg.wt[..., None] * (per ** 2).sum(-2)).sum(1)                                 # N×M
     return (e / e.sum(-1, keepdim=True).clamp_min(1e-300)).amax(0)
 
 
@@ -218,22 +218,24 @@ def merge_close(basis, weights, tg, distance: float):
 
 
 def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates: int,
-         stiffnesses, generator: torch.Generator, em_steps: int, lr: float,
-         phases: bool = False, basis=None, weights=None):
+         stiffnesses, generator: torch.Generator, em_steps: int,
+         phases: bool = False, min_gain: float = 0.05, em_tol: float = 1e-6):
     """Greedy growth: add the best data-driven field and refine by EM, until every
-    motion's relative torque cost is ≤ ``tol`` or there are ``max_fields`` fields.
-
-    Returns (basis, weights, costs per motion)."""
+    motion's relative torque cost is ≤ ``tol``, there are ``max_fields`` fields, or a new
+    field lowers the summed cost by less than the fraction ``min_gain`` (it is then not
+    kept). Returns (basis, weights, costs per motion)."""
     from .torque import em, solve_weights
     n = tg.q.shape[-1]
-    if basis is None:
-        basis, weights = empty_model(tg, n, kind, blocks)
+    basis, weights = empty_model(tg, n, kind, blocks)
     costs = torch.ones(tg.N, dtype=torch.float64)
     while basis.M < max_fields:
         c, s, _ = best_candidate(basis, weights, tg, candidates, stiffnesses, generator)
-        basis, weights = add_field(basis, weights, c, s * torch.eye(n, dtype=torch.float64))
-        em(basis, weights, tg, steps=em_steps, lr=lr, phases=phases)
-        costs = solve_weights(basis, weights, tg)
+        nb, nw = add_field(basis, weights, c, s * torch.eye(n, dtype=torch.float64))
+        em(nb, nw, tg, steps=em_steps, phases=phases, tol=em_tol)
+        new_costs = solve_weights(nb, nw, tg)
+        if basis.M and float(new_costs.sum()) > (1 - min_gain) * float(costs.sum()):
+            break
+        basis, weights, costs = nb, nw, new_costs
         if bool((costs <= tol).all()):
             break
     return basis, weights, costs

@@ -14,14 +14,16 @@ class Targets:
     """N motions, each shifted to start at t = 0 and padded to a common length T.
 
     names (N); t (N×T) sample times; mask (N×T) real samples; w (N×T) trapezoid
-    quadrature weights (zero on padding); q, v, tau (N×T×n) coordinates, body velocities
-    and inverse-dynamics torques; duration (N); q0, qd0 (N×n); grid (G) the union of all
+    quadrature weights (zero on padding); wt (N×T) the same without the ``trim`` samples
+    at each end, where spline torques are least reliable (used by torque costs);
+    q, v, tau (N×T×n) coordinates, body velocities and inverse-dynamics torques; duration (N); q0, qd0 (N×n); grid (G) the union of all
     sample times, index (N×T) each sample's position in it (for batched simulation)."""
 
     names: list
     t: torch.Tensor
     mask: torch.Tensor
     w: torch.Tensor
+    wt: torch.Tensor
     q: torch.Tensor
     v: torch.Tensor
     tau: torch.Tensor
@@ -37,12 +39,12 @@ class Targets:
 
     def torque_scale(self) -> torch.Tensor:
         """Σ_t w ‖τ‖² per motion (N): the normaliser of relative torque costs."""
-        return (self.w * (self.tau ** 2).sum(-1)).sum(-1).clamp_min(1e-12)
+        return (self.wt * (self.tau ** 2).sum(-1)).sum(-1).clamp_min(1e-12)
 
     def select(self, idx) -> "Targets":
         """The targets of some motions (a list of indices)."""
         idx = torch.as_tensor(idx, dtype=torch.long)
-        sub = {k: getattr(self, k)[idx] for k in ("t", "mask", "w", "q", "v", "tau", "duration",
+        sub = {k: getattr(self, k)[idx] for k in ("t", "mask", "w", "wt", "q", "v", "tau", "duration",
                                                   "q0", "qd0", "index")}
         return Targets(names=[self.names[i] for i in idx.tolist()], grid=self.grid, **sub)
 
@@ -55,8 +57,12 @@ def _trapezoid(t: torch.Tensor) -> torch.Tensor:
     return w
 
 
-def prepare(body: Body, motions: list) -> Targets:
-    """Inverse-dynamics torques and padded tensors for a list of :class:`~tflearn.motion.Motion`."""
+def prepare(body: Body, motions: list, trim: int = 5) -> Targets:
+    """Inverse-dynamics torques and padded tensors for a list of :class:`~tflearn.motion.Motion`.
+
+    ``trim`` samples at each end of a motion are left out of torque costs: a spline's
+    second derivative is weakest at its ends, and a fast motion sampled at 100 Hz can
+    give end torques far from the true ones."""
     if not motions:
         raise ValueError("no motions to fit")
     N, T, n = len(motions), max(len(m.t) for m in motions), body.nv
@@ -79,6 +85,12 @@ def prepare(body: Body, motions: list) -> Targets:
         q[j, k:], v[j, k:], tau[j, k:] = q[j, k - 1], v[j, k - 1], tau[j, k - 1]
     grid, inverse = torch.unique(torch.round(t * 1e9) / 1e9, sorted=True, return_inverse=True)
     duration = t.amax(-1)
-    return Targets(names=[m.name for m in motions], t=t, mask=mask, w=w, q=q, v=v, tau=tau,
+    wt = w.clone()
+    for j, m in enumerate(motions):
+        k = len(m.t)
+        if k > 4 * trim:
+            wt[j, :trim] = 0
+            wt[j, k - trim:k] = 0
+    return Targets(names=[m.name for m in motions], t=t, mask=mask, w=w, wt=wt, q=q, v=v, tau=tau,
                    duration=duration, q0=q[:, 0].clone(), qd0=v[:, 0].clone(),
                    grid=grid, index=inverse)
