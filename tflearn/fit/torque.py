@@ -78,69 +78,85 @@ def field_parameters(basis: FieldBasis, weights: MotionWeights, phases: bool) ->
     return params + (weights.phase_parameters() if phases else [])
 
 
-def _free_parameters(basis: FieldBasis, weights: MotionWeights, phases: bool) -> dict:
-    """The fields' free parameters by name: η, the stiffness entries its kind leaves free
-    (not the structural zeros of diag/block kinds), and the phases if ``phases``."""
-    st = basis.stiffness
-    free = {"eta": basis.eta.detach()}
-    if st.kind == "scalar":
-        free["stiffness.raw"] = st.raw.detach()
-    else:
-        free["stiffness.raw"] = st.raw.detach()[:, st.mask]
-    if phases:
-        for k in ("step_onset", "step_duration", "pulse_onset", "pulse_duration"):
-            free[k] = getattr(weights, k).detach()
-    return free
+PHASES = ("step_onset", "step_duration", "pulse_onset", "pulse_duration")
 
 
-def _field_residual_fn(basis: FieldBasis, weights: MotionWeights, tg: Targets, phases: bool):
-    """(θ0, unflatten, f): the free field parameters flattened, a map back to named
-    tensors, and f(θ, x) → the weighted residuals √(w/S)(T − Φ(θ) x) of every sample (R)."""
-    from torch.func import functional_call
-    st = basis.stiffness
-    free = _free_parameters(basis, weights, phases)
-    names = list(free)
-    shapes = [free[k].shape for k in names]
-    theta0 = torch.cat([free[k].reshape(-1) for k in names])
-    scale = (tg.wt / tg.torque_scale()[:, None]).sqrt()[..., None]
-    flat_mask = None if st.kind == "scalar" else st.mask.reshape(-1).nonzero().squeeze(-1)
+class _FieldParameters:
+    """The fields' free parameters as one vector θ laid out field by field:
+    θ_i = [η_i (n), the stiffness entries its kind leaves free (not the structural zeros
+    of diag/block kinds), and with ``phases`` the N onsets/durations of each profile].
+    Each field's torque depends on θ_i alone, so ∂r/∂θ is assembled block by block."""
 
-    def unflatten(theta):
-        parts, k = {}, 0
-        for name, shape in zip(names, shapes):
-            parts[name] = theta[k:k + shape.numel()].reshape(shape)
-            k += shape.numel()
-        if flat_mask is not None:
-            M, n = basis.eta.shape
-            raw = torch.zeros(M, n * n, dtype=theta.dtype).index_copy(1, flat_mask, parts["stiffness.raw"])
-            parts["stiffness.raw"] = raw.reshape(M, n, n)
-        return parts
+    def __init__(self, basis: FieldBasis, weights: MotionWeights, tg: Targets, phases: bool):
+        self.basis, self.weights, self.tg, self.phases = basis, weights, tg, phases
+        st = basis.stiffness
+        self.M, self.n = basis.eta.shape
+        self.N = weights.N
+        self.flat_mask = None if st.kind == "scalar" else st.mask.reshape(-1).nonzero().squeeze(-1)
+        self.s = 1 if self.flat_mask is None else self.flat_mask.numel()
+        self.p = self.n + self.s + (4 * self.N if phases else 0)
+        self.scale = (tg.wt / tg.torque_scale()[:, None]).sqrt()[..., None]
 
-    def f(theta, x):
-        parts = unflatten(theta)
-        chi = functional_call(basis, {"eta": parts["eta"], "stiffness.raw": parts["stiffness.raw"]},
-                              (tg.q,))
-        ph = {k: parts.get(k, getattr(weights, k)) for k in
-              ("step_onset", "step_duration", "pulse_onset", "pulse_duration")}
-        tt = tg.t.unsqueeze(-1)
-        psi = step_profile((tt - ph["step_onset"][:, None]) / ph["step_duration"][:, None])
-        phi = pulse_profile((tt - ph["pulse_onset"][:, None]) / ph["pulse_duration"][:, None])
-        M = chi.shape[-2]
-        F = ((x[:, None, :M] * psi).unsqueeze(-1) * chi).sum(-2) + \
-            ((x[:, None, M:] * phi).unsqueeze(-1) * chi).sum(-2)
-        return (scale * (tg.tau - F)).reshape(-1)
-    return theta0, unflatten, f
+    def vector(self) -> torch.Tensor:
+        st = self.basis.stiffness
+        raw = st.raw.detach().reshape(self.M, -1)
+        raw = raw if self.flat_mask is None else raw[:, self.flat_mask]
+        blocks = [self.basis.eta.detach(), raw.reshape(self.M, self.s)]
+        if self.phases:
+            blocks += [getattr(self.weights, k).detach().T for k in PHASES]
+        return torch.cat(blocks, dim=-1).reshape(-1)
 
+    def _split(self, th: torch.Tensor):
+        """θ (...×p) → η (...×n), raw (scalar: ...; else ...×n×n), phases dict or None."""
+        n, s = self.n, self.s
+        eta, free = th[..., :n], th[..., n:n + s]
+        if self.flat_mask is None:
+            raw = free[..., 0]
+        else:
+            raw = torch.zeros(th.shape[:-1] + (n * n,), dtype=th.dtype).index_copy(
+                -1, self.flat_mask, free).reshape(th.shape[:-1] + (n, n))
+        ph = None
+        if self.phases:
+            ph = dict(zip(PHASES, th[..., n + s:].reshape(th.shape[:-1] + (4, self.N)).unbind(-2)))
+        return eta, raw, ph
 
-@torch.no_grad()
-def _assign(basis: FieldBasis, weights: MotionWeights, parts: dict) -> None:
-    basis.eta.copy_(parts["eta"])
-    basis.stiffness.raw.copy_(parts["stiffness.raw"])
-    for k in ("step_onset", "step_duration", "pulse_onset", "pulse_duration"):
-        if k in parts:
-            getattr(weights, k).copy_(parts[k])
-    basis.project_()
-    weights.project_()
+    @torch.no_grad()
+    def assign(self, theta: torch.Tensor) -> None:
+        eta, raw, ph = self._split(theta.reshape(self.M, self.p))
+        self.basis.eta.copy_(eta)
+        self.basis.stiffness.raw.copy_(raw)
+        if ph is not None:
+            for k in PHASES:
+                getattr(self.weights, k).copy_(ph[k].T)
+        self.basis.project_()
+        self.weights.project_()
+
+    def field_term(self, i: int, th: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """Field i's part of the weighted residual, −√(w/S)(a ψ + b φ) χ_i (R)."""
+        from torch.func import functional_call
+        eta, raw, ph = self._split(th)
+        chi = functional_call(self.basis, {"eta": eta[None], "stiffness.raw": raw[None]},
+                              (self.tg.q,))[..., 0, :]
+        if ph is None:
+            ph = {k: getattr(self.weights, k)[:, i].detach() for k in PHASES}
+        t = self.tg.t
+        psi = step_profile((t - ph["step_onset"][:, None]) / ph["step_duration"][:, None])
+        phi = pulse_profile((t - ph["pulse_onset"][:, None]) / ph["pulse_duration"][:, None])
+        act = x[:, i, None] * psi + x[:, self.M + i, None] * phi
+        return (-self.scale * act.unsqueeze(-1) * chi).reshape(-1)
+
+    def residual(self, theta, x) -> torch.Tensor:
+        th = theta.reshape(self.M, self.p)
+        r = (self.scale * self.tg.tau).reshape(-1)
+        for i in range(self.M):
+            r = r + self.field_term(i, th[i], x)
+        return r
+
+    def jacobian(self, theta, x) -> torch.Tensor:
+        from torch.func import jacfwd
+        th = theta.reshape(self.M, self.p)
+        return torch.cat([jacfwd(lambda z, i=i: self.field_term(i, z, x))(th[i])
+                          for i in range(self.M)], dim=1)
 
 
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
@@ -159,16 +175,16 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     steps, or when the cost falls by less than ``tol`` (relative). ``callback(step, costs)``
     is called every step. Returns the cost history (sum over motions) and leaves the
     weights at their NNLS optimum."""
-    from torch.func import jacfwd
-    theta, unflatten, f = _field_residual_fn(basis, weights, tg, phases)
+    fp = _FieldParameters(basis, weights, tg, phases)
+    theta = fp.vector()
     costs = solve_weights(basis, weights, tg)
     history = [float(costs.sum())]
     mu = 1e-3
     for step in range(steps):
         x = torch.cat([weights.a, weights.b], -1).detach()
         with torch.no_grad():
-            r = f(theta, x)
-        J = jacfwd(f)(theta, x)
+            r = fp.residual(theta, x)
+        J = fp.jacobian(theta, x)
         A = J.T @ J
         g = J.T @ r
         d = torch.diagonal(A).clone()
@@ -176,16 +192,15 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
         accepted = False
         for _ in range(8):
             delta = torch.linalg.solve(A + mu * torch.diag(d), -g)
-            _assign(basis, weights, unflatten(theta + delta))
+            fp.assign(theta + delta)
             new_costs = solve_weights(basis, weights, tg)
             if float(new_costs.sum()) < history[-1]:
-                theta = torch.cat([v.reshape(-1) for v in
-                                   _free_parameters(basis, weights, phases).values()])
+                theta = fp.vector()
                 costs, accepted, mu = new_costs, True, max(mu / 3, 1e-9)
                 break
             mu *= 4
         if not accepted:
-            _assign(basis, weights, unflatten(theta))
+            fp.assign(theta)
             costs = solve_weights(basis, weights, tg)
             break
         gain = history[-1] - float(costs.sum())
