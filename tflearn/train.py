@@ -6,7 +6,9 @@ resumes where it stopped and ends with the same result:
 1. ``each``   — every motion alone: greedy growth of its own fields from data-driven,
                 seeded multi-start candidates, refined by EM, until its relative torque
                 cost is below ``solver.each.tol`` (one unit per motion);
-2. ``pool``   — all per-motion fields in one basis; close fields merged; joint EM;
+2. ``pool``   — all per-motion fields in one basis, every motion's weights re-solved
+                over all of them (so no motion fits worse than alone); fields closer than
+                ``solver.merge.distance`` merged and refined jointly by EM;
 3. ``reduce`` — backward elimination: drop each field in turn (smallest share first)
                 and keep it dropped if every motion is still reproduced by simulation —
                 the smallest M found is reported (one unit per field tried);
@@ -231,13 +233,15 @@ class Run:
         basis, weights = search.pool(tg, state["fits"], kind, blocks)
         basis, weights, merged = search.merge_close(basis, weights, tg,
                                                     self.cfg["solver"]["merge"]["distance"])
-        hist = self._em(basis, weights, tg, state)
+        if merged:
+            self._em(basis, weights, tg, state)
+        cost = float(torque.solve_weights(basis, weights, tg).sum())
         m, ok = self._metrics(basis, weights, tg, state, figures=True)
         self.log_model(basis, weights, state["step"])
         state["model"] = model_state(basis, weights)
-        state["history"]["pool"] = {"M": basis.M, "merged": merged, "torque_cost": hist[-1],
+        state["history"]["pool"] = {"M": basis.M, "merged": merged, "torque_cost": cost,
                                     "success": ok}
-        self.status("pool", M=basis.M, cost=hist[-1], ok=sum(ok))
+        self.status("pool", M=basis.M, cost=cost, ok=sum(ok))
         self._advance(state, "reduce")
         state["order"] = None
         self.save(state)

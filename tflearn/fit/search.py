@@ -12,7 +12,9 @@ guess: fields are added one at a time (matching pursuit over torque residuals),
    perturbations of all of these;
 2. each candidate is scored with every stiffness of a coarse-to-fine grid by the exact
    NNLS torque cost of the enlarged basis (no simulation), all candidates in one batch;
-3. the best joins the basis and EM refines all fields together (:func:`~.torque.em`).
+3. the best joins the basis and EM refines all fields together (:func:`~.torque.em`);
+   for a second field, the best pairs of candidates found together
+   (:func:`best_pairs`) are refined too, and the best of these starts is kept.
 
 :func:`grow` runs this loop for a set of motions, :func:`pool` joins per-motion fits
 into one basis, :func:`merge_close` merges fields whose centres and stiffnesses nearly
@@ -217,6 +219,33 @@ def merge_close(basis, weights, tg, distance: float):
     return nb2, nw, merged
 
 
+def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
+               generator: torch.Generator, top: int = 8, keep: int = 3) -> list:
+    """Multi-start for two fields at once: the ``top`` best single candidates (each with
+    its best stiffness) are combined in pairs, every pair's weights solved by NNLS, and the
+    ``keep`` best pairs returned as (basis, weights). A second field added to a one-field
+    fit starts from that fit's compromise; a pair found together need not."""
+    from .torque import solve_weights
+    n = tg.q.shape[-1]
+    b0, w0 = empty_model(tg, n, kind, blocks)
+    centres = candidate_centres(tg, tg.tau, candidates, generator)
+    costs = score_candidates(b0, w0, tg, centres, stiffnesses)        # C×S
+    best_k = costs.argmin(-1)
+    order = costs.min(-1).values.argsort()[:top].tolist()
+    eye = torch.eye(n, dtype=torch.float64)
+    pairs = []
+    for x, i in enumerate(order):
+        for j in order[x + 1:]:
+            eta = torch.stack([centres[i], centres[j]])
+            K = torch.stack([float(stiffnesses[best_k[i]]) * eye, float(stiffnesses[best_k[j]]) * eye])
+            basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
+            z = torch.zeros(tg.N, 2, dtype=torch.float64)
+            weights = MotionWeights(z, z, tg.duration, names=tg.names)
+            pairs.append((float(solve_weights(basis, weights, tg).sum()), len(pairs), basis, weights))
+    pairs.sort(key=lambda p: p[:2])
+    return [(b, w) for _, _, b, w in pairs[:keep]]
+
+
 def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates: int,
          stiffnesses, generator: torch.Generator, em_steps: int,
          phases: bool = False, min_gain: float = 0.05, em_tol: float = 1e-6):
@@ -230,8 +259,14 @@ def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates
     costs = torch.ones(tg.N, dtype=torch.float64)
     while basis.M < max_fields:
         c, s, _ = best_candidate(basis, weights, tg, candidates, stiffnesses, generator)
-        nb, nw = add_field(basis, weights, c, s * torch.eye(n, dtype=torch.float64))
-        em(nb, nw, tg, steps=em_steps, phases=phases, tol=em_tol)
+        starts = [add_field(basis, weights, c, s * torch.eye(n, dtype=torch.float64))]
+        if basis.M == 1:
+            starts += best_pairs(tg, kind, blocks, candidates, stiffnesses, generator)
+        fits = []
+        for nb, nw in starts:
+            em(nb, nw, tg, steps=em_steps, phases=phases, tol=em_tol)
+            fits.append((float(solve_weights(nb, nw, tg).sum()), len(fits), nb, nw))
+        _, _, nb, nw = min(fits, key=lambda f: f[:2])
         new_costs = solve_weights(nb, nw, tg)
         if basis.M and float(new_costs.sum()) > (1 - min_gain) * float(costs.sum()):
             break
