@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import re
 from pathlib import Path
 
 import yaml
@@ -48,6 +49,16 @@ DEFAULTS: dict = {
 
 class ConfigError(ValueError):
     """A bad config key or value; the message names it."""
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads YAML 1.2 floats such as 1e-3 (YAML 1.1 wants 1.0e-3)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^[-+]?(?:[0-9][0-9_]*)?(?:\.[0-9_]*)?(?:[eE][-+]?[0-9]+)$|^[-+]?[0-9][0-9_]*\.[0-9_]*$"""),
+    list("-+0123456789."))
 
 
 def _check(cfg: dict, ref: dict, where: str = "") -> None:
@@ -106,7 +117,7 @@ def parse_override(text: str) -> tuple:
     if not sep or not key:
         raise ConfigError(f"override {text!r} is not of the form key=value")
     try:
-        value = yaml.safe_load(raw) if raw != "" else ""
+        value = yaml.load(raw, Loader=_Loader) if raw != "" else ""
     except yaml.YAMLError as err:
         raise ConfigError(f"override {text!r}: cannot parse value ({err})") from None
     return key.split("."), value
@@ -118,7 +129,7 @@ def load(path=None, overrides=()) -> dict:
     if path is not None:
         path = Path(path)
         try:
-            doc = yaml.safe_load(path.read_text()) or {}
+            doc = yaml.load(path.read_text(), Loader=_Loader) or {}
         except OSError as err:
             raise ConfigError(f"{path}: cannot read config ({err.strerror})") from None
         except yaml.YAMLError as err:

@@ -3,6 +3,7 @@ a frozen basis, and play one motion's program from a ``basis.json``."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import torch
@@ -60,7 +61,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
     motions = load_motions(data if data is not None else cfg["data"], lb.body)
     known = [m for m in motions if m.name in lb.names]
     new = [m for m in motions if m.name not in lb.names]
-    results = {}
+    results, counts = {}, {}
     for group, synth in ((known, False), (new, True)):
         if not group:
             continue
@@ -69,11 +70,13 @@ def evaluate_run(run, data=None, out=None) -> dict:
         m = path_fit.metrics(lb.body, lb.basis, weights, tg, **sim_kw)
         ok = path_fit.succeeded(m, cfg["success"]["rmse"], cfg["success"]["tip"])
         s = summarize(m, ok, tg, lb.basis.M, 0.0)
-        for name, row in s["motions"].items():
+        for j, (name, row) in enumerate(s["motions"].items()):
             row["synthesized"] = synth
             results[name] = row
-    rmse = [r["rmse"] for r in results.values()]
-    overall = {"rmse": float(torch.tensor(rmse).pow(2).mean().sqrt()),
+            counts[name] = int(tg.mask[j].sum())
+    # Over all samples of all motions, as in metrics.json.
+    n = sum(counts.values())
+    overall = {"rmse": math.sqrt(sum(r["rmse"] ** 2 * counts[k] for k, r in results.items()) / n),
                "tip": max(r["tip"] for r in results.values()),
                "success": all(r["success"] for r in results.values()), "M": lb.basis.M}
     doc = {"motions": results, "overall": overall}

@@ -338,7 +338,8 @@ def summarize(m: dict, ok: list, tg: Targets, M: int, wall: float) -> dict:
     per = {name: {"rmse": m["rmse"][j], "tip": m["tip"][j], "torque_rel_rms": m["torque"][j],
                   "success": ok[j]} for j, name in enumerate(tg.names)}
     counts = tg.mask.sum(-1).double()
-    overall_rmse = float(((torch.tensor(m["rmse"]) ** 2 * counts).sum() / counts.sum()).sqrt())
+    overall_rmse = float(((torch.tensor(m["rmse"], dtype=torch.float64) ** 2 * counts).sum()
+                          / counts.sum()).sqrt())
     return {"motions": per,
             "overall": {"rmse": overall_rmse, "tip": max(m["tip"]),
                         "torque_rel_rms": max(m["torque"]), "success": all(ok),

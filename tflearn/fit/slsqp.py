@@ -18,12 +18,16 @@ and the cost is the same summed relative torque cost as :func:`~.torque.torque_c
 step and pulse profiles at the motions' fixed phases). It is minimised by
 ``scipy.optimize.minimize(method="SLSQP")`` subject to the bounds
 
-    a ≥ 0,   b ≥ 0,   k ≥ k_min (1e-6),   η free,
+    a ≥ 0,   b ≥ 0,   k ≥ k_min (1e-6),   η free   (optionally k ≤ k_max, |η| ≤ eta_max),
 
 with no gradient supplied: scipy approximates ∇C by forward differences (absolute step
 ``eps``, one cost evaluation per parameter per gradient), as the thesis did. SLSQP's
 quasi-Newton (BFGS) model of the Hessian is built from those gradients. The cost is
 evaluated in torch (float64, no autograd).
+
+Like the thesis' runs it fails by "no motion": from a centre far from the path the field
+is ≈ 0 along it, the difference gradient is ≈ 0 and SLSQP stops at once, with scipy's
+``success`` set, at a cost of ≈ 1 — judge a result by its cost, not by ``success``.
 """
 from __future__ import annotations
 
@@ -78,14 +82,17 @@ def cost_function(weights: MotionWeights, tg: Targets, M: int, n: int) -> Callab
 
 def fit_slsqp(basis: FieldBasis, weights: MotionWeights, tg: Targets, max_iter: int = 200,
               ftol: float = 1e-12, eps: float = float(np.sqrt(np.finfo(float).eps)),
-              k_min: float = 1e-6, kind: Optional[str] = None, inplace: bool = False,
-              callback: Optional[Callable] = None) -> dict:
+              k_min: float = 1e-6, k_max: Optional[float] = None,
+              eta_max: Optional[float] = None, kind: Optional[str] = None,
+              inplace: bool = False, callback: Optional[Callable] = None) -> dict:
     """Minimise Σ_j C_j over x = [η, diag K, a, b] by SLSQP with numerical derivatives.
 
     Starts from ``basis``' centres and the diagonal of its stiffnesses (any kind; the
     off-diagonal part is dropped) and from ``weights``' a, b (its phases are held). SLSQP
     stops after ``max_iter`` iterations or when the cost changes by less than ``ftol``
-    (scipy's stopping rule); ``eps`` is the forward-difference step.
+    (scipy's stopping rule); ``eps`` is the forward-difference step. The bounds are the
+    thesis' (k ≥ ``k_min``, a, b ≥ 0); ``k_max`` and ``eta_max`` add k ≤ k_max and
+    |η| ≤ eta_max (e.g. :data:`tflearn.fields.K_RANGE`, ``ETA_MAX``), off by default.
 
     The result is returned as a new (basis, weights) pair: FieldBasis(η, diag(k),
     kind=``kind``) — by default ``basis``' kind, except that a ``scalar`` basis gives a
@@ -113,19 +120,25 @@ def fit_slsqp(basis: FieldBasis, weights: MotionWeights, tg: Targets, max_iter: 
         count[0] += 1
         return float(costs(x).sum())
 
-    lo = np.concatenate([np.full(M * n, -np.inf), np.full(M * n, k_min), np.zeros(2 * N * M)])
-    bounds = [(None if np.isinf(l) else float(l), None) for l in lo]
+    e_max = np.inf if eta_max is None else float(eta_max)
+    lo = np.concatenate([np.full(M * n, -e_max), np.full(M * n, k_min), np.zeros(2 * N * M)])
+    hi = np.concatenate([np.full(M * n, e_max), np.full(M * n, np.inf if k_max is None else k_max),
+                         np.full(2 * N * M, np.inf)])
+    x0 = np.clip(x0, lo, hi)
+    bounds = [(None if np.isinf(l) else float(l), None if np.isinf(h) else float(h))
+              for l, h in zip(lo, hi)]
     initial = fun(x0)
-    it = [0]
+    cb = None
+    if callback is not None:
+        it = [0]
 
-    def cb(xk):
-        it[0] += 1
-        if callback is not None:
+        def cb(xk):                                 # not counted in nfev: monitoring only
+            it[0] += 1
             callback(it[0], float(costs(xk).sum()))
 
     res = minimize(fun, x0, method="SLSQP", bounds=bounds, callback=cb,
                    options={"maxiter": max_iter, "ftol": ftol, "eps": eps})
-    x = np.maximum(res.x, lo)                       # SLSQP may step past a bound by an ulp
+    x = np.clip(res.x, lo, hi)                      # SLSQP may step past a bound by an ulp
     eta, k, a, b = unpack(x, M, n, N)
     final = costs(x)
     with torch.no_grad():

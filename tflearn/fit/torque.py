@@ -159,6 +159,22 @@ class _FieldParameters:
                           for i in range(self.M)], dim=1)
 
 
+def _project_out_weights(J, basis, weights, tg, scale, x) -> torch.Tensor:
+    """Kaufman's variable-projection Jacobian: J − Φ_a (Φ_aᵀΦ_a)⁻¹ Φ_aᵀ J per motion, Φ_a the
+    scaled design columns of the weights that are active (x > 0). The step then accounts
+    for the weights re-solving themselves, instead of holding them fixed."""
+    N, T, n = tg.tau.shape
+    Phi = (scale.unsqueeze(-1) * design(basis, weights, tg)).reshape(N, T * n, -1)
+    active = (x > 0).to(Phi.dtype)                                   # N×2M
+    Phi = Phi * active[:, None, :]
+    G = Phi.transpose(-1, -2) @ Phi
+    G = G + torch.diag_embed(1 - active) + 1e-12 * torch.diag_embed(
+        torch.diagonal(G, dim1=-2, dim2=-1).amax(-1, keepdim=True).expand_as(active))
+    Jn = J.reshape(N, T * n, -1)
+    coef = torch.linalg.solve(G, Phi.transpose(-1, -2) @ Jn)
+    return (Jn - Phi @ coef).reshape(J.shape)
+
+
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
        phases: bool = False, tol: float = 1e-10, callback: Optional[Callable] = None) -> list:
     """EM-style alternation: exact NNLS weights, then a damped Gauss–Newton step on the
@@ -168,10 +184,11 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     J = ∂r/∂θ (forward-mode autodiff), and the Levenberg–Marquardt step
         (JᵀJ + μ diag(JᵀJ)) δ = −Jᵀ r
     is accepted when the reduced cost min_x C(x, θ + δ) (weights re-solved) decreases,
-    μ shrinking on success and growing on failure. Holding x* while stepping θ is the
-    variable-projection approximation of Kaufman; it follows the long curved valleys
-    of this cost (centre distance, stiffness and weight trade off far from a centre)
-    that first-order descent crawls along. Stops after ``steps`` accepted or rejected
+    μ shrinking on success and growing on failure. J is Kaufman's variable-projection
+    Jacobian (:func:`_project_out_weights`): the part of ∂r/∂θ that the active weights
+    cannot absorb, so the step follows the reduced cost along the long curved valleys
+    (centre distance, stiffness and weights trade off far from a centre) that
+    first-order descent crawls along. Stops after ``steps`` accepted or rejected
     steps, or when the cost falls by less than ``tol`` (relative). ``callback(step, costs)``
     is called every step. Returns the cost history (sum over motions) and leaves the
     weights at their NNLS optimum."""
@@ -184,7 +201,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
         x = torch.cat([weights.a, weights.b], -1).detach()
         with torch.no_grad():
             r = fp.residual(theta, x)
-        J = fp.jacobian(theta, x)
+            J = _project_out_weights(fp.jacobian(theta, x), basis, weights, tg, fp.scale, x)
         A = J.T @ J
         g = J.T @ r
         d = torch.diagonal(A).clone()

@@ -106,8 +106,12 @@ def from_dict(doc: dict, kind: str = "full", blocks=None, where: str = "basis") 
     M, nv = len(doc["fields"]), body.nv
     if eta.shape != (M, nv) or K.shape != (M, nv, nv):
         fail(f"fields: expected eta of length {nv} and K {nv}×{nv}")
-    if M and not bool((torch.linalg.eigvalsh(0.5 * (K + K.transpose(-1, -2))) > 0).all()):
-        fail("fields: every K must be symmetric positive definite")
+    if M and not torch.allclose(K, K.transpose(-1, -2), rtol=1e-10, atol=1e-12):
+        fail("fields: every K must be symmetric")
+    if M:
+        eig = torch.linalg.eigvalsh(K)
+        if not bool((eig > 1e-12 * eig.abs().amax(-1, keepdim=True).clamp_min(1e-300)).all()):
+            fail("fields: every K must be positive definite")
     ms = doc["motions"]
     try:
         cols = {k: torch.tensor([m[k] for m in ms], dtype=torch.float64).reshape(len(ms), M)

@@ -1,0 +1,188 @@
+"""tflearn.config: defaults ← YAML file ← dotted overrides, with every key and value checked."""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import pytest
+
+from tflearn import config
+from tflearn.config import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def write(tmp_path, text: str, name: str = "cfg.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_defaults_and_shipped_config():
+    cfg = config.load()
+    assert cfg == config.DEFAULTS and cfg is not config.DEFAULTS
+    cfg["solver"]["em"]["steps"] = 1                      # a deep copy: defaults untouched
+    assert config.DEFAULTS["solver"]["em"]["steps"] != 1
+    shipped = config.load(ROOT / "configs" / "gestures.yaml")
+    assert set(shipped) == set(config.DEFAULTS)
+    assert shipped["data"] == "gestures" and shipped["model"]["stiffness"] == "diag"
+    assert shipped["solver"]["path"]["rtol"] == 1e-7 and shipped["solver"]["each"]["tol"] == 1e-5
+
+
+def test_file_merges_over_defaults(tmp_path):
+    p = write(tmp_path, "seed: 4\nsolver:\n  em:\n    steps: 7\nmodel:\n  stiffness: full\n")
+    cfg = config.load(p)
+    assert cfg["seed"] == 4 and cfg["solver"]["em"]["steps"] == 7
+    assert cfg["model"]["stiffness"] == "full"
+    # siblings of the nested keys keep their defaults
+    assert cfg["solver"]["path"] == config.DEFAULTS["solver"]["path"]
+    assert cfg["model"]["phases"] == config.DEFAULTS["model"]["phases"]
+    assert config.load(write(tmp_path, "", "empty.yaml")) == config.DEFAULTS
+
+
+def test_overrides_take_effect(tmp_path):
+    data, out = tmp_path / "motions", tmp_path / "run"
+    cfg = config.load(None, [f"data={data}", f"out={out}", "seed=17", "solver.em.steps=12",
+                             "solver.path.method=rk4", "solver.init.stiffness_grid=[1, 2.5]",
+                             "log.progress=false", "success.tip=0.05", "model.phases=variable"])
+    assert cfg["data"] == str(data) and cfg["out"] == str(out) and cfg["seed"] == 17
+    assert cfg["solver"]["em"]["steps"] == 12 and cfg["solver"]["path"]["method"] == "rk4"
+    assert cfg["solver"]["init"]["stiffness_grid"] == [1, 2.5]
+    assert cfg["log"]["progress"] is False and cfg["log"]["tensorboard"] is True
+    assert cfg["success"] == {"rmse": 0.03, "tip": 0.05}
+    assert cfg["model"]["phases"] == "variable"
+    # an override beats the file, the file beats the defaults
+    p = write(tmp_path, "seed: 3\nsolver:\n  em:\n    steps: 9\n")
+    cfg = config.load(p, ["seed=5"])
+    assert cfg["seed"] == 5 and cfg["solver"]["em"]["steps"] == 9
+    # a list of data files
+    cfg = config.load(None, ["data=[a.npz, b.npz]"])
+    assert cfg["data"] == ["a.npz", "b.npz"]
+    # a float for a float key given as an integer is fine (ints are numbers)
+    assert config.load(None, ["success.tip=1"])["success"]["tip"] == 1
+
+
+def test_body_override_replaces_mapping(tmp_path):
+    p = write(tmp_path, "body:\n  preset: arm\n  damping: 0.5\n  gravity: [0, 0, -9.81]\n")
+    cfg = config.load(p)
+    assert cfg["body"] == {"preset": "arm", "damping": 0.5, "gravity": [0, 0, -9.81]}
+
+
+@pytest.mark.parametrize("text,key", [
+    ("bogus: 1\n", "bogus"),
+    ("solver:\n  em:\n    stepz: 3\n", "solver.em.stepz"),
+    ("model:\n  stifness: diag\n", "model.stifness"),
+    ("log:\n  tensorboard: true\n  color: false\n", "log.color"),
+])
+def test_unknown_key_in_file(tmp_path, text, key):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        config.load(p)
+    msg = str(err.value)
+    assert repr(key) in msg and str(p) in msg
+
+
+def test_unknown_key_suggests_close_match(tmp_path):
+    with pytest.raises(ConfigError, match=r"did you mean stiffness"):
+        config.load(None, ["model.stifness=diag"])
+
+
+@pytest.mark.parametrize("override,key", [
+    ("bogus=1", "bogus"),
+    ("solver.em.stepz=3", "solver.em.stepz"),
+    ("solver.nothing.steps=3", "solver.nothing"),
+    ("success.speed=1", "success.speed"),
+])
+def test_unknown_key_in_override(override, key):
+    with pytest.raises(ConfigError) as err:
+        config.load(None, [override])
+    assert repr(key) in str(err.value) and override in str(err.value)
+
+
+@pytest.mark.parametrize("override,key,what", [
+    ("solver.em.steps=abc", "solver.em.steps", "number"),
+    ("solver.em.steps=-1", "solver.em.steps", "non-negative"),
+    ("solver.path.steps=-3", "solver.path.steps", "non-negative"),
+    ("solver.em.steps=1.5", "solver.em.steps", "integer"),
+    ("success.rmse=-0.1", "success.rmse", "non-negative"),
+    ("success.rmse=true", "success.rmse", "number"),
+    ("seed=x", "seed", "number"),
+    ("log.progress=maybe", "log.progress", "true or false"),
+    ("log.progress=1", "log.progress", "true or false"),
+    ("model.stiffness=round", "model.stiffness", "one of"),
+    ("model.phases=free", "model.phases", "one of"),
+    ("body=3", "body", "mapping"),
+    ("solver=3", "solver", "mapping"),
+    ("solver.path.method=3", "solver.path.method", "str"),
+    ("data=3", "data", "data"),
+    ("solver.init.stiffness_grid=2", "solver.init.stiffness_grid", "list"),
+])
+def test_bad_value_in_override(override, key, what):
+    with pytest.raises(ConfigError) as err:
+        config.load(None, [override])
+    msg = str(err.value)
+    assert repr(key) in msg and what in msg
+
+
+@pytest.mark.parametrize("text,key", [
+    ("solver:\n  em:\n    steps: many\n", "solver.em.steps"),
+    ("solver:\n  path:\n    steps: -2\n", "solver.path.steps"),
+    ("model:\n  stiffness: spherical\n", "model.stiffness"),
+    ("body: [1, 2]\n", "body"),
+    ("body: arm\n", "body"),
+    ("log: yes-please\n", "log"),
+])
+def test_bad_value_in_file(tmp_path, text, key):
+    p = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        config.load(p)
+    msg = str(err.value)
+    assert repr(key) in msg and str(p) in msg
+
+
+def test_missing_and_unreadable_files(tmp_path):
+    missing = tmp_path / "nope.yaml"
+    with pytest.raises(ConfigError, match="cannot read") as err:
+        config.load(missing)
+    assert str(missing) in str(err.value)
+    broken = write(tmp_path, "solver: {em: [1, 2\n", "broken.yaml")
+    with pytest.raises(ConfigError, match="not valid YAML") as err:
+        config.load(broken)
+    assert str(broken) in str(err.value)
+    listy = write(tmp_path, "- a\n- b\n", "list.yaml")
+    with pytest.raises(ConfigError, match="mapping") as err:
+        config.load(listy)
+    assert str(listy) in str(err.value)
+    with pytest.raises(ConfigError) as err:
+        config.load(tmp_path)                    # a folder, not a file
+    assert str(tmp_path) in str(err.value)
+
+
+@pytest.mark.parametrize("override", ["seed", "solver.em.steps", "=3", ""])
+def test_override_without_equals_refused(override):
+    with pytest.raises(ConfigError, match="key=value"):
+        config.load(None, [override])
+
+
+def test_unparseable_override_value():
+    with pytest.raises(ConfigError, match="cannot parse"):
+        config.load(None, ["solver.init.stiffness_grid=[1, 2"])
+
+
+def test_failed_load_leaves_nothing_behind():
+    before = copy.deepcopy(config.DEFAULTS)
+    with pytest.raises(ConfigError):
+        config.load(None, ["solver.em.steps=3", "solver.em.stepz=4"])
+    assert config.DEFAULTS == before
+
+
+def test_dump_round_trip(tmp_path):
+    cfg = config.load(None, ["seed=9", "solver.path.rtol=0.0001", "model.stiffness=block",
+                             f"data={tmp_path}"])
+    config.dump(cfg, tmp_path / "c.yaml")
+    assert config.load(tmp_path / "c.yaml") == cfg
+
+
+def test_exponent_without_dot_is_a_number(tmp_path):
+    assert config.load(None, ["solver.path.rtol=1e-3"])["solver"]["path"]["rtol"] == 1e-3
+    assert config.load(write(tmp_path, "solver:\n  each:\n    tol: 1e-5\n"))["solver"]["each"]["tol"] == 1e-5

@@ -1,0 +1,214 @@
+"""tflearn.fit.nnls: batched Lawson–Hanson NNLS against scipy.optimize.nnls, and the KKT
+conditions of its solutions.
+
+Accuracy note. tflearn solves the normal equations G = AᵀA, h = Aᵀy, whose condition
+number is cond(A)², and adds a ridge of ``ridge`` × max diag(G) (default 1e-12) on the
+passive set, which moves the solution by about cond(G)·ridge relative. Measured against
+scipy (max |x − x_scipy| / max(1, max |x_scipy|), batches of 12 problems):
+
+* Gaussian A (cond ≲ 10): 4.4e-12 with the default ridge; exact non-negative
+  solutions: 1.1e-11;
+* cond(A) = 1e2 (singular values log-spaced over two decades): 8.5e-9 with the
+  default ridge, 8.9e-13 with ``ridge=0``;
+* cond(A) = 1e3: 1.0e-6 with the default ridge (that is the ridge, not the active
+  set: with ``ridge=0`` it is 4.7e-11), so the 1e-9 comparison there uses ``ridge=0``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.optimize as so
+import torch
+
+from tflearn.fit.nnls import nnls, nnls_lstsq
+
+BATCH = (3, 4)
+
+
+def _orthonormal(rng, m, k):
+    return np.linalg.qr(rng.normal(size=(m, k)))[0]
+
+
+def make_problem(rng, kind: str, k: int):
+    """One (A (m×k), y (m)) of a kind; m = 2k + 6."""
+    m = 2 * k + 6
+    if kind == "well":
+        A = rng.normal(size=(m, k))
+        y = rng.normal(size=m)
+    elif kind in ("ill100", "ill1000"):
+        cond = 1e2 if kind == "ill100" else 1e3
+        s = np.logspace(0, -np.log10(cond), k)
+        A = (_orthonormal(rng, m, k) * s) @ _orthonormal(rng, k, k).T
+        y = rng.normal(size=m)
+    elif kind == "negative":
+        # Every column has a positive inner product with every other and a negative
+        # one with y: the unconstrained descent direction is negative everywhere → x = 0.
+        A = np.abs(rng.normal(size=(m, k))) + 0.1
+        y = -np.abs(rng.normal(size=m)) - 0.1
+    elif kind == "exact":
+        A = rng.normal(size=(m, k))
+        x = np.abs(rng.normal(size=k)) + 0.1
+        x[rng.random(k) < 0.3] = 0.0
+        y = A @ x
+    else:
+        raise KeyError(kind)
+    return A, y
+
+
+def batch_problem(rng, kind, k):
+    probs = [make_problem(rng, kind, k) for _ in range(int(np.prod(BATCH)))]
+    A = np.stack([p[0] for p in probs]).reshape(BATCH + probs[0][0].shape)
+    y = np.stack([p[1] for p in probs]).reshape(BATCH + probs[0][1].shape)
+    return A, y
+
+
+def scipy_nnls(A, y):
+    m, k = A.shape[-2:]
+    xs = [so.nnls(a, b, maxiter=50 * k)[0] for a, b in zip(A.reshape(-1, m, k), y.reshape(-1, m))]
+    return np.stack(xs).reshape(A.shape[:-2] + (k,))
+
+
+def rel_err(x, ref):
+    """max |x − ref| / max(1, max |ref|) per problem (max over the batch)."""
+    scale = np.maximum(1.0, np.abs(ref).max(-1))
+    return float((np.abs(x - ref).max(-1) / scale).max())
+
+
+def kkt_violation(G, h, x):
+    """(min x, max |g| on the positive set, min g on the zero set), g = Gx − h, all
+    relative to max |h| per problem."""
+    g = np.einsum("...ij,...j->...i", G, x) - h
+    scale = np.abs(h).max(-1, keepdims=True) + 1e-300
+    g = g / scale
+    pos = x > 0
+    g_pos = np.where(pos, np.abs(g), 0.0).max()
+    g_zero = np.where(~pos, g, np.inf).min()
+    return float(x.min()), float(g_pos), float(g_zero)
+
+
+KS = [1, 2, 3, 5, 8, 12, 16]
+
+
+@pytest.mark.parametrize("k", KS)
+@pytest.mark.parametrize("kind,ridge,tol", [
+    ("well", None, 1e-10),
+    ("ill100", None, 3e-8),
+    ("ill100", 0.0, 1e-11),
+    ("ill1000", 0.0, 1e-9),
+    ("negative", None, 0.0),
+    ("exact", None, 1e-10),
+])
+def test_matches_scipy(kind, ridge, tol, k):
+    rng = np.random.default_rng(1000 * k + sum(map(ord, kind)))
+    A, y = batch_problem(rng, kind, k)
+    kw = {} if ridge is None else {"ridge": ridge}
+    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y), **kw)
+    assert x.shape == BATCH + (k,) and x.dtype == torch.float64
+    x = x.numpy()
+    ref = scipy_nnls(A, y)
+    assert rel_err(x, ref) <= tol
+    if kind == "negative":
+        assert np.all(ref == 0.0) and np.all(x == 0.0)
+    if kind == "exact":
+        # The exact non-negative solution is unique (A has full column rank): both find it.
+        x_true = np.linalg.lstsq(A.reshape(-1, *A.shape[-2:])[0], y.reshape(-1, y.shape[-1])[0],
+                                 rcond=None)[0]
+        assert np.abs(x.reshape(-1, k)[0] - x_true).max() <= 1e-10 * max(1, np.abs(x_true).max())
+        # and the fit is exact
+        r = np.einsum("...mk,...k->...m", A, x) - y
+        assert np.abs(r).max() <= 1e-10 * np.abs(y).max()
+
+
+@pytest.mark.parametrize("kind", ["well", "ill100", "negative", "exact"])
+def test_kkt(kind):
+    """x ≥ 0; the gradient g = Gx − h vanishes on the positive set and is ≥ 0 on the zeros."""
+    rng = np.random.default_rng(7 + len(kind))
+    for k in (4, 16):
+        A, y = batch_problem(rng, kind, k)
+        G = np.swapaxes(A, -1, -2) @ A
+        h = np.einsum("...mk,...m->...k", A, y)
+        x = nnls(torch.from_numpy(G), torch.from_numpy(h)).numpy()
+        xmin, g_pos, g_zero = kkt_violation(G, h, x)
+        assert xmin >= 0.0
+        assert g_pos <= (1e-8 if kind == "ill100" else 1e-11)
+        assert g_zero >= -1e-11
+
+
+def test_mixed_active_sets():
+    """A batch where the problems have every possible number of active constraints, in
+    one lock-step solve: each agrees with its own scipy solution."""
+    rng = np.random.default_rng(3)
+    k, m = 6, 20
+    As, ys, n_pos = [], [], []
+    for j in range(k + 1):
+        A = rng.normal(size=(m, k))
+        x = np.zeros(k)
+        x[rng.permutation(k)[:j]] = rng.uniform(0.5, 2.0, size=j)
+        # KKT by construction: Aᵀ(Ax − y) = λ with λ = 0 on the support of x and λ > 0
+        # off it, i.e. y = A(x − G⁻¹λ) + (a component orthogonal to the range of A).
+        lam = np.where(x > 0, 0.0, rng.uniform(0.5, 2.0, size=k))
+        Q = np.linalg.qr(A)[0]
+        null = rng.normal(size=m)
+        null -= Q @ (Q.T @ null)
+        y = A @ (x - np.linalg.solve(A.T @ A, lam)) + null
+        As.append(A)
+        ys.append(y)
+        n_pos.append(j)
+    A, y = np.stack(As), np.stack(ys)
+    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y)).numpy()
+    ref = scipy_nnls(A, y)
+    assert rel_err(x, ref) <= 1e-10
+    assert [int((xi > 0).sum()) for xi in x] == n_pos
+
+
+def test_shared_G_broadcasts():
+    """G (k×k) shared by a batch of h (3×4×k): same as solving each separately."""
+    rng = np.random.default_rng(11)
+    k = 8
+    A = rng.normal(size=(30, k))
+    Y = rng.normal(size=BATCH + (30,))
+    G = A.T @ A
+    H = Y @ A
+    x = nnls(torch.from_numpy(G), torch.from_numpy(H)).numpy()
+    assert x.shape == BATCH + (k,)
+    ref = np.stack([so.nnls(A, yy)[0] for yy in Y.reshape(-1, 30)]).reshape(BATCH + (k,))
+    assert rel_err(x, ref) <= 1e-10
+    assert 0 < (x > 0).sum() < x.size          # both active and inactive constraints occur
+
+
+def test_rank_deficient():
+    """Duplicate and zero columns (singular G): the solution is not unique, but the
+    objective equals scipy's and the KKT conditions hold."""
+    rng = np.random.default_rng(5)
+    k = 8
+    A = rng.normal(size=BATCH + (25, k))
+    A[..., 3] = A[..., 1]          # duplicate column
+    A[..., 5] = 0.0                # a field that never acts
+    y = rng.normal(size=BATCH + (25,))
+    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y)).numpy()
+    ref = scipy_nnls(A, y)
+
+    def obj(z):
+        return ((np.einsum("...mk,...k->...m", A, z) - y) ** 2).sum(-1)
+    assert np.all(np.isfinite(x)) and x.min() >= 0.0
+    assert np.abs(obj(x) - obj(ref)).max() <= 1e-10 * np.abs(obj(ref)).max()
+    assert np.all(x[..., 5] == 0.0)
+    G = np.swapaxes(A, -1, -2) @ A
+    h = np.einsum("...mk,...m->...k", A, y)
+    _, g_pos, g_zero = kkt_violation(G, h, x)
+    assert g_pos <= 1e-9 and g_zero >= -1e-11
+
+
+def test_zero_rhs_and_not_differentiable():
+    """h = 0 → x = 0; the solve runs under no_grad (the envelope theorem needs no dx*/dθ)."""
+    G = torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone().requires_grad_(True)
+    h = torch.zeros(2, 4, dtype=torch.float64)
+    x = nnls(G, h)
+    assert torch.equal(x, torch.zeros(2, 4, dtype=torch.float64))
+    assert not x.requires_grad
+    # A diagonal G: x_i = max(h_i, 0) / G_ii exactly.
+    d = torch.tensor([1.0, 2.0, 4.0, 0.5], dtype=torch.float64)
+    h2 = torch.tensor([[1.0, -1.0, 2.0, 3.0]], dtype=torch.float64)
+    x2 = nnls(torch.diag(d)[None], h2)
+    torch.testing.assert_close(x2, torch.tensor([[1.0, 0.0, 0.5, 6.0]], dtype=torch.float64),
+                               rtol=1e-11, atol=0)
