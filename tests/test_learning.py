@@ -361,11 +361,11 @@ def test_bar_on_unseen_programs(request, tmp_path):
     fields) + 1. Slow (~11 min on the test machine): runs only with ``-m slow`` or
     TFLEARN_SLOW=1.
 
-    Measured at commit 9cb92ca: FAILS. M = 6 for 4 generating fields; (rmse, tip) =
-    random2024_0 (0.0008 rad, 0.09 cm), random2024_1 (0.054 rad, 4.2 cm),
-    random2024_2 (0.0084 rad, 1.6 cm). random2024_1 spins the wrist at up to 102 rad/s
-    (~1 rad per 100 Hz sample): even its generating program has a relative torque cost
-    of 7.6e-4 against the spline torques."""
+    Measured with the variable-projection EM (655 s): FAILS. M = 6 for 4 generating
+    fields; (rmse, tip) = random2024_0 (0.0008 rad, 0.08 cm), random2024_1 (0.062 rad,
+    5.08 cm), random2024_2 (0.0008 rad, 0.04 cm). random2024_1 spins the wrist at up to
+    102 rad/s (~1 rad per 100 Hz sample): even its generating program has a relative
+    torque cost of 7.6e-4 against the spline torques."""
     if not _slow_selected(request):
         pytest.skip("slow: run with -m slow (or TFLEARN_SLOW=1)")
     programs = gestures.random_gestures(3, seed=BAR_SEED)
