@@ -27,7 +27,7 @@ K_RANGE = (1e-2, 20.0)      # bounds on the stiffness factors kept by FieldBasis
 ETA_MAX = 2 * math.pi       # bound on |η_k| kept by FieldBasis.project_
 
 
-def as_float(x, like: Optional[torch.Tensor] = None) -> torch.Tensor:
+def as_float(x) -> torch.Tensor:
     """x as a float64 tensor (modules are built in float64; use ``.to()`` for others)."""
     return torch.as_tensor(x, dtype=torch.float64)
 
@@ -71,7 +71,7 @@ class Stiffness(nn.Module):
         if kind not in K_KINDS:
             raise ValueError(f"unknown stiffness kind {kind!r} (expected one of {K_KINDS})")
         K = as_float(K)
-        M, n = K.shape[0], K.shape[-1]
+        n = K.shape[-1]
         self.kind, self.n = kind, n
         blocks = list(blocks) if blocks is not None else [n]
         if sum(blocks) != n:
@@ -129,7 +129,7 @@ class FieldBasis(nn.Module):
                  blocks: Optional[Sequence[int]] = None):
         super().__init__()
         eta = as_float(eta)
-        K = as_float(K, eta).to(eta.dtype)
+        K = as_float(K)
         if eta.ndim != 2 or K.shape != eta.shape + eta.shape[-1:]:
             raise ValueError(f"FieldBasis: eta must be M×n and K M×n×n, got "
                              f"{tuple(eta.shape)} and {tuple(K.shape)}")
@@ -176,14 +176,14 @@ class MotionWeights(nn.Module):
                  names: Optional[Sequence[str]] = None):
         super().__init__()
         a = as_float(a)
-        b = as_float(b, a).to(a.dtype)
-        duration = as_float(duration, a).to(a.dtype).reshape(-1)
+        b = as_float(b)
+        duration = as_float(duration).reshape(-1)
         if a.ndim != 2 or b.shape != a.shape or duration.shape[0] != a.shape[0]:
             raise ValueError("MotionWeights: a and b must be N×M and duration N")
         lam = duration[:, None].expand_as(a)
 
         def init(x, default):
-            return (as_float(x, a).to(a.dtype) if x is not None else default).clone()
+            return (as_float(x) if x is not None else default).clone()
         self.a_raw = nn.Parameter(a.clone())
         self.b_raw = nn.Parameter(b.clone())
         self.step_onset = nn.Parameter(init(step_onset, torch.zeros_like(a)))

@@ -22,8 +22,6 @@ coincide, and :func:`field_shares` ranks fields for backward elimination.
 """
 from __future__ import annotations
 
-from typing import Optional
-
 import torch
 
 from ..fields import FieldBasis, MotionWeights, step_profile
