@@ -225,21 +225,10 @@ def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):
 
 
 def kinetic_energy_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """T = Σ_i ½ m_i|v_i + ω_i×c_i|² + ½ ω_iᵀ Ic_i ω_i  (= ½ vᵀ M v) (...)."""
-    C = _constants(body, q.dtype, q.device)
-    rots, q, v = _broadcast(rots, q, v)
-    Rrel = _relative_rotations(body, rots, q)
-    zero = torch.zeros(q.shape[:-1] + (3,), dtype=q.dtype, device=q.device)
-    w, vl, T = [], [], 0.0
-    for i, link in enumerate(body.links):
-        E = Rrel[i].transpose(-1, -2)
-        r = C["origin"][i]
-        wp, vp = (zero, zero) if link.parent < 0 else (w[link.parent], vl[link.parent])
-        w.append(_mv(E, wp) + _joint_motion(body, i, v))
-        vl.append(_mv(E, vp + torch.cross(wp, r.expand_as(wp), dim=-1)))
-        vc = vl[i] + torch.cross(w[i], C["com"][i].expand_as(w[i]), dim=-1)
-        T = T + 0.5 * C["mass"][i] * (vc * vc).sum(-1) + 0.5 * (w[i] * _mv(C["Ic"][i], w[i])).sum(-1)
-    return T
+    """T = ½ vᵀ M(q) v (...), with M v from one RNEA pass (zero velocity, acceleration v,
+    no gravity) instead of a second copy of the velocity recursion."""
+    Mv = rnea_rot(body, rots, q, torch.zeros_like(v), v, gravity=False)
+    return 0.5 * (v * Mv).sum(-1)
 
 
 def potential_energy_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
