@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tflearn import body as body_mod  # noqa: E402
+from tflearn import experiments  # noqa: E402
 from tflearn import gestures as gestures_mod  # noqa: E402
 from tflearn.fields import FieldBasis, MotionWeights  # noqa: E402
 from tflearn.fit import path as path_fit  # noqa: E402
@@ -57,31 +58,11 @@ F64 = torch.float64
 
 # ------------------------------------------------------------------------ initial guesses
 
-def noise_draws(g: gestures_mod.Gesture, seed: int, gesture_index: int) -> dict:
-    """u ~ U[0, 1] for every generating parameter (one draw per seed and gesture)."""
-    gen = torch.Generator().manual_seed(1_000_003 * seed + 7919 * gesture_index + 17)
-    M, n = len(g.eta), len(g.eta[0])
-    return {"eta": torch.rand(M, n, generator=gen, dtype=F64),
-            "k": torch.rand(M, generator=gen, dtype=F64),
-            "a": torch.rand(M, generator=gen, dtype=F64),
-            "b": torch.rand(M, generator=gen, dtype=F64)}
-
-
-def noised_guess(g: gestures_mod.Gesture, u: dict, r: float) -> dict:
-    """Each parameter times 1 + (r − 1)·u (thesis §4.1: a factor in [1, r])."""
-    true = {"eta": torch.tensor(g.eta, dtype=F64), "k": torch.tensor(g.k, dtype=F64),
-            "a": torch.tensor(g.a, dtype=F64), "b": torch.tensor(g.b, dtype=F64)}
-    return {key: true[key] * (1 + (r - 1) * u[key]) for key in true}
-
-
-def build(guess: dict, duration: torch.Tensor, name: str):
-    """Fresh (FieldBasis kind="diag", MotionWeights) from a guess."""
-    M, n = guess["eta"].shape
-    K = guess["k"][:, None, None] * torch.eye(n, dtype=F64)
-    basis = FieldBasis(guess["eta"].clone(), K, kind="diag")
-    weights = MotionWeights(guess["a"][None].clone(), guess["b"][None].clone(), duration,
-                            names=[name])
-    return basis, weights
+def guess_for(g: gestures_mod.Gesture, seed: int, gesture_index: int, r: float) -> dict:
+    """The §4.1 guess: each generating parameter times 1 + (r − 1)·u, u ~ U[0, 1] drawn
+    once per (seed, gesture) (:func:`tflearn.experiments.noise_draws`)."""
+    true = experiments.generating([g])
+    return experiments.noised(true, experiments.noise_draws(true, seed, gesture_index), r)
 
 
 # --------------------------------------------------------------------------- the solvers
@@ -105,7 +86,7 @@ def count_normal_equations():
 
 
 def run_method(method: str, guess: dict, tg, args) -> dict:
-    basis, weights = build(guess, tg.duration, tg.names[0])
+    basis, weights = experiments.build(guess, tg)
     if method == "slsqp":
         res = fit_slsqp(basis, weights, tg, max_iter=args.slsqp_iter, ftol=args.slsqp_ftol)
         basis, weights = res["basis"], res["weights"]
@@ -135,31 +116,11 @@ def run_method(method: str, guess: dict, tg, args) -> dict:
 
 # ---------------------------------------------------------------------------- simulation
 
-class SimulationBudget(RuntimeError):
-    """Raised when a simulation exceeds its budget of right-hand-side evaluations."""
-
-
-class BudgetedBasis(FieldBasis):
-    """A FieldBasis that counts its evaluations and raises :class:`SimulationBudget`
-    past ``budget`` of them. During a simulation the basis is evaluated once per ODE
-    right-hand side, so this bounds the total work of a simulation (torchdiffeq's own
-    ``max_num_steps`` bounds the steps between two consecutive output times only)."""
-
-    def __init__(self, eta, K, budget: int):
-        super().__init__(eta, K, kind="diag")
-        self.budget, self.calls = budget, 0
-
-    def forward(self, q):
-        self.calls += 1
-        if self.calls > self.budget:
-            raise SimulationBudget(f"more than {self.budget} right-hand-side evaluations")
-        return super().forward(q)
-
-
-def _combine(models, budget: int):
+def _combine(models):
     """One basis and block-diagonal weights holding several single-motion models."""
     eta = torch.cat([b.eta.detach() for b, _ in models])
     K = torch.cat([b.K().detach() for b, _ in models])
+    basis = FieldBasis(eta, K, kind="diag")
     Ms = [b.M for b, _ in models]
     M = sum(Ms)
     a = torch.zeros(len(models), M, dtype=F64)
@@ -170,7 +131,7 @@ def _combine(models, budget: int):
         b_[j, lo:lo + m] = w.b.detach()[0]
         lo += m
     duration = torch.cat([w.duration for _, w in models])
-    return BudgetedBasis(eta, K, budget), MotionWeights(a, b_, duration)
+    return basis, MotionWeights(a, b_, duration)
 
 
 def simulate_all(body, models, tg, args) -> list:
@@ -180,15 +141,15 @@ def simulate_all(body, models, tg, args) -> list:
     if that fails (non-finite, or more than ``--sim-budget`` right-hand-side
     evaluations) each model is simulated alone. A failed simulation counts as not
     reproduced (rmse = tip = inf, with the reason in "sim_error")."""
-    sim_kw = {"method": args.sim_method, "rtol": args.rtol, "atol": args.atol}
+    sim_kw = {"method": args.sim_method, "rtol": args.rtol, "atol": args.atol,
+              "max_evals": args.sim_budget}
 
     def one(models_, tg_):
-        basis, weights = _combine(models_, args.sim_budget)
+        basis, weights = _combine(models_)
         m = path_fit.metrics(body, basis, weights, tg_, **sim_kw)
         if not all(math.isfinite(x) for x in m["rmse"] + m["tip"]):
-            raise FloatingPointError("non-finite simulation")
-        return [{"rmse": m["rmse"][j], "tip": m["tip"][j], "sim_rhs": basis.calls}
-                for j in range(len(models_))]
+            raise FloatingPointError(m.get("error", "non-finite simulation"))
+        return [{"rmse": m["rmse"][j], "tip": m["tip"][j]} for j in range(len(models_))]
 
     if args.batch_sim and len(models) > 1:
         try:
@@ -215,9 +176,9 @@ def run_case(case) -> list:
     name, r, seed = case
     args, body = _STATE["args"], _STATE["body"]
     g, tg, index = _STATE["gestures"][name]
-    guess = noised_guess(g, noise_draws(g, seed, index), r)
+    guess = guess_for(g, seed, index, r)
     with torch.no_grad():
-        b0, w0 = build(guess, tg.duration, name)
+        b0, w0 = experiments.build(guess, tg)
         initial = float(torque.torque_cost(b0, w0, tg).sum())
     rows, models = [], []
     for method in args.methods:

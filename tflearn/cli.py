@@ -2,7 +2,9 @@
 
 Subcommands: ``gestures`` (write the gesture library), ``train`` (learn a basis),
 ``evaluate`` (re-simulate a run's basis against motions), ``simulate`` (play one motion's
-torque program from a basis.json).
+torque program from a basis.json), ``render`` (animate one motion of a run, target and
+reproduction side by side, as a GIF and a TensorBoard video), ``experiment`` (run one of
+the thesis' chapter 4 experiments), ``report`` (write docs/results.md from their results).
 """
 from __future__ import annotations
 
@@ -56,6 +58,41 @@ def _simulate(args) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _render(args) -> int:
+    import torch
+    from . import render
+    torch.set_num_threads(args.threads)
+    path = render.render(args.run, args.motion, out=args.out, fps=args.fps,
+                         tensorboard=not args.no_tensorboard)
+    print(path)
+    return 0
+
+
+def _experiment(args) -> int:
+    import torch
+    from . import experiments
+    torch.set_num_threads(1)
+    path = args.name if args.name.suffix == ".yaml" else Path("configs/experiments") / f"{args.name}.yaml"
+    cfg = experiments.load_config(path, quick=args.quick, overrides=args.overrides)
+    result = experiments.run(cfg)
+    print(experiments.text_summary(result))
+    print(f"{cfg['experiment']}: {result['elapsed_s']:.0f} s -> {cfg['out']}/results.json")
+    return 0
+
+
+def _report(args) -> int:
+    from . import experiments
+    print(experiments.report(args.runs, args.out))
+    return 0
+
+
 def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -84,6 +121,29 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=None, help="samples per second (default: the motion's)")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the motion's)")
     p.set_defaults(func=_simulate)
+
+    p = sub.add_parser("render", help="animate one motion of a run: target and reproduced arm (GIF)")
+    p.add_argument("run", type=Path, help="a run folder (with basis.json and config.yaml)")
+    p.add_argument("--motion", required=True, help="motion name in the run's basis")
+    p.add_argument("--out", type=Path, default=None, help="output .gif (default RUN/figures/MOTION.gif)")
+    p.add_argument("--fps", type=_positive_int, default=25, help="frames per second (default 25)")
+    p.add_argument("--no-tensorboard", action="store_true",
+                   help="do not log the video to RUN/tensorboard")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.set_defaults(func=_render)
+
+    p = sub.add_parser("experiment", help="run one of the thesis' chapter 4 experiments "
+                                          "(configs/experiments/NAME.yaml)")
+    p.add_argument("name", type=Path, help="basin | shared | keyframes | filtering, or a .yaml file")
+    p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. seeds=5 jobs=1")
+    p.add_argument("--quick", action="store_true", help="the config's small 'quick' size")
+    p.set_defaults(func=_experiment)
+
+    p = sub.add_parser("report", help="write docs/results.md from the experiments' results")
+    p.add_argument("--runs", type=Path, default=Path("runs/experiments"),
+                   help="folder of experiment outputs (default runs/experiments)")
+    p.add_argument("--out", type=Path, default=Path("docs/results.md"), help="report file")
+    p.set_defaults(func=_report)
     return parser
 
 

@@ -37,6 +37,7 @@ DEFAULTS: dict = {
         "path": {
             "steps": 20, "lr": 0.003,
             "method": "dopri5", "rtol": 1e-6, "atol": 1e-8,
+            "max_evals": 20000,  # right-hand-side evaluations per simulation; past it: failed
             "adjoint": False,
             "velocity_weight": 0.1,
         },
@@ -61,7 +62,9 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 
-def _check(cfg: dict, ref: dict, where: str = "") -> None:
+def check(cfg: dict, ref: dict, where: str = "") -> None:
+    """Validate ``cfg`` against the reference mapping ``ref`` (keys, types, choices);
+    raises :class:`ConfigError` naming the first bad key (prefixed by ``where``)."""
     for key, val in cfg.items():
         path = f"{where}{key}"
         if key not in ref:
@@ -76,7 +79,7 @@ def _check(cfg: dict, ref: dict, where: str = "") -> None:
                 continue
             if not isinstance(val, dict):
                 raise ConfigError(f"config key {path!r} must be a mapping, got {val!r}")
-            _check(val, default, path + ".")
+            check(val, default, path + ".")
         elif key == "data":
             if not isinstance(val, (str, list)):
                 raise ConfigError(f"config key 'data' must be a folder, a list of .npz files or "
@@ -97,18 +100,8 @@ def _check(cfg: dict, ref: dict, where: str = "") -> None:
                "model.phases": ("fixed", "variable")}
     for path, allowed in choices.items():
         head, _, leaf = path.partition(".")
-        if where == head + "." and leaf in cfg and cfg[leaf] not in allowed:
+        if where.endswith(head + ".") and leaf in cfg and cfg[leaf] not in allowed:
             raise ConfigError(f"config key {path!r} must be one of {allowed}, got {cfg[leaf]!r}")
-
-
-def _merge(base: dict, new: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, val in new.items():
-        if isinstance(val, dict) and isinstance(out.get(key), dict) and key != "body":
-            out[key] = _merge(out[key], val)
-        else:
-            out[key] = copy.deepcopy(val)
-    return out
 
 
 def parse_override(text: str) -> tuple:
@@ -123,24 +116,42 @@ def parse_override(text: str) -> tuple:
     return key.split("."), value
 
 
-def load(path=None, overrides=()) -> dict:
-    """Defaults ← YAML file ← overrides, validated. Raises :class:`ConfigError`."""
-    cfg = copy.deepcopy(DEFAULTS)
+def read(path) -> dict:
+    """The mapping in a YAML file (not validated); errors name the file."""
+    path = Path(path)
+    try:
+        doc = yaml.load(path.read_text(), Loader=_Loader) or {}
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read config ({err.strerror})") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: a config must be a mapping of keys to values")
+    return doc
+
+
+def merge(base: dict, new: dict) -> dict:
+    """``base`` updated recursively by ``new`` (copies; "body" is replaced whole)."""
+    out = copy.deepcopy(base)
+    for key, val in new.items():
+        if isinstance(val, dict) and isinstance(out.get(key), dict) and key != "body":
+            out[key] = merge(out[key], val)
+        else:
+            out[key] = copy.deepcopy(val)
+    return out
+
+
+def load(path=None, overrides=(), defaults: dict = DEFAULTS) -> dict:
+    """``defaults`` ← YAML file ← overrides, validated against ``defaults`` (the training
+    config's by default). Raises :class:`ConfigError`."""
+    cfg = copy.deepcopy(defaults)
     if path is not None:
-        path = Path(path)
+        doc = read(path)
         try:
-            doc = yaml.load(path.read_text(), Loader=_Loader) or {}
-        except OSError as err:
-            raise ConfigError(f"{path}: cannot read config ({err.strerror})") from None
-        except yaml.YAMLError as err:
-            raise ConfigError(f"{path}: not valid YAML ({err})") from None
-        if not isinstance(doc, dict):
-            raise ConfigError(f"{path}: a config must be a mapping of keys to values")
-        try:
-            _check(doc, DEFAULTS)
+            check(doc, defaults)
         except ConfigError as err:
             raise ConfigError(f"{path}: {err}") from None
-        cfg = _merge(cfg, doc)
+        cfg = merge(cfg, doc)
     for text in overrides:
         keys, value = parse_override(text)
         node = {}
@@ -149,10 +160,10 @@ def load(path=None, overrides=()) -> dict:
             cur = cur.setdefault(k, {})
         cur[keys[-1]] = value
         try:
-            _check(node, DEFAULTS)
+            check(node, defaults)
         except ConfigError as err:
             raise ConfigError(f"override {text!r}: {err}") from None
-        cfg = _merge(cfg, node)
+        cfg = merge(cfg, node)
     return cfg
 
 

@@ -57,7 +57,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
     lb = basis_io.load(run / "basis.json")
     cfg = config_mod.load(run / "config.yaml") if (run / "config.yaml").exists() else config_mod.load()
     p = cfg["solver"]["path"]
-    sim_kw = {"method": p["method"], "rtol": p["rtol"], "atol": p["atol"]}
+    sim_kw = {"method": p["method"], "rtol": p["rtol"], "atol": p["atol"], "max_evals": p["max_evals"]}
     motions = load_motions(data if data is not None else cfg["data"], lb.body)
     known = [m for m in motions if m.name in lb.names]
     new = [m for m in motions if m.name not in lb.names]

@@ -29,6 +29,10 @@ from .body import Body
 
 TorqueProgram = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
+#: Calls of :func:`simulate` in this process (a batch counts once); the experiments
+#: read it to report how many simulations a method needed.
+calls = 0
+
 
 def n_position(body: Body) -> int:
     """Size of the packed position block: 4 per ball joint, 1 per hinge."""
@@ -64,18 +68,28 @@ def unpack(body: Body, y: torch.Tensor):
     return rots, torch.cat(coords, dim=-1), quats, y[..., k:]
 
 
+class SimulationBudget(RuntimeError):
+    """A simulation needed more right-hand-side evaluations than its ``max_evals``."""
+
+
 class ArmODE(torch.nn.Module):
     """Right-hand side dy/dt for :func:`simulate` (an nn.Module so the adjoint can see
     the program's parameters). With ``track_work`` the state carries one more entry,
-    W with dW/dt = τ_program · v (the work done by the program's torques)."""
+    W with dW/dt = τ_program · v (the work done by the program's torques). With
+    ``max_evals`` it raises :class:`SimulationBudget` on evaluation max_evals + 1."""
 
-    def __init__(self, body: Body, program: TorqueProgram, track_work: bool = False):
+    def __init__(self, body: Body, program: TorqueProgram, track_work: bool = False,
+                 max_evals: Optional[int] = None):
         super().__init__()
         self.body, self.program, self.track_work = body, program, track_work
+        self.max_evals, self.evals = max_evals, 0
         if isinstance(program, torch.nn.Module):
             self.program_module = program
 
     def forward(self, t, y):
+        self.evals += 1
+        if self.max_evals is not None and self.evals > self.max_evals:
+            raise SimulationBudget(f"simulation: more than {self.max_evals} right-hand-side evaluations")
         body = self.body
         if self.track_work:
             y = y[..., :-1]
@@ -116,7 +130,7 @@ def zero_program(t, q, v):
 def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Tensor,
              t: torch.Tensor, method: str = "dopri5", rtol: float = 1e-7, atol: float = 1e-9,
              options: Optional[dict] = None, adjoint: bool = False,
-             track_work: bool = False) -> Trajectory:
+             track_work: bool = False, max_evals: Optional[int] = None) -> Trajectory:
     """Integrate the body from (q0, v0) at t[0] under ``program(t, ν, v) → τ``.
 
     Args:
@@ -127,12 +141,17 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         adjoint: backpropagate with the adjoint method (``odeint_adjoint``) instead of
             through the solver's operations.
         track_work: also integrate the work done by the program's torques.
+        max_evals: raise :class:`SimulationBudget` past this many right-hand-side
+            evaluations (a bound on the whole run; torchdiffeq's ``max_num_steps``
+            bounds the steps between two consecutive output times only).
     Returns:
         :class:`Trajectory` with ν and v sampled at t (time on dimension -2).
     """
     if t.ndim != 1 or t.numel() < 2 or not bool((t[1:] > t[:-1]).all()):
         raise ValueError("simulate: t must be a strictly increasing 1-D tensor of >= 2 times")
-    func = ArmODE(body, program, track_work)
+    global calls
+    calls += 1
+    func = ArmODE(body, program, track_work, max_evals)
     y0 = pack(body, q0, v0)
     if track_work:
         y0 = torch.cat([y0, torch.zeros_like(y0[..., :1])], dim=-1)

@@ -188,7 +188,7 @@ class Run:
 
     def _sim_kw(self):
         p = self.cfg["solver"]["path"]
-        return {"method": p["method"], "rtol": p["rtol"], "atol": p["atol"]}
+        return {"method": p["method"], "rtol": p["rtol"], "atol": p["atol"], "max_evals": p["max_evals"]}
 
     def _advance(self, state, stage):
         state["stage"], state["cursor"] = stage, 0
@@ -258,7 +258,7 @@ class Run:
             _, ok = self._metrics(basis, weights, tg, state)
             state["reduce_from_success"] = all(ok)
         k = state["cursor"]
-        done = basis.M <= max(fixed, 1) if fixed else not state["reduce_from_success"]
+        done = basis.M <= max(fixed, 1) or (not fixed and not state["reduce_from_success"])
         if done or k >= len(state["order"]):
             return self._advance(state, "path")
         victim = state["order"][k]

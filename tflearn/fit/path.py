@@ -22,18 +22,19 @@ import torch
 from .. import dynamics
 from ..body import Body
 from ..fields import FieldBasis, FieldProgram, MotionWeights
-from ..simulate import simulate
+from ..simulate import SimulationBudget, simulate
 from .targets import Targets
 from .torque import relative_rms_torque_error
 
 
 def simulate_targets(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
                      method: str = "dopri5", rtol: float = 1e-7, atol: float = 1e-9,
-                     adjoint: bool = False, options: Optional[dict] = None):
+                     adjoint: bool = False, options: Optional[dict] = None,
+                     max_evals: Optional[int] = None):
     """Simulated (q, v) at every motion's samples: (N×T×n) each."""
     program = FieldProgram(basis, weights)
     tr = simulate(body, program, tg.q0, tg.qd0, tg.grid, method=method, rtol=rtol, atol=atol,
-                  adjoint=adjoint, options=options)
+                  adjoint=adjoint, options=options, max_evals=max_evals)
     idx = tg.index.unsqueeze(-1).expand(-1, -1, body.nv)
     return tr.q.gather(1, idx), tr.v.gather(1, idx)
 
@@ -64,9 +65,16 @@ def metrics(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
             q_sim: Optional[torch.Tensor] = None, **sim_kw) -> dict:
     """Per-motion reproduction metrics (and the simulated path) as plain floats.
 
-    Returns {"rmse": [N], "tip": [N], "torque": [N], "q_sim": N×T×n tensor}."""
+    Returns {"rmse": [N], "tip": [N], "torque": [N], "q_sim": N×T×n tensor}. A
+    simulation that fails (the solver gives up, or more than ``max_evals`` evaluations)
+    reproduces nothing: rmse = tip = inf, q_sim all NaN, and "error" says why."""
     if q_sim is None:
-        q_sim, _ = simulate_targets(body, basis, weights, tg, **sim_kw)
+        try:
+            q_sim, _ = simulate_targets(body, basis, weights, tg, **sim_kw)
+        except (AssertionError, SimulationBudget) as err:
+            inf = [float("inf")] * tg.N
+            return {"rmse": inf, "tip": inf, "torque": relative_rms_torque_error(basis, weights, tg).tolist(),
+                    "q_sim": torch.full_like(tg.q, float("nan")), "error": str(err)}
     e = coordinate_error(body, q_sim, tg.q)
     m = tg.mask.to(e.dtype)
     rmse = ((e ** 2).mean(-1) * m).sum(-1).div(m.sum(-1)).sqrt()
@@ -99,12 +107,12 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
               best: Optional[dict] = None, optimizer_state: Optional[dict] = None,
               fields: bool = True, phases: bool = False, velocity_weight: float = 0.1,
               method: str = "dopri5", rtol: float = 1e-6, atol: float = 1e-8,
-              adjoint: bool = False, max_num_steps: int = 20000) -> dict:
+              adjoint: bool = False, max_evals: Optional[int] = 20000) -> dict:
     """One safeguarded Adam step on the summed path loss Σ_j L_j.
 
     The loss is evaluated at the current parameters; if it is worse than the best point
-    so far (or the simulation fails: non-finite, or more than ``max_num_steps`` solver
-    steps), the parameters go back to the best point and the learning rate halves;
+    so far (or the simulation fails: non-finite, or more than ``max_evals`` right-hand-side
+    evaluations), the parameters go back to the best point and the learning rate halves;
     otherwise the point becomes the best and Adam steps from it. Gradients come from
     backpropagation through the solver or, with ``adjoint``, the adjoint method.
     ``fields=False`` freezes the basis (weights only: held-out synthesis).
@@ -116,12 +124,11 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
         opt.load_state_dict(optimizer_state)
     try:
         q_sim, v_sim = simulate_targets(body, basis, weights, tg, method=method, rtol=rtol,
-                                        atol=atol, adjoint=adjoint,
-                                        options={"max_num_steps": max_num_steps})
+                                        atol=atol, adjoint=adjoint, max_evals=max_evals)
         loss = path_loss(body, q_sim, v_sim, tg, velocity_weight).sum()
         value = float(loss.detach())
         failed = not torch.isfinite(loss)
-    except AssertionError:
+    except (AssertionError, SimulationBudget):
         failed, value = True, float("inf")
     if best is None and failed:
         raise RuntimeError("path matching: the simulation fails at the starting point")

@@ -50,9 +50,18 @@ def weights_vector(weights: MotionWeights) -> torch.Tensor:
 
 
 @torch.no_grad()
-def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
-    """Set every motion's (a, b) to its exact NNLS optimum; returns the costs C_j (N)."""
+def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
+                  support: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Set every motion's (a, b) to its exact NNLS optimum; returns the costs C_j (N).
+
+    ``support`` (N×2M bool, [a | b]) restricts the optimum to those weights, the others
+    held at 0 (their rows of the normal equations become x_i = 0 with a negative
+    gradient, so Lawson–Hanson never frees them)."""
     G, h = normal_equations(basis, weights, tg)
+    if support is not None:
+        both = support.unsqueeze(-1) & support.unsqueeze(-2)
+        G = torch.where(both, G, 0.0) + torch.diag_embed((~support).to(G.dtype))
+        h = torch.where(support, h, -1.0)
     x = nnls(G, h)
     M = basis.M
     weights.a_raw.copy_(x[:, :M])
@@ -176,7 +185,8 @@ def _project_out_weights(J, basis, weights, tg, scale, x) -> torch.Tensor:
 
 
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
-       phases: bool = False, tol: float = 1e-10, callback: Optional[Callable] = None) -> list:
+       phases: bool = False, tol: float = 1e-10, callback: Optional[Callable] = None,
+       support: Optional[torch.Tensor] = None) -> list:
     """EM-style alternation: exact NNLS weights, then a damped Gauss–Newton step on the
     fields' centres and stiffnesses (and phases) with those weights held.
 
@@ -190,11 +200,12 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     (centre distance, stiffness and weights trade off far from a centre) that
     first-order descent crawls along. Stops after ``steps`` accepted or rejected
     steps, or when the cost falls by less than ``tol`` (relative). ``callback(step, costs)``
-    is called every step. Returns the cost history (sum over motions) and leaves the
-    weights at their NNLS optimum."""
+    is called every step. ``support`` restricts the weights (see :func:`solve_weights`).
+    Returns the cost history (sum over motions) and leaves the weights at their NNLS
+    optimum."""
     fp = _FieldParameters(basis, weights, tg, phases)
     theta = fp.vector()
-    costs = solve_weights(basis, weights, tg)
+    costs = solve_weights(basis, weights, tg, support)
     history = [float(costs.sum())]
     mu = 1e-3
     for step in range(steps):
@@ -210,7 +221,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
         for _ in range(8):
             delta = torch.linalg.solve(A + mu * torch.diag(d), -g)
             fp.assign(theta + delta)
-            new_costs = solve_weights(basis, weights, tg)
+            new_costs = solve_weights(basis, weights, tg, support)
             if float(new_costs.sum()) < history[-1]:
                 theta = fp.vector()
                 costs, accepted, mu = new_costs, True, max(mu / 3, 1e-9)
@@ -218,7 +229,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
             mu *= 4
         if not accepted:
             fp.assign(theta)
-            costs = solve_weights(basis, weights, tg)
+            costs = solve_weights(basis, weights, tg, support)
             break
         gain = history[-1] - float(costs.sum())
         history.append(float(costs.sum()))

@@ -1,0 +1,142 @@
+"""The chapter 4 experiments (``tflearn experiment NAME --quick``) and the report.
+
+The quick sizes run end to end here; each asserts the experiment's success criterion on
+at least one gesture. The numbers asserted are the ones docs/results.md reports for the
+full sizes, where the quick size contains the same case (same gesture, r and seed)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from tflearn import cli, experiments, gestures
+from tflearn.config import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs" / "experiments"
+
+
+def quick(name: str, tmp_path: Path, *overrides: str) -> dict:
+    """Run ``tflearn experiment NAME --quick out=...`` in-process; its results.json."""
+    out = tmp_path / name
+    assert cli.main(["experiment", str(CONFIGS / f"{name}.yaml"), "--quick", f"out={out}",
+                     *overrides]) == 0
+    return json.loads((out / "results.json").read_text())
+
+
+# ------------------------------------------------------------------------------- configs
+
+@pytest.mark.parametrize("name", experiments.EXPERIMENTS)
+def test_every_experiment_has_a_config(name):
+    cfg = experiments.load_config(CONFIGS / f"{name}.yaml")
+    assert cfg["experiment"] == name and not cfg["quick"]
+    q = experiments.load_config(CONFIGS / f"{name}.yaml", quick=True)
+    assert q["quick"] and q["out"].endswith("-quick")
+
+
+@pytest.mark.parametrize("text, message", [
+    ("experiment: basin\nseedz: 3\n", "unknown config key 'seedz' (did you mean seeds"),
+    ("experiment: basin\ngestures: [come_here, wave]\n", "unknown gestures ['wave']"),
+    ("experiment: nope\n", "experiment must be one of"),
+    ("experiment: basin\nmethods: [slsqp, magic]\n", "unknown methods ['magic']"),
+    ("experiment: basin\nquick: {r: fast}\n", "'quick.r' must be a list"),
+    ("experiment: basin\ntrain: {model: {stiffness: wobbly}}\n", "'model.stiffness' must be one of"),
+])
+def test_bad_experiment_config_names_file_and_key(tmp_path, text, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        experiments.load_config(path, quick=True)
+    assert str(path) in str(err.value) and message in str(err.value)
+
+
+# -------------------------------------------------------------------------- noise model
+
+def test_noise_multiplies_each_parameter_by_a_factor_in_1_r():
+    true = experiments.generating([gestures.GESTURES["planar_line"]])
+    u = experiments.noise_draws(true, seed=3, salt=3)
+    assert experiments.noise_draws(true, seed=3, salt=3)["eta"].equal(u["eta"])   # seeded
+    for r in (1.0, 2.6, 10.0):
+        guess = experiments.noised(true, u, r)
+        for key in true:
+            t, g = true[key], guess[key]
+            assert bool((g[t == 0] == 0).all())                    # zeros stay zero
+            ratio = g[t != 0] / t[t != 0]
+            assert float(ratio.min()) >= 1 - 1e-15 and float(ratio.max()) <= r + 1e-12
+    big = experiments.noised(true, u, 10.0)["k"] / true["k"]
+    assert torch.allclose(big, 1 + 9 * u["k"])
+
+
+def test_r90_is_the_last_r_of_the_leading_run_above_90_percent():
+    assert experiments.r90([1.2, 2, 3, 4], [1.0, 0.95, 0.85, 1.0]) == 2
+    assert experiments.r90([1.2, 2], [0.5, 1.0]) == 0.0
+
+
+# -------------------------------------------------------------------- the quick versions
+
+def test_basin_quick(tmp_path):
+    """come_here at r = 3.0, where the thesis' SLSQP stopped with no motion: tflearn's
+    local solver (EM) and its pipeline reproduce it."""
+    res = quick("basin", tmp_path, "seeds=1")
+    rates = res["summary"]["rates"]["come_here"]
+    i = rates["local"]["r"].index(3.0)
+    assert rates["local"]["rate"][i] == 1.0 and rates["pipeline"]["rate"][i] == 1.0
+    assert rates["slsqp"]["rate"][rates["slsqp"]["r"].index(1.4)] == 1.0
+    local = [x for x in res["rows"] if x["method"] == "local"]
+    assert all(x["rmse"][0] <= 0.03 and x["tip"][0] <= 0.02 for x in local)
+    assert res["summary"]["costs"]["slsqp"]["wall_ratio"] == 1.0
+    assert {"success_vs_r.png", "come_here.png"} <= set(res["figures"])
+    assert all((tmp_path / "basin" / "figures" / f).exists() for f in res["figures"])
+
+
+def test_shared_quick(tmp_path):
+    """Four shared fields for come-here, tuck and backwards reach from r = 1.4: every
+    motion reproduced by the local solver."""
+    res = quick("shared", tmp_path)
+    row = next(x for x in res["rows"] if x["method"] == "local")
+    assert row["motions"] == ["come_here", "tuck", "backwards_reach"]
+    assert all(row["success"]) and len(row["params"]["eta"]) == 4
+    assert max(row["rmse"]) <= 0.03 and max(row["tip"]) <= 0.02
+
+
+def test_keyframes_quick(tmp_path):
+    """A three-keyframe spline resembling come-here and a straight-line hand reach: the
+    pipeline reproduces both with joint RMSE ≤ 0.05 rad."""
+    res = quick("keyframes", tmp_path)
+    row = next(x for x in res["rows"] if x["method"] == "pipeline")
+    assert row["motions"] == ["come_here_keys", "straight_reach"]
+    assert max(row["rmse"]) <= 0.05, row["rmse"]
+    assert row["M"] >= 1
+
+
+def test_filtering_quick(tmp_path):
+    """Crude motions played through a basis learned on come_here and the stiff-elbow
+    lift: the basis reproduces its own gestures (the success criterion), the crude
+    straight reach is straight, and its weights-only fit is simulated to a finite path
+    whose figures are drawn."""
+    res = quick("filtering", tmp_path)
+    base, row = res["rows"]
+    assert base["motions"] == ["come_here", "stiff_elbow_lift"] and all(base["success"])
+    k = row["motions"].index("straight_reach")
+    assert row["straightness_in"][k] < 1e-6
+    assert all(x is not None and x == x for x in row["straightness_out"])
+    assert all(r < float("inf") for r in row["rmse"])
+    assert {"straight_reach.png", "straight_reach_hand.png"} <= set(res["figures"])
+
+
+def test_report_from_quick_results(tmp_path):
+    """``tflearn report`` writes every experiment's section, its figures and the model figures."""
+    runs = tmp_path / "runs"
+    quick("basin", runs, "seeds=1", "r=[3.0]", "methods=[slsqp,local]")
+    (runs / "basin").rename(runs / "basin-quick")
+    out = tmp_path / "docs" / "results.md"
+    assert cli.main(["report", "--runs", str(runs), "--out", str(out)]) == 0
+    text = out.read_text()
+    for title in experiments.TITLES.values():
+        assert f"## {title}" in text
+    assert "(quick size)" in text and "recovered at r = 2.6, failed at r = 3" in text
+    assert text.count("Not run yet") == 3
+    for ref in ("results/fields.png", "results/profiles.png", "results/basin/success_vs_r.png"):
+        assert f"]({ref})" in text and (out.parent / ref).exists()

@@ -1,0 +1,136 @@
+"""Animations of a run: one motion's target and its reproduction by the learned program.
+
+:func:`render` re-simulates a motion of a run exactly as :func:`tflearn.evaluate.evaluate_run`
+does (the run's basis.json and config.yaml, the motion from the config's ``data``, its
+stored weights, the config's solver settings) and draws both arms side by side in 3-D as
+stick figures (:func:`tflearn.plots.joint_positions`) with their hand trails. Frame k
+shows the sample nearest to t = k/fps, for k = 0 … ⌊λ·fps⌋ (λ the motion's duration).
+"""
+from __future__ import annotations
+
+import importlib
+import math
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from . import config as config_mod
+from . import plots
+from .evaluate import weights_for
+from .fit import path as path_fit
+from .fit.targets import prepare
+from .io import basis as basis_io
+from .train import load_motions
+
+
+def video_support() -> str | None:
+    """None when ``SummaryWriter.add_video`` can encode a video, else why not: torch's
+    encoder needs moviepy's ``moviepy.editor`` (moviepy < 2), which tflearn does not
+    depend on."""
+    try:
+        importlib.import_module("moviepy.editor")
+    except ImportError as err:
+        return f"SummaryWriter.add_video needs moviepy < 2 (moviepy.editor): {err}"
+    return None
+
+
+def frame_samples(t, fps: float) -> np.ndarray:
+    """Sample index shown in each frame: the sample of t (T, from 0) nearest to k/fps for
+    k = 0 … ⌊t[-1]·fps⌋."""
+    t = np.asarray(t, dtype=float)
+    n = int(math.floor(t[-1] * fps + 1e-9)) + 1
+    return np.abs(t[:, None] - np.arange(n) / fps).argmin(0)
+
+
+def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
+           log: Callable[[str], None] = print) -> Path:
+    """Animate motion ``motion`` of the run folder ``run``: target and reproduced arm.
+
+    Writes a GIF (default RUN/figures/MOTION.gif) and, with ``tensorboard``, the same
+    frames as a video ``render/MOTION`` in RUN/tensorboard when the writer can encode
+    one (:func:`video_support`); ``log`` receives a line saying what was logged or
+    why not. Returns the GIF's path.
+
+    Raises KeyError for a motion name the basis does not hold (the message lists the
+    names it holds) or one missing from the run's data, and ValueError for fps ≤ 0.
+    """
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    run = Path(run)
+    lb = basis_io.load(run / "basis.json")
+    lb.index(motion)
+    cfg = config_mod.load(run / "config.yaml") if (run / "config.yaml").exists() else config_mod.load()
+    found = [m for m in load_motions(cfg["data"], lb.body) if m.name == motion]
+    if not found:
+        raise KeyError(f"motion {motion!r} of {run / 'basis.json'} is not in the run's data "
+                       f"({cfg['data']!r})")
+    p = cfg["solver"]["path"]
+    tg = prepare(lb.body, found)
+    m = path_fit.metrics(lb.body, lb.basis, weights_for(lb, tg), tg,
+                         method=p["method"], rtol=p["rtol"], atol=p["atol"], max_evals=p["max_evals"])
+    T = int(tg.mask[0].sum())
+    t = tg.t[0, :T].numpy()
+    paths = {"target": plots.joint_positions(lb.body, tg.q[0, :T]),
+             "reproduced": plots.joint_positions(lb.body, m["q_sim"][0, :T])}
+    out = Path(out) if out is not None else run / "figures" / f"{motion}.gif"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    reason = video_support() if tensorboard else None
+    frames = _write_gif(paths, t, frame_samples(t, fps), fps, out,
+                        f"{motion}: rmse {m['rmse'][0]:.4f} rad, tip error {100 * m['tip'][0]:.2f} cm",
+                        keep=tensorboard and reason is None)
+    if not tensorboard:
+        return out
+    if reason is not None:
+        log(f"tensorboard: video not logged ({reason})")
+        return out
+    from torch.utils.tensorboard import SummaryWriter
+    writer = SummaryWriter(str(run / "tensorboard"))
+    video = torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2)[None]    # 1×F×3×H×W uint8
+    writer.add_video(f"render/{motion}", video, fps=fps)
+    writer.close()
+    log(f"tensorboard: logged video render/{motion} to {run / 'tensorboard'}")
+    return out
+
+
+def _write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Path,
+               title: str, keep: bool) -> list:
+    """Draw one frame per entry of ``samples`` and write them to ``out`` with
+    PillowWriter; ``paths``: label → joint positions (T×(L+1)×3), one 3-D panel each.
+    Returns the frames as H×W×3 uint8 arrays when ``keep``, else []."""
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import PillowWriter
+
+    fig = plt.figure(figsize=(4.2 * len(paths), 4.4), dpi=80)
+    allpts = np.concatenate(list(paths.values()), 0)
+    artists = []
+    for n, ((label, P), color) in enumerate(zip(paths.items(), ["C0", "C1"])):
+        ax = fig.add_subplot(1, len(paths), n + 1, projection="3d")
+        if n:
+            first = next(iter(paths.values()))
+            ax.plot(first[:, -1, 0], first[:, -1, 1], first[:, -1, 2], ":", color="0.6", lw=0.8,
+                    label="target hand path")
+        arm, = ax.plot([], [], [], "o-", color=color, ms=4, lw=2, label=f"{label} arm")
+        trail, = ax.plot([], [], [], color=color, lw=1, label="hand trail")
+        plots._equal_3d(ax, allpts)
+        ax.view_init(elev=15, azim=-30)
+        ax.set_title(label, fontsize=10)
+        ax.tick_params(labelsize=6)
+        ax.legend(fontsize=6, loc="upper left")
+        artists.append((P, arm, trail))
+    head = fig.suptitle("")
+    frames = []
+    writer = PillowWriter(fps=fps)
+    with writer.saving(fig, str(out), dpi=fig.dpi):
+        for k in samples:
+            for P, arm, trail in artists:
+                arm.set_data_3d(P[k, :, 0], P[k, :, 1], P[k, :, 2])
+                trail.set_data_3d(P[:k + 1, -1, 0], P[:k + 1, -1, 1], P[:k + 1, -1, 2])
+            head.set_text(f"{title}\nt = {t[k]:.2f} s")
+            writer.grab_frame()
+            if keep:
+                fig.canvas.draw()
+                frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+    plt.close(fig)
+    return frames
