@@ -112,6 +112,29 @@ def test_true_parameters_fit_exactly(come_here):
     assert float(torque.solve_weights(b3, w3, tg)) >= 1e3 * float(cost)
 
 
+def test_weight_support_restricts_nnls(come_here):
+    """solve_weights with a support: the unsupported weights stay exactly 0 and the
+    supported ones are the NNLS optimum of the restricted problem (scipy on the
+    supported columns of the normal equations' square root)."""
+    import numpy as np
+    from scipy.optimize import nnls as scipy_nnls
+    m, lb, tg = come_here
+    eta = torch.cat([lb.basis.eta.detach() + ETA_SHIFT, lb.basis.eta.detach() - ETA_SHIFT])
+    basis, weights = _fresh(eta, lb.basis.K().detach().expand(2, 7, 7), tg)
+    free = torque.solve_weights(basis, weights, tg)
+    assert float(weights.a.detach()[0, 0]) > 0.1        # unrestricted, field 0's step is used
+    support = torch.tensor([[False, True, True, True]])
+    cost = torque.solve_weights(basis, weights, tg, support)
+    x_all = torque.weights_vector(weights).detach().numpy()[0]
+    assert x_all[0] == 0.0
+    with torch.no_grad():
+        G, h = torque.normal_equations(basis, weights, tg)
+    L = np.linalg.cholesky(G[0, 1:, 1:].numpy())
+    x, _ = scipy_nnls(L.T, np.linalg.solve(L, h[0, 1:].numpy()))
+    np.testing.assert_allclose(x_all[1:], x, rtol=1e-7, atol=1e-10)
+    assert float(cost) > float(free)
+
+
 def test_em_converges_monotonically(come_here):
     """EM from a perturbed centre and stiffness: the cost history never increases and
     reaches ≤ 1e-6 (measured: 0.0275 → 1.9e-9 in 100 steps, below 1e-6 after ~56); the
