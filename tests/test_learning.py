@@ -135,6 +135,19 @@ def test_weight_support_restricts_nnls(come_here):
     assert float(cost) > float(free)
 
 
+def test_failed_simulation_reproduces_nothing(come_here):
+    """metrics of a simulation past its budget: rmse = tip = inf (never a success), the
+    path NaN, and the reason given; the torque error is still reported."""
+    m, lb, tg = come_here
+    basis, weights = _fresh(lb.basis.eta.detach(), lb.basis.K().detach(), tg)
+    torque.solve_weights(basis, weights, tg)
+    res = path_fit.metrics(lb.body, basis, weights, tg, max_evals=5)
+    assert res["rmse"] == [float("inf")] and res["tip"] == [float("inf")]
+    assert "more than 5 right-hand-side evaluations" in res["error"]
+    assert bool(res["q_sim"].isnan().all()) and res["torque"][0] < 1e-3
+    assert path_fit.succeeded(res, 0.03, 0.02) == [False]
+
+
 def test_em_converges_monotonically(come_here):
     """EM from a perturbed centre and stiffness: the cost history never increases and
     reaches ≤ 1e-6 (measured: 0.0275 → 1.9e-9 in 100 steps, below 1e-6 after ~56); the

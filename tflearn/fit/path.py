@@ -67,11 +67,12 @@ def metrics(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
 
     Returns {"rmse": [N], "tip": [N], "torque": [N], "q_sim": N×T×n tensor}. A
     simulation that fails (the solver gives up, or more than ``max_evals`` evaluations)
-    reproduces nothing: rmse = tip = inf, q_sim all NaN, and "error" says why."""
+    reproduces nothing: rmse = tip = inf, q_sim all NaN, and "error" says why. So does
+    one whose state blows up until the mass matrix cannot be factorised."""
     if q_sim is None:
         try:
             q_sim, _ = simulate_targets(body, basis, weights, tg, **sim_kw)
-        except (AssertionError, SimulationBudget) as err:
+        except (AssertionError, SimulationBudget, torch.linalg.LinAlgError) as err:
             inf = [float("inf")] * tg.N
             return {"rmse": inf, "tip": inf, "torque": relative_rms_torque_error(basis, weights, tg).tolist(),
                     "q_sim": torch.full_like(tg.q, float("nan")), "error": str(err)}
@@ -128,7 +129,7 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
         loss = path_loss(body, q_sim, v_sim, tg, velocity_weight).sum()
         value = float(loss.detach())
         failed = not torch.isfinite(loss)
-    except (AssertionError, SimulationBudget):
+    except (AssertionError, SimulationBudget, torch.linalg.LinAlgError):
         failed, value = True, float("inf")
     if best is None and failed:
         raise RuntimeError("path matching: the simulation fails at the starting point")
