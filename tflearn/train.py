@@ -233,7 +233,7 @@ class Run:
         basis, weights = search.pool(tg, state["fits"], kind, blocks)
         basis, weights, merged = search.merge_close(basis, weights, tg,
                                                     self.cfg["solver"]["merge"]["distance"])
-        if merged:
+        if merged or self.cfg["model"]["phases"] == "variable":   # pooled phases start at default
             self._em(basis, weights, tg, state)
         cost = float(torque.solve_weights(basis, weights, tg).sum())
         m, ok = self._metrics(basis, weights, tg, state, figures=True)
@@ -291,11 +291,16 @@ class Run:
             state["path_best"] = None
         if not state["path_needed"] or state["cursor"] >= p["steps"]:
             return self._advance(state, "done")
-        res = path_fit.path_step(self.body, basis, weights, tg, lr=state["path_lr"],
-                                 best=state["path_best"], optimizer_state=state["path_opt"],
-                                 velocity_weight=p["velocity_weight"], adjoint=p["adjoint"],
-                                 phases=self.cfg["model"]["phases"] == "variable",
-                                 **self._sim_kw())
+        try:
+            res = path_fit.path_step(self.body, basis, weights, tg, lr=state["path_lr"],
+                                     best=state["path_best"], optimizer_state=state["path_opt"],
+                                     velocity_weight=p["velocity_weight"], adjoint=p["adjoint"],
+                                     phases=self.cfg["model"]["phases"] == "variable",
+                                     **self._sim_kw())
+        except RuntimeError as err:          # the simulation fails at the starting point
+            state["history"]["path"] = str(err)
+            self.status("path", failed=1.0)
+            return self._advance(state, "done")
         state["path_lr"], state["path_best"], state["path_opt"] = res["lr"], res["best"], res["optimizer"]
         state["model"] = model_state(basis, weights)
         state["step"] += 1
