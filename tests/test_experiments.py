@@ -52,6 +52,18 @@ def test_bad_experiment_config_names_file_and_key(tmp_path, text, message):
     assert str(path) in str(err.value) and message in str(err.value)
 
 
+def test_overrides_may_follow_options():
+    """``tflearn experiment basin --quick seeds=5`` and ``train CFG --restart seed=3``:
+    overrides after an option are still overrides; anything else is refused."""
+    p = cli.build_parser()
+    args = cli._parse(p, ["experiment", "basin", "--quick", "seeds=5", "jobs=1"])
+    assert args.quick and args.overrides == ["seeds=5", "jobs=1"]
+    args = cli._parse(p, ["train", "c.yaml", "seed=1", "--restart", "out=x"])
+    assert args.restart and args.overrides == ["seed=1", "out=x"]
+    with pytest.raises(SystemExit):
+        cli._parse(p, ["experiment", "basin", "--quick", "--fast"])
+
+
 # -------------------------------------------------------------------------- noise model
 
 def test_noise_multiplies_each_parameter_by_a_factor_in_1_r():
@@ -102,13 +114,17 @@ def test_shared_quick(tmp_path):
 
 
 def test_keyframes_quick(tmp_path):
-    """A three-keyframe spline resembling the stiff-elbow lift: the pipeline reproduces
-    it with joint RMSE ≤ 0.05 rad (the goal of §4.3's experiment)."""
+    """A three-keyframe spline resembling the tuck (not made by fields): the pipeline's
+    own basis reproduces it within the goal, joint RMSE ≤ 0.05 rad (measured in the full
+    experiment: 0.030 rad, M = 3), while the thesis' SLSQP from the four fields of §4.2
+    loses it, as in thesis figure 4-9."""
     res = quick("keyframes", tmp_path)
-    row = next(x for x in res["rows"] if x["method"] == "pipeline")
-    assert row["motions"] == ["stiff_elbow_lift_keys"]
-    assert max(row["rmse"]) <= 0.05, row["rmse"]
-    assert row["M"] >= 1
+    pipe = next(x for x in res["rows"] if x["method"] == "pipeline")
+    slsqp = next(x for x in res["rows"] if x["method"] == "slsqp")
+    assert pipe["motions"] == slsqp["motions"] == ["tuck_keys"]
+    assert pipe["rmse"][0] <= 0.05 and pipe["success"] == [True]
+    assert slsqp["rmse"][0] > 0.05 and slsqp["success"] == [False]
+    assert 1 <= pipe["M"] <= 4
 
 
 def test_filtering_quick(tmp_path):
@@ -120,7 +136,7 @@ def test_filtering_quick(tmp_path):
     base, row = res["rows"]
     assert base["motions"] == ["come_here", "stiff_elbow_lift"] and all(base["success"])
     k = row["motions"].index("straight_reach")
-    assert row["straightness_in"][k] < 1e-6
+    assert row["straightness_in"][k] < 1e-3      # straight to the IK's 1 mm tolerance
     assert all(x is not None and x == x for x in row["straightness_out"])
     assert all(r < float("inf") for r in row["rmse"])
     assert {"straight_reach.png", "straight_reach_hand.png"} <= set(res["figures"])

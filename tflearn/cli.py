@@ -167,8 +167,19 @@ def _run(args, command: str) -> int:
         return 2
 
 
+def _parse(parser: argparse.ArgumentParser, argv):
+    """parse_args, except that key=value overrides may also follow options
+    (``experiment basin --quick seeds=5``): argparse leaves those unrecognised."""
+    args, extra = parser.parse_known_args(argv)
+    if extra and hasattr(args, "overrides") and all("=" in x and not x.startswith("-") for x in extra):
+        args.overrides = list(args.overrides) + extra
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    return args
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    args = _parse(build_parser(), argv)
     return _run(args, f"tflearn {args.command}")
 
 
@@ -176,7 +187,7 @@ def train_main(argv=None) -> int:
     """The ``train`` console script: ``train CONFIG [key=value ...]``."""
     p = argparse.ArgumentParser(prog="train", description="Learn a shared basis of torque fields.")
     _train_args(p)
-    return _run(p.parse_args(argv), "train")
+    return _run(_parse(p, argv), "train")
 
 
 if __name__ == "__main__":

@@ -52,7 +52,9 @@ def trajectories(t, paths: dict, title: str = "") -> plt.Figure:
 
 
 def _equal_3d(ax, pts):
-    lo, hi = pts.reshape(-1, 3).min(0), pts.reshape(-1, 3).max(0)
+    pts = pts.reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(-1)]           # a failed simulation's path is NaN
+    lo, hi = pts.min(0), pts.max(0)
     c, r = (lo + hi) / 2, max((hi - lo).max() / 2, 0.05)
     ax.set_xlim(c[0] - r, c[0] + r)
     ax.set_ylim(c[1] - r, c[1] + r)
