@@ -29,7 +29,6 @@ the same run. Cases are cached in OUT/cases/, so an interrupted experiment resum
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
@@ -44,7 +43,7 @@ from .fit import path as path_fit
 from .fit import torque
 from .fit.slsqp import fit_slsqp
 from .fit.targets import Targets, prepare
-from .motion import Motion, save as save_motion
+from .motion import save as save_motion
 
 F64 = torch.float64
 EXPERIMENTS = ("basin", "shared", "keyframes", "filtering")
