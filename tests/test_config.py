@@ -119,6 +119,7 @@ def test_unknown_key_in_override(override, key):
     ("log.progress=1", "log.progress", "true or false"),
     ("model.stiffness=round", "model.stiffness", "one of"),
     ("model.phases=free", "model.phases", "one of"),
+    ("solver.method=sqp", "solver.method", "one of"),
     ("body=3", "body", "mapping"),
     ("solver=3", "solver", "mapping"),
     ("solver.path.method=3", "solver.path.method", "str"),

@@ -27,6 +27,9 @@ DEFAULTS: dict = {
         "phases": "fixed",       # fixed (onset 0, duration λ) | variable (learned onsets/durations)
     },
     "solver": {
+        # pipeline (below) | slsqp: the thesis' baseline, SLSQP with numerical derivatives
+        # on the torque cost from a seeded random guess (needs model.fields ≥ 1, diag K)
+        "method": "pipeline",
         "init": {
             "candidates": 48,    # multi-start candidates per field added
             "stiffness_grid": [0.25, 0.5, 1.0, 2.0, 4.0, 8.0],
@@ -42,6 +45,7 @@ DEFAULTS: dict = {
             "velocity_weight": 0.1,
         },
         "merge": {"distance": 0.05},   # merge pooled fields closer than this (rad, and relative K)
+        "slsqp": {"max_iter": 200},    # iterations of the baseline (solver.method: slsqp)
     },
     "success": {"rmse": 0.03, "tip": 0.02},
     "log": {"tensorboard": True, "progress": True},
@@ -97,7 +101,8 @@ def check(cfg: dict, ref: dict, where: str = "") -> None:
         elif not isinstance(val, type(default)):
             raise ConfigError(f"config key {path!r} must be a {type(default).__name__}, got {val!r}")
     choices = {"model.stiffness": ("scalar", "diag", "block", "full"),
-               "model.phases": ("fixed", "variable")}
+               "model.phases": ("fixed", "variable"),
+               "solver.method": ("pipeline", "slsqp")}
     for path, allowed in choices.items():
         head, _, leaf = path.partition(".")
         if where.endswith(head + ".") and leaf in cfg and cfg[leaf] not in allowed:

@@ -16,7 +16,7 @@ from .fit.torque import solve_weights
 from .io import basis as basis_io
 from .motion import Motion, save as save_motion
 from .simulate import simulate
-from .train import load_motions, summarize
+from .train import check_resolution, load_motions, summarize
 
 
 def synthesize(lb: basis_io.LearnedBasis, tg: Targets, path_steps: int = 20,
@@ -59,6 +59,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
     p = cfg["solver"]["path"]
     sim_kw = {"method": p["method"], "rtol": p["rtol"], "atol": p["atol"], "max_evals": p["max_evals"]}
     motions = load_motions(data if data is not None else cfg["data"], lb.body)
+    resolution = dict(zip([m.name for m in motions], check_resolution(lb.body, motions)))
     known = [m for m in motions if m.name in lb.names]
     new = [m for m in motions if m.name not in lb.names]
     results, counts = {}, {}
@@ -72,6 +73,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
         s = summarize(m, ok, tg, lb.basis.M, 0.0)
         for j, (name, row) in enumerate(s["motions"].items()):
             row["synthesized"] = synth
+            row["torque_resolution"] = resolution[name]
             results[name] = row
             counts[name] = int(tg.mask[j].sum())
     # Over all samples of all motions, as in metrics.json.

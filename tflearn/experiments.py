@@ -188,7 +188,9 @@ def fit_local_case(body, guess: dict, tg: Targets, cfg: dict) -> dict:
     """tflearn's local solver from a guess: EM (exact NNLS weights + Levenberg–Marquardt
     on the fields), first with the weights the guess leaves at zero held there, then
     with all weights free; if its fit is near (relative torque cost ≤ ``local.path_gate``)
-    but not reproduced, path matching of fields and weights through ``odeint``.
+    but not reproduced, path matching of fields and weights through ``odeint``. The
+    returned "check" is the simulation that found the fit reproduced (None if it was not
+    simulated or was changed since), so that it is not simulated twice.
 
     The first phase keeps EM local: unrestricted, its first NNLS solve may switch on a
     profile the guess has off (e.g. a large pulse on a step-only gesture) and descend
@@ -200,7 +202,8 @@ def fit_local_case(body, guess: dict, tg: Targets, cfg: dict) -> dict:
     history = torque.em(basis, weights, tg, steps=c["em_steps"], tol=c["em_tol"], support=support)
     history += torque.em(basis, weights, tg, steps=c["em_steps"], tol=c["em_tol"])[1:]
     cost = history[-1]
-    if c["path_steps"] and cost <= c["path_gate"] and not all(check(body, basis, weights, tg, cfg)["success"]):
+    m = check(body, basis, weights, tg, cfg) if c["path_steps"] and cost <= c["path_gate"] else None
+    if m is not None and not all(m["success"]):
         try:
             path_fit.path_match(body, basis, weights, tg, steps=c["path_steps"], lr=c["path_lr"],
                                 method=s["method"], rtol=s["rtol"], atol=s["atol"])
@@ -208,8 +211,9 @@ def fit_local_case(body, guess: dict, tg: Targets, cfg: dict) -> dict:
             pass
         with torch.no_grad():
             cost = float(torque.torque_cost(basis, weights, tg).sum())
+        m = None
     return {"basis": basis, "weights": weights, "cost": cost, "wall": time.perf_counter() - t0,
-            "evals": len(history), "sims": sim_mod.calls - calls0, "history": history}
+            "evals": len(history), "sims": sim_mod.calls - calls0, "history": history, "check": m}
 
 
 def fit_pipeline_case(body, motions: list, cfg: dict, out: Path, seed: int) -> dict:
@@ -268,7 +272,9 @@ def run_case(case: tuple) -> list:
     rows = []
     for method in (x for x in cfg["methods"] if x != "pipeline"):
         fit = (fit_slsqp_case if method == "slsqp" else fit_local_case)(body, guess, tg, cfg)
-        m = check(body, fit["basis"], fit["weights"], tg, cfg)
+        m = fit.pop("check", None)
+        if m is None:
+            m = check(body, fit["basis"], fit["weights"], tg, cfg)
         if cfg["experiment"] != "shared":
             fit.pop("history")
         rows.append(_row(method, group, r, seed, fit, m, names))

@@ -25,7 +25,7 @@ from . import simulate as sim
 from .body import Body, arm
 from .fields import FieldBasis, FieldProgram, MotionWeights
 from .io import basis as basis_io
-from .motion import Motion, save as save_motion
+from .motion import RESOLVED, Motion, torque_resolution, save as save_motion
 
 PI = math.pi
 
@@ -64,6 +64,10 @@ SUPPORTED = {
     "b": (0.5, 2.5),                # pulse weight of the second field
     "duration": (2.0, 4.0),         # seconds
 }
+"""The programs the learning bar is held to. The box above is for the program; its
+motion must also be sampled fast enough to resolve it (:func:`generate_resolved`): a
+scalar K drives the light hand as hard as the upper arm, so some programs in the box
+twist the wrist at ~100 rad/s, which no spline through 100 Hz samples follows."""
 
 
 def random_gestures(count: int, seed: int = 0, ranges: dict | None = None) -> list:
@@ -136,6 +140,28 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
         out.append((motion, basis_io.LearnedBasis(body, own, w, q0[j:j + 1], q0[j:j + 1],
                                                    torch.tensor([rate], dtype=torch.float64))))
     return out
+
+
+def generate_resolved(gestures, body: Body | None = None, rate: float = 100.0,
+                      max_rate: float = 1600.0) -> list:
+    """Like :func:`generate`, but each gesture sampled at the lowest rate of rate·2ᵏ
+    (k = 0, 1, …) whose samples resolve it: :func:`tflearn.motion.torque_resolution`
+    ≤ :data:`tflearn.motion.RESOLVED` (the data condition of :data:`SUPPORTED`).
+    Raises ValueError naming a gesture that ``max_rate`` does not resolve."""
+    body = body or arm()
+    todo = dict(enumerate(gestures))
+    out = {}
+    while todo:
+        if rate > max_rate:
+            names = ", ".join(g.name for g in todo.values())
+            raise ValueError(f"not resolved at {max_rate:g} Hz: {names}")
+        pairs = generate(body, rate, gestures=list(todo.values()))
+        for i, (motion, lb) in zip(list(todo), pairs):
+            if torque_resolution(body, motion) <= RESOLVED:
+                out[i] = (motion, lb)
+                del todo[i]
+        rate *= 2
+    return [out[i] for i in sorted(out)]
 
 
 def write(out_dir, body: Body | None = None, rate: float = 100.0, plots: bool = True) -> list:

@@ -524,6 +524,34 @@ def torques(body: Optional[Body], motion: Motion, t=None, method: str = "quat"):
     return tau, v, a
 
 
+RESOLVED = 1e-2   # torque_resolution at or below this: the samples resolve the motion
+
+
+def torque_resolution(body: Optional[Body], motion: Motion, trim: int = 5,
+                      method: str = "quat") -> float:
+    """Estimated relative RMS error of a motion's spline torques (:func:`torques`), from
+    its samples alone (Richardson): the spline through every other sample is compared
+    with the spline through all of them at the interior sample times t_i,
+
+        ε ≈ ‖τ_h − τ_2h‖ / (15 ‖τ_h‖),
+
+    since a quintic spline's second derivative errs by O(h⁴) (16× at 2h). Measured on
+    40 random programs of :data:`tflearn.gestures.SUPPORTED` at 100 Hz: 0.4–5.2× their
+    true error (generating program against spline torques). Above :data:`RESOLVED` the
+    motion is too fast for its sampling rate and torque matching cannot be trusted;
+    resample faster or smooth it. ``trim`` samples at each end are left out. Needs
+    at least 4·trim + 12 samples; returns NaN for shorter motions."""
+    body = motion.body if body is None else body
+    if motion.T < 4 * trim + 12:
+        return float("nan")
+    tau, _, _ = torques(body, motion, motion.t[trim:-trim], method)
+    half = Motion(motion.name, motion.t[::2], motion.q[::2], None, body)
+    inside = motion.t[trim:-trim] <= half.t[-1]
+    tau2, _, _ = torques(body, half, motion.t[trim:-trim][inside], method)
+    diff = (tau[inside] - tau2).norm()
+    return float(diff / (15 * tau[inside].norm().clamp_min(1e-12)))
+
+
 def resample(motion: Motion, rate: float, body: Optional[Body] = None,
              method: str = "quat") -> Motion:
     """The motion sampled at ``rate`` Hz from t[0] (last sample ≤ t[-1]) on its spline,

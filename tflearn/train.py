@@ -5,21 +5,30 @@ resumes where it stopped and ends with the same result:
 
 1. ``each``   — every motion alone: greedy growth of its own fields from data-driven,
                 seeded multi-start candidates, refined by EM, until its relative torque
-                cost is below ``solver.each.tol`` (one unit per motion);
+                cost is below ``solver.each.tol`` and simulation reproduces it (one unit
+                per motion);
 2. ``pool``   — all per-motion fields in one basis, every motion's weights re-solved
                 over all of them (so no motion fits worse than alone); fields closer than
                 ``solver.merge.distance`` merged and refined jointly by EM;
 3. ``reduce`` — backward elimination: drop each field in turn (smallest share first)
-                and keep it dropped if every motion is still reproduced by simulation —
-                the smallest M found is reported (one unit per field tried);
+                and keep it dropped if no motion gets worse by simulation: every motion
+                reproduced stays reproduced, and one not (yet) reproduced moves no
+                further from its path (joint RMSE and tip error no larger) — the
+                smallest M found is reported (one unit per field tried);
 4. ``path``   — path matching through ``odeint`` for motions not yet reproduced
                 (safeguarded Adam on the simulated path loss; one unit per step);
 5. ``done``   — ``basis.json``, ``metrics.json``, figures, TensorBoard hparams.
+
+With ``solver.method: slsqp`` the single stage ``slsqp`` replaces 1–4: the thesis'
+baseline (:func:`tflearn.fit.slsqp.fit_slsqp`, torque matching only) with
+``model.fields`` diagonal-stiffness fields from a seeded random guess — centres at
+postures drawn from the motions' samples, K = I, weights by NNLS.
 """
 from __future__ import annotations
 
 import json
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -30,11 +39,11 @@ from . import motion as motion_mod
 from .body import from_config
 from .fields import FieldBasis, MotionWeights
 from .fit import path as path_fit
-from .fit import search, torque
+from .fit import search, slsqp, torque
 from .fit.targets import Targets, prepare
 from .io import basis as basis_io
 
-STAGES = ("each", "pool", "reduce", "path", "done")
+STAGES = ("each", "pool", "reduce", "path", "slsqp", "done")
 
 
 class Interrupted(RuntimeError):
@@ -51,6 +60,19 @@ def load_motions(data, body) -> list:
             return motion_mod.load_dir(p, body)
         return [motion_mod.load(p, body)]
     return [motion_mod.load(p, body) for p in data]
+
+
+def check_resolution(body, motions) -> list:
+    """Each motion's :func:`tflearn.motion.torque_resolution`; warns, naming the motion,
+    for those above :data:`tflearn.motion.RESOLVED` (too fast for their sampling)."""
+    eps = [motion_mod.torque_resolution(body, m) for m in motions]
+    for m, e in zip(motions, eps):
+        if e > motion_mod.RESOLVED:
+            warnings.warn(f"motion {m.name!r}: its samples do not resolve it at {m.rate:.0f} Hz "
+                          f"(spline torques an estimated {100 * e:.1f}% off, above "
+                          f"{100 * motion_mod.RESOLVED:.0f}%); it may not be reproduced. "
+                          f"Sample it faster or smooth it.", stacklevel=2)
+    return eps
 
 
 # ------------------------------------------------------------------ model (de)serialisation
@@ -90,6 +112,14 @@ class Run:
         self.ckpt_path = self.out / "checkpoint.pt"
         self.writer = None
         self.bar = None
+        if cfg["solver"]["method"] == "slsqp":
+            m = cfg["model"]
+            if m["fields"] < 1 or m["stiffness"] != "diag" or m["phases"] != "fixed":
+                raise config_mod.ConfigError(
+                    "solver.method 'slsqp' (the thesis' baseline) fits a basis of a given size "
+                    "with diagonal stiffness and fixed phases: it needs model.fields ≥ 1, "
+                    f"model.stiffness=diag and model.phases=fixed (got {m['fields']}, "
+                    f"{m['stiffness']!r}, {m['phases']!r})")
 
     # ---- logging
     def _open_logs(self):
@@ -159,6 +189,7 @@ class Run:
         torch.manual_seed(self.cfg["seed"])
         self._t0 = time.time()
         motions = load_motions(self.cfg["data"], self.body)
+        self.resolution = check_resolution(self.body, motions)
         tg = prepare(self.body, motions)
         self.out.mkdir(parents=True, exist_ok=True)
         if restart and self.ckpt_path.exists():
@@ -166,7 +197,8 @@ class Run:
         state = self.load()
         if state is None:
             gen = torch.Generator().manual_seed(self.cfg["seed"])
-            state = {"config": self.cfg, "stage": "each", "cursor": 0, "fits": [], "model": None,
+            first = "slsqp" if self.cfg["solver"]["method"] == "slsqp" else "each"
+            state = {"config": self.cfg, "stage": first, "cursor": 0, "fits": [], "model": None,
                      "rng": gen.get_state(), "history": {}, "step": 0}
         elif self.progress:
             print(f"resuming {self.out} at stage {state['stage']} ({state['cursor']})")
@@ -199,11 +231,13 @@ class Run:
         if j >= tg.N:
             return self._advance(state, "pool")
         gen = self._gen(state)
-        b, w, costs = search.grow(tg.select([j]), m["stiffness"], self.body.blocks,
+        one = tg.select([j])
+        b, w, costs = search.grow(one, m["stiffness"], self.body.blocks,
                                   c["each"]["max_fields"], c["each"]["tol"],
                                   c["init"]["candidates"], c["init"]["stiffness_grid"], gen,
                                   c["em"]["steps"], phases=m["phases"] == "variable",
-                                  em_tol=c["em"]["tol"])
+                                  em_tol=c["em"]["tol"],
+                                  reproduced=lambda b, w: all(self._metrics(b, w, one, state)[1]))
         state["fits"].append((b.eta.detach().clone(), b.K().detach().clone()))
         state["rng"] = gen.get_state()
         state["step"] += 1
@@ -247,19 +281,19 @@ class Run:
         self.save(state)
 
     def _stage_reduce(self, state, tg):
-        """Backward elimination. With model.fields = 0 a field goes only if every motion is
-        still reproduced; with model.fields = M the smallest-share fields go until M remain."""
+        """Backward elimination. With model.fields = 0 a field goes only if no motion gets
+        worse (:func:`no_worse`); with model.fields = M the smallest-share fields go
+        until M remain."""
         fixed = self.cfg["model"]["fields"]
         basis, weights = model_from_state(state["model"])
         if state.get("order") is None:
             shares = search.field_shares(basis, weights, tg)
             state["order"] = [int(i) for i in torch.argsort(shares)]
             state["ids"] = list(range(basis.M))
-            _, ok = self._metrics(basis, weights, tg, state)
-            state["reduce_from_success"] = all(ok)
+            m, ok = self._metrics(basis, weights, tg, state)
+            state["reduce_base"] = {"rmse": m["rmse"], "tip": m["tip"], "ok": ok}
         k = state["cursor"]
-        done = basis.M <= max(fixed, 1) or (not fixed and not state["reduce_from_success"])
-        if done or k >= len(state["order"]):
+        if basis.M <= max(fixed, 1) or k >= len(state["order"]):
             return self._advance(state, "path")
         victim = state["order"][k]
         state["cursor"] = k + 1
@@ -270,11 +304,13 @@ class Run:
         if fixed:
             accept = True
         else:
-            _, ok = self._metrics(nb, nw, tg, state)
-            accept = all(ok)
+            m, ok = self._metrics(nb, nw, tg, state)
+            accept = no_worse(state["reduce_base"], m, ok)
         if accept:
             state["model"] = model_state(nb, nw)
             state["ids"] = [state["ids"][i] for i in keep]
+            if not fixed:
+                state["reduce_base"] = {"rmse": m["rmse"], "tip": m["tip"], "ok": ok}
         self.status("reduce", M=len(state["ids"]), removed=float(accept))
         state["history"].setdefault("reduce", []).append(
             {"field": victim, "removed": bool(accept), "M_after": len(state["ids"])})
@@ -309,6 +345,29 @@ class Run:
         state["cursor"] += 1
         self.save(state)
 
+    def _stage_slsqp(self, state, tg):
+        gen = self._gen(state)
+        M, n = self.cfg["model"]["fields"], tg.q.shape[-1]
+        flat = tg.q[tg.mask]
+        eta = flat[torch.randint(len(flat), (M,), generator=gen)]
+        basis = FieldBasis(eta, torch.eye(n, dtype=torch.float64).expand(M, n, n).clone(), kind="diag")
+        z = torch.zeros(tg.N, M, dtype=torch.float64)
+        weights = MotionWeights(z, z, tg.duration, names=tg.names)
+        torque.solve_weights(basis, weights, tg)
+
+        def cb(nit, cost):
+            state["step"] += 1
+            self.scalar("torque/cost_total", cost, state["step"])
+            self.status("slsqp", iteration=nit, cost=cost)
+        res = slsqp.fit_slsqp(basis, weights, tg, max_iter=self.cfg["solver"]["slsqp"]["max_iter"],
+                              callback=cb)
+        state["model"] = model_state(res["basis"], res["weights"])
+        state["history"]["slsqp"] = {k: res[k] for k in ("initial_cost", "cost", "nit", "nfev",
+                                                          "message", "wall_time")}
+        state["rng"] = gen.get_state()
+        self._advance(state, "done")
+        self.save(state)
+
     # ---- artefacts
     def finish(self, state, tg) -> dict:
         basis, weights = model_from_state(state["model"])
@@ -321,6 +380,8 @@ class Run:
         lb = basis_io.LearnedBasis(self.body, basis, weights, tg.q0, tg.qd0, rate)
         basis_io.save(lb, self.out / "basis.json")
         metrics = summarize(m, ok, tg, basis.M, state.get("elapsed", 0.0) + time.time() - self._t0)
+        for name, eps in zip(tg.names, self.resolution):
+            metrics["motions"][name]["torque_resolution"] = eps
         metrics["history"] = state["history"]
         (self.out / "metrics.json").write_text(json.dumps(metrics, indent=1))
         config_mod.dump(self.cfg, self.out / "config.yaml")
@@ -336,6 +397,15 @@ class Run:
             state["stage"] = "done"
         torch.save(state, self.ckpt_path)
         return metrics
+
+
+def no_worse(base: dict, m: dict, ok: list) -> bool:
+    """Whether a smaller basis keeps every motion as good as ``base`` ({"rmse", "tip",
+    "ok"}, per motion): a motion reproduced stays reproduced; one not reproduced has
+    joint RMSE and tip error no larger than before."""
+    return all(now if was else (r <= r0 and p <= p0)
+               for was, now, r, r0, p, p0 in zip(base["ok"], ok, m["rmse"], base["rmse"],
+                                                 m["tip"], base["tip"]))
 
 
 def summarize(m: dict, ok: list, tg: Targets, M: int, wall: float) -> dict:

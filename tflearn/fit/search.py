@@ -246,11 +246,12 @@ def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
 
 def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates: int,
          stiffnesses, generator: torch.Generator, em_steps: int,
-         phases: bool = False, min_gain: float = 0.05, em_tol: float = 1e-6):
+         phases: bool = False, min_gain: float = 0.05, em_tol: float = 1e-6, reproduced=None):
     """Greedy growth: add the best data-driven field and refine by EM, until every
-    motion's relative torque cost is ≤ ``tol``, there are ``max_fields`` fields, or a new
-    field lowers the summed cost by less than the fraction ``min_gain`` (it is then not
-    kept). Returns (basis, weights, costs per motion)."""
+    motion's relative torque cost is ≤ ``tol`` and ``reproduced(basis, weights)`` (if
+    given: a check by simulation) holds, there are ``max_fields`` fields, or a new field
+    lowers the summed cost by less than the fraction ``min_gain`` (it is then not kept).
+    Returns (basis, weights, costs per motion)."""
     from .torque import em, solve_weights
     n = tg.q.shape[-1]
     basis, weights = empty_model(tg, n, kind, blocks)
@@ -269,7 +270,7 @@ def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates
         if basis.M and float(new_costs.sum()) > (1 - min_gain) * float(costs.sum()):
             break
         basis, weights, costs = nb, nw, new_costs
-        if bool((costs <= tol).all()):
+        if bool((costs <= tol).all()) and (reproduced is None or reproduced(basis, weights)):
             break
     return basis, weights, costs
 
