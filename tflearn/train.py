@@ -275,6 +275,7 @@ class Run:
         state["model"] = model_state(basis, weights)
         state["history"]["pool"] = {"M": basis.M, "merged": merged, "torque_cost": cost,
                                     "success": ok}
+        state["reduce_base"] = {"rmse": m["rmse"], "tip": m["tip"], "ok": ok}
         self.status("pool", M=basis.M, cost=cost, ok=sum(ok))
         self._advance(state, "reduce")
         state["order"] = None
@@ -290,8 +291,6 @@ class Run:
             shares = search.field_shares(basis, weights, tg)
             state["order"] = [int(i) for i in torch.argsort(shares)]
             state["ids"] = list(range(basis.M))
-            m, ok = self._metrics(basis, weights, tg, state)
-            state["reduce_base"] = {"rmse": m["rmse"], "tip": m["tip"], "ok": ok}
         k = state["cursor"]
         if basis.M <= max(fixed, 1) or k >= len(state["order"]):
             return self._advance(state, "path")
