@@ -36,11 +36,8 @@ def run_seed(seed: int, work: Path, slsqp_iter: int) -> list:
     programs = gestures.random_gestures(3, seed=seed)
     fields = sum(len(p.eta) for p in programs)
     data = work / f"s{seed}" / "data"
-    data.mkdir(parents=True, exist_ok=True)
-    rates = {}
-    for m, _ in gestures.generate_resolved(programs):
-        motion_mod.save(m, data / f"{m.name}.npz")
-        rates[m.name] = round(m.rate)
+    gestures.write(data, plots=False, gestures=programs, resolved=True)
+    rates = {m.name: round(m.rate) for m in motion_mod.load_dir(data)}
     base = [f"data={data}", "log.progress=false", "log.tensorboard=false"]
     runs = {"pipeline": [],
             "slsqp": ["solver.method=slsqp", f"model.fields={fields}",

@@ -41,15 +41,10 @@ def small_config(data, out, *extra) -> dict:
     return config.load(None, [f"data={data}", f"out={out}", *SMALL_OVERRIDES, *extra])
 
 
-def write_motions(folder: Path, programs, rate: float = 100.0, resolved: bool = False) -> list:
-    """Simulate gesture programs and save them as NAME.npz; returns [(Motion, LearnedBasis)].
+def write_motions(folder: Path, programs, rate: float = 100.0, resolved: bool = False) -> None:
+    """Simulate gesture programs and save them as NAME.npz (and NAME.json) in ``folder``;
     ``resolved``: each at the lowest rate·2ᵏ that resolves it (gestures.generate_resolved)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    pairs = (gestures.generate_resolved(programs, rate=rate) if resolved
-             else gestures.generate(gestures=programs, rate=rate))
-    for m, _ in pairs:
-        motion_mod.save(m, folder / f"{m.name}.npz")
-    return pairs
+    gestures.write(folder, rate=rate, plots=False, gestures=programs, resolved=resolved)
 
 
 def small_run(tmp_path_factory) -> dict:

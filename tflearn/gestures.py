@@ -164,12 +164,17 @@ def generate_resolved(gestures, body: Body | None = None, rate: float = 100.0,
     return [out[i] for i in sorted(out)]
 
 
-def write(out_dir, body: Body | None = None, rate: float = 100.0, plots: bool = True) -> list:
-    """Write NAME.npz and NAME.json (basis format) for every gesture, plus NAME.png plots."""
+def write(out_dir, body: Body | None = None, rate: float = 100.0, plots: bool = True,
+          gestures=None, resolved: bool = False) -> list:
+    """Write NAME.npz and NAME.json (basis format) for every gesture (default: the
+    library), plus NAME.png plots; ``resolved``: each sampled as :func:`generate_resolved`
+    does, from ``rate`` up. Returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for motion, lb in generate(body, rate):
+    pairs = (generate_resolved(list(gestures or GESTURES.values()), body, rate) if resolved
+             else generate(body, rate, gestures=gestures))
+    for motion, lb in pairs:
         save_motion(motion, out / f"{motion.name}.npz")
         basis_io.save(lb, out / f"{motion.name}.json")
         written += [out / f"{motion.name}.npz", out / f"{motion.name}.json"]
