@@ -65,8 +65,9 @@ def main():
     q0 = torch.randn(2, 7, generator=g, dtype=torch.float64)
     v0 = torch.randn(2, 7, generator=g, dtype=torch.float64)
     t = torch.linspace(0, 3, 31, dtype=torch.float64)
-    tr = simulate.simulate(arm, simulate.zero_program, q0, v0, t, method="dopri8", rtol=1e-12,
-                           atol=1e-12, options={"step_t": t[1:]})
+    tr = simulate.simulate(arm, simulate.zero_program, q0, v0, t,
+                           simulate.SimOptions(method="dopri8", rtol=1e-12, atol=1e-12,
+                                               solver_options={"step_t": t[1:]}))
     ke = dynamics.kinetic_energy(arm, tr.q, tr.v)
     print(f"kinetic energy drift over 3 s: {float(((ke - ke[:, :1]).abs() / ke[:, :1]).max()):.2e}")
 

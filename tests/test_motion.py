@@ -15,10 +15,11 @@ import roma
 import torch
 
 from tflearn import dynamics
+from tflearn import configspace as C
 from tflearn import motion as M
 from tflearn.body import arm, chain
 from tflearn.fields import FieldBasis, FieldProgram, MotionWeights
-from tflearn.simulate import simulate
+from tflearn.simulate import SimOptions, simulate
 
 F64 = torch.float64
 PI = math.pi
@@ -98,8 +99,8 @@ def simulated(name: str) -> dict:
         try:
             with torch.no_grad():
                 traj = simulate(c["body"], c["program"], tensor([c["q0"]]), tensor([c["v0"]]),
-                                t, method="dopri5", rtol=c["tol"], atol=c["tol"],
-                                options={"step_t": t})
+                                t, SimOptions(rtol=c["tol"], atol=c["tol"],
+                                              solver_options={"step_t": t}))
                 q, v = traj.q[0], traj.v[0]
                 true = c["program"](t, q[:, None], v[:, None])[:, 0]
         finally:
@@ -227,10 +228,10 @@ def test_ball_chain_analytic(method):
     v2, vd2, vdd2 = ball_path(t.flip(0))
     q = torch.cat([v1, v2], -1)
     assert float(v1.norm(dim=-1).max()) > PI + 0.3
-    w = torch.cat([M.body_velocity(v1, vd1), M.body_velocity(v2, -vd2)], -1)
-    wd = torch.cat([M.body_acceleration(v1, vd1, vdd1), M.body_acceleration(v2, -vd2, vdd2)], -1)
+    w = torch.cat([C.body_velocity(v1, vd1), C.body_velocity(v2, -vd2)], -1)
+    wd = torch.cat([C.body_acceleration(v1, vd1, vdd1), C.body_acceleration(v2, -vd2, vdd2)], -1)
     exact = dynamics.rnea(body, q, w, wd)
-    wrapped = torch.cat([M.wrap_rotvec(v1), M.wrap_rotvec(v2)], -1)
+    wrapped = torch.cat([C.wrap_rotvec(v1), C.wrap_rotvec(v2)], -1)
     tau, omega, acc = M.torques(body, M.Motion("balls", t, wrapped, body=body), method=method)
     k = slice(10, -10)
     assert rel_rms(omega[k], w[k]) < 1e-8
@@ -272,16 +273,16 @@ def unit(x):
 
 def test_hat():
     v, w = tensor([0.3, -1.2, 2.0]), tensor([-0.7, 0.4, 1.1])
-    torch.testing.assert_close(M.hat(v) @ w, torch.cross(v, w, dim=-1))
-    assert M.hat(torch.zeros(4, 2, 3, dtype=F64)).shape == (4, 2, 3, 3)
-    torch.testing.assert_close(M.hat(v).mT, -M.hat(v))
+    torch.testing.assert_close(C.hat(v) @ w, torch.cross(v, w, dim=-1))
+    assert C.hat(torch.zeros(4, 2, 3, dtype=F64)).shape == (4, 2, 3, 3)
+    torch.testing.assert_close(C.hat(v).mT, -C.hat(v))
 
 
 @pytest.mark.parametrize("v", TEST_VECTORS)
 def test_right_jacobian_matches_log_differences(v):
     """J_r(v) δ = d/dε log(exp(v)ᵀ exp(v + εδ)) at ε = 0 (central differences)."""
     v, eps = tensor(v), 1e-6
-    J = M.right_jacobian(v)
+    J = C.right_jacobian(v)
     R = roma.rotvec_to_rotmat(v)
     for delta in (unit([1.0, 0.0, 0.0]), unit([0.0, 1.0, 0.0]), unit([0.3, -0.5, 0.8])):
         plus = roma.rotmat_to_rotvec(R.mT @ roma.rotvec_to_rotmat(v + eps * delta))
@@ -290,7 +291,7 @@ def test_right_jacobian_matches_log_differences(v):
 
 
 def test_right_jacobian_at_zero_and_sign_convention():
-    torch.testing.assert_close(M.right_jacobian(torch.zeros(3, dtype=F64)),
+    torch.testing.assert_close(C.right_jacobian(torch.zeros(3, dtype=F64)),
                                torch.eye(3, dtype=F64), rtol=0, atol=0)
     # [ω]× = Rᵀ Ṙ along v(t) = v0 + t d, by central differences of R.
     v0, d, h = tensor([0.4, -1.1, 0.9]), tensor([0.7, 0.2, -0.5]), 1e-5
@@ -298,15 +299,15 @@ def test_right_jacobian_at_zero_and_sign_convention():
     Rdot = (roma.rotvec_to_rotmat(v0 + h * d) - roma.rotvec_to_rotmat(v0 - h * d)) / (2 * h)
     W = R.mT @ Rdot
     omega = torch.stack([W[2, 1], W[0, 2], W[1, 0]])
-    torch.testing.assert_close(M.body_velocity(v0, d), omega, rtol=0, atol=1e-9)
-    torch.testing.assert_close(M.right_jacobian(v0) @ d, omega, rtol=0, atol=1e-9)
+    torch.testing.assert_close(C.body_velocity(v0, d), omega, rtol=0, atol=1e-9)
+    torch.testing.assert_close(C.right_jacobian(v0) @ d, omega, rtol=0, atol=1e-9)
 
 
 def test_jr_coefficients_continuous_at_branch():
-    s = tensor([M.TAYLOR_THETA2 * (1 - 1e-12), M.TAYLOR_THETA2 * (1 + 1e-12)])
-    for c in M._jr_coefficients(s):
+    s = tensor([C.TAYLOR_THETA2 * (1 - 1e-12), C.TAYLOR_THETA2 * (1 + 1e-12)])
+    for c in C._jr_coefficients(s):
         assert abs(float(c[0] - c[1])) < 1e-13 * max(1.0, abs(float(c[0])))
-    a, b, da, db = M._jr_coefficients(torch.zeros(1, dtype=F64))
+    a, b, da, db = C._jr_coefficients(torch.zeros(1, dtype=F64))
     assert (float(a), float(b), float(da), float(db)) == (0.5, 1 / 6, -1 / 24, -1 / 120)
 
 
@@ -316,21 +317,21 @@ def test_body_acceleration_matches_jvp(v):
     v ↦ J_r(v) w at w = v̇ in direction v̇; finite at v = 0."""
     v = tensor(v)
     vd, vdd = tensor([0.3, -0.6, 0.5]), tensor([-1.0, 0.2, 0.7])
-    _, jdot = torch.func.jvp(lambda x: M.right_jacobian(x) @ vd, (v,), (vd,))
-    expected = M.right_jacobian(v) @ vdd + jdot
+    _, jdot = torch.func.jvp(lambda x: C.right_jacobian(x) @ vd, (v,), (vd,))
+    expected = C.right_jacobian(v) @ vdd + jdot
     assert bool(torch.isfinite(expected).all())
-    torch.testing.assert_close(M.body_acceleration(v, vd, vdd), expected, rtol=0, atol=1e-12)
-    torch.testing.assert_close(M.body_velocity(v, vd), M.right_jacobian(v) @ vd,
+    torch.testing.assert_close(C.body_acceleration(v, vd, vdd), expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(C.body_velocity(v, vd), C.right_jacobian(v) @ vd,
                                rtol=0, atol=1e-14)
 
 
 def test_body_acceleration_matches_finite_differences():
     t, h = tensor([0.3, 1.5, 2.9]), 1e-5
     def omega(tt):
-        return M.body_velocity(*ball_path(tt)[:2])
+        return C.body_velocity(*ball_path(tt)[:2])
     v, vd, vdd = ball_path(t)
     fd = (omega(t + h) - omega(t - h)) / (2 * h)
-    torch.testing.assert_close(M.body_acceleration(v, vd, vdd), fd, rtol=0, atol=1e-8)
+    torch.testing.assert_close(C.body_acceleration(v, vd, vdd), fd, rtol=0, atol=1e-8)
 
 
 def test_quat_body_motion_for_a_non_unit_path():
@@ -343,35 +344,35 @@ def test_quat_body_motion_for_a_non_unit_path():
     pdd = (p_of(t + h) - 2 * p + p_of(t - h)) / h**2
     w, wd = M.quat_body_motion(p, pd, pdd)
     v, vd, vdd = ball_path(t)
-    torch.testing.assert_close(w, M.body_velocity(v, vd), rtol=0, atol=1e-7)
-    torch.testing.assert_close(wd, M.body_acceleration(v, vd, vdd), rtol=0, atol=1e-5)
+    torch.testing.assert_close(w, C.body_velocity(v, vd), rtol=0, atol=1e-7)
+    torch.testing.assert_close(wd, C.body_acceleration(v, vd, vdd), rtol=0, atol=1e-5)
 
 
 def test_unwrap_and_wrap():
     t = torch.linspace(0.0, 3.0, 301, dtype=F64)
     u = ball_path(t)[0]                                    # crosses |v| = π
-    principal = M.wrap_rotvec(u)
+    principal = C.wrap_rotvec(u)
     assert float(principal.norm(dim=-1).max()) <= PI + 1e-12
     assert float((principal[1:] - principal[:-1]).norm(dim=-1).max()) > PI   # it jumped
     torch.testing.assert_close(roma.rotvec_to_rotmat(principal), roma.rotvec_to_rotmat(u))
-    torch.testing.assert_close(M.unwrap_rotvec(principal), u, rtol=0, atol=1e-12)
+    torch.testing.assert_close(C.unwrap_rotvec(principal), u, rtol=0, atol=1e-12)
     # Batched, with a different anchor (smallest |v|) in each sequence: through exact
     # zero in the middle, and a path that starts beyond π and ends near 0.
     through0 = torch.linspace(-1.0, 1.0, 21, dtype=F64)[:, None] * tensor([0.3, 0.2, -0.1])
     backwards = ball_path(torch.linspace(3.0, 0.0, 21, dtype=F64))[0]
     batch = torch.stack([through0, backwards])
-    torch.testing.assert_close(M.unwrap_rotvec(M.wrap_rotvec(batch)), batch, rtol=0, atol=1e-12)
+    torch.testing.assert_close(C.unwrap_rotvec(C.wrap_rotvec(batch)), batch, rtol=0, atol=1e-12)
     # A winding sequence: the lift is anchored at the smallest rotation (here exactly 0).
     wound = tensor([3.0, 4.0, 5.0, 6.0, 2 * PI, 6.5])[:, None] * tensor([0.0, 0.0, 1.0])
-    principal = M.wrap_rotvec(wound)
+    principal = C.wrap_rotvec(wound)
     assert float(principal[4].abs().max()) == 0.0
-    torch.testing.assert_close(M.unwrap_rotvec(principal), wound - tensor([0, 0, 2 * PI]),
+    torch.testing.assert_close(C.unwrap_rotvec(principal), wound - tensor([0, 0, 2 * PI]),
                                rtol=0, atol=1e-12)
     # A zero sample next to a wound-up neighbour takes the neighbour's axis.
     ref = tensor([0.0, 0.1, 6.0])
-    torch.testing.assert_close(M._nearest_equivalent(torch.zeros(3, dtype=F64), ref),
+    torch.testing.assert_close(C._nearest_equivalent(torch.zeros(3, dtype=F64), ref),
                                2 * PI * ref / ref.norm(), rtol=0, atol=1e-15)
-    torch.testing.assert_close(M._nearest_equivalent(tensor([0.0, 0.0, -0.2]),
+    torch.testing.assert_close(C._nearest_equivalent(tensor([0.0, 0.0, -0.2]),
                                                      tensor([0.0, 0.0, 3.0])),
                                tensor([0.0, 0.0, 2 * PI - 0.2]), rtol=0, atol=1e-15)
 
@@ -380,7 +381,7 @@ def test_align_quaternions():
     q = roma.rotvec_to_unitquat(ball_path(torch.linspace(0, 3, 50, dtype=F64))[0])
     coin = torch.rand(50, generator=torch.Generator().manual_seed(0))
     signs = torch.where(coin < 0.5, -1.0, 1.0)
-    aligned = M.align_quaternions(q * signs[:, None].to(F64))
+    aligned = C.align_quaternions(q * signs[:, None].to(F64))
     assert bool(((aligned[1:] * aligned[:-1]).sum(-1) >= 0).all())
     torch.testing.assert_close(aligned, q * signs[0], rtol=0, atol=0)
 

@@ -18,6 +18,7 @@ from torch.autograd import gradcheck
 from torch.func import functional_call
 from torchdiffeq import odeint
 
+from tflearn import configspace as C
 from tflearn import body as tb
 from tflearn import dynamics as D
 from tflearn import fields as F
@@ -28,7 +29,7 @@ from conftest import ARM_OFFSETS, DT, GRAVITY, wrap_angle
 
 def tight(t, tol):
     """dopri8 at rtol = atol = tol, stepping onto every sample time (see module note)."""
-    return dict(method="dopri8", rtol=tol, atol=tol, options={"step_t": t[1:]})
+    return S.SimOptions(method="dopri8", rtol=tol, atol=tol, solver_options={"step_t": t[1:]})
 
 
 def energy(body, traj):
@@ -53,7 +54,7 @@ def test_kinetic_energy_conserved_without_gravity(gen):
     q0 = torch.randn(2, 7, dtype=DT, generator=gen)
     v0 = torch.randn(2, 7, dtype=DT, generator=gen)
     t = torch.linspace(0.0, 3.0, 31, dtype=DT)
-    traj = S.simulate(body, S.zero_program, q0, v0, t, **tight(t, 1e-12))
+    traj = S.simulate(body, S.zero_program, q0, v0, t, tight(t, 1e-12))
     assert traj.q.shape == (2, 31, 7) and traj.v.shape == (2, 31, 7) and traj.work is None
     assert torch.equal(traj.v[:, 0], v0)
     assert float((traj.v - v0[:, None]).abs().max()) > 0.5  # the velocities really change
@@ -70,7 +71,7 @@ def test_total_energy_conserved_with_gravity(gen):
     q0 = torch.randn(2, 7, dtype=DT, generator=gen)
     v0 = torch.randn(2, 7, dtype=DT, generator=gen)
     t = torch.linspace(0.0, 1.0, 11, dtype=DT)
-    traj = S.simulate(body, S.zero_program, q0, v0, t, **tight(t, 1e-11))
+    traj = S.simulate(body, S.zero_program, q0, v0, t, tight(t, 1e-11))
     T, V = energy(body, traj)
     E = T + V
     exchanged = (V - V[:, :1]).abs().amax(-1)
@@ -101,7 +102,7 @@ def test_work_equals_energy_gain(gen):
     v0 = 0.5 * torch.randn(2, 7, dtype=DT, generator=gen)
     t = torch.linspace(0.0, 1.0, 11, dtype=DT)
     with torch.no_grad():
-        traj = S.simulate(body, program, q0, v0, t, track_work=True, **tight(t, 1e-10))
+        traj = S.simulate(body, program, q0, v0, t, tight(t, 1e-10), track_work=True)
     assert traj.work.shape == (2, 11) and float(traj.work[:, 0].abs().max()) == 0.0
     T, V = energy(body, traj)
     gain = (T + V) - (T + V)[:, :1]
@@ -122,9 +123,9 @@ def test_damping_dissipates_energy(gen):
     q0 = torch.randn(2, 7, dtype=DT, generator=gen)
     v0 = torch.randn(2, 7, dtype=DT, generator=gen)
     t = torch.linspace(0.0, 0.5, 11, dtype=DT)
-    damped = S.simulate(body.with_(damping=c), S.zero_program, q0, v0, t, **tight(t, 1e-10))
-    driven = S.simulate(body, lambda t, q, v: -c * v, q0, v0, t, track_work=True,
-                        **tight(t, 1e-10))
+    damped = S.simulate(body.with_(damping=c), S.zero_program, q0, v0, t, tight(t, 1e-10))
+    driven = S.simulate(body, lambda t, q, v: -c * v, q0, v0, t, tight(t, 1e-10),
+                        track_work=True)
     assert float((damped.q - driven.q).abs().max()) <= 1e-8
     assert float((damped.v - driven.v).abs().max()) <= 1e-8
     T, V = energy(body, damped)
@@ -147,7 +148,7 @@ def _quat_slices(body):
             k += 4
         else:
             k += link.dof
-    assert k == S.n_position(body)
+    assert k == C.n_position(body)
     return out
 
 
@@ -158,16 +159,18 @@ def test_raw_quaternion_norms_stay_one(gen):
     q0 = torch.randn(2, 7, dtype=DT, generator=gen)
     v0 = 2.0 * torch.randn(2, 7, dtype=DT, generator=gen)
     t = torch.linspace(0.0, 1.5, 16, dtype=DT)
-    y0 = S.pack(body, q0, v0)
-    assert y0.shape == (2, S.n_position(body) + 7)
-    ys = odeint(S.ArmODE(body, S.zero_program), y0, t, **tight(t, 1e-10))
+    y0 = C.pack(body, q0, v0)
+    assert y0.shape == (2, C.n_position(body) + 7)
+    opts = tight(t, 1e-10)
+    ys = odeint(S.ArmODE(body, S.zero_program), y0, t, method=opts.method, rtol=opts.rtol,
+                atol=opts.atol, options=opts.solver_options)
     norms = torch.stack([ys[..., s].norm(dim=-1) for s in _quat_slices(body)])
     assert float((norms - 1).abs().max()) <= 1e-9
     # The quaternions really travel (they would also stay unit if nothing moved).
     quats0 = torch.stack([y0[..., s] for s in _quat_slices(body)])
     assert float((torch.stack([ys[-1, ..., s] for s in _quat_slices(body)]) - quats0).abs().max()) > 0.5
     # unpack reads them as rotation matrices in SO(3) and principal vectors |v| ≤ π.
-    rots, coords, _, _ = S.unpack(body, ys)
+    rots, coords, _, _ = C.unpack(body, ys)
     for R in (rots[0], rots[2]):
         eye = torch.eye(3, dtype=DT)
         assert float((R.transpose(-1, -2) @ R - eye).abs().max()) <= 1e-13
@@ -184,7 +187,7 @@ def test_free_spin_wraps_through_pi():
     q0 = torch.zeros(1, 3, dtype=DT)  # exactly the zero rotation
     v0 = torch.tensor([[0.0, 0.0, omega]], dtype=DT)
     t = torch.linspace(0.0, 3.0, 61, dtype=DT)
-    traj = S.simulate(body, S.zero_program, q0, v0, t, **tight(t, 1e-12))
+    traj = S.simulate(body, S.zero_program, q0, v0, t, tight(t, 1e-12))
     # Measured: max error 8e-15 (dopri8, rtol = atol = 1e-12, step_t = t).
     angle = torch.as_tensor(wrap_angle((omega * t).numpy()), dtype=DT)
     expect = torch.zeros(61, 3, dtype=DT)
@@ -202,10 +205,10 @@ def test_gradient_wrt_q0_at_zero_rotation(gen):
     wq = torch.randn(3, 7, dtype=DT, generator=gen)
     wv = torch.randn(3, 7, dtype=DT, generator=gen)
     t = torch.tensor([0.0, 0.05, 0.1], dtype=DT)
-    kw = dict(method="rk4", options={"step_size": 0.01})
+    kw = S.SimOptions(method="rk4", solver_options={"step_size": 0.01})
 
     def loss(q0):
-        traj = S.simulate(body, S.zero_program, q0, v0, t, **kw)
+        traj = S.simulate(body, S.zero_program, q0, v0, t, kw)
         return (traj.q[0] * wq).sum() + (traj.v[0] * wv).sum()
 
     x = q0.clone().requires_grad_(True)
@@ -228,7 +231,7 @@ def test_gradcheck_simulate_wrt_v0_and_field_centre(gen):
     def run(v0, eta):
         def prog(tt, q, v):
             return functional_call(program, {"basis.eta": eta}, (tt, q, v))
-        traj = S.simulate(body, prog, q0, v0, t, method="rk4", options={"step_size": 0.01})
+        traj = S.simulate(body, prog, q0, v0, t, S.SimOptions(method="rk4", solver_options={"step_size": 0.01}))
         return traj.q, traj.v
 
     # The field centre matters to the result (so the check is not vacuous).
@@ -249,8 +252,9 @@ def test_max_evals_bounds_a_whole_simulation():
     v0 = torch.tensor([[2.0, -1.0, 0.5, 3.0, 1.0, -2.0, 0.5]], dtype=DT)
     t = torch.linspace(0, 2, 21, dtype=DT)
     kw = dict(rtol=1e-9, atol=1e-9)
-    with pytest.raises(S.SimulationBudget, match="more than 60 right-hand-side evaluations"):
-        S.simulate(body, S.zero_program, q0, v0, t, max_evals=60, **kw)
-    free = S.simulate(body, S.zero_program, q0, v0, t, **kw)
-    bounded = S.simulate(body, S.zero_program, q0, v0, t, max_evals=100000, **kw)
+    with pytest.raises(S.SimulationFailed, match="more than 60 right-hand-side evaluations") as err:
+        S.simulate(body, S.zero_program, q0, v0, t, S.SimOptions(max_evals=60, **kw))
+    assert err.value.reason == "budget"
+    free = S.simulate(body, S.zero_program, q0, v0, t, S.SimOptions(max_evals=None, **kw))
+    bounded = S.simulate(body, S.zero_program, q0, v0, t, S.SimOptions(max_evals=100000, **kw))
     assert torch.equal(free.q, bounded.q)

@@ -24,9 +24,10 @@ def _gestures(args) -> int:
 
 
 def _train(args) -> int:
-    import torch
-    from . import config, train
+    from . import config
     cfg = config.load(args.config, args.overrides)
+    import torch
+    from . import train
     torch.set_num_threads(args.threads)
     metrics = train.run(cfg, restart=args.restart)
     overall = metrics["overall"]
@@ -34,7 +35,7 @@ def _train(args) -> int:
         print(f"{name:>24s}: rmse {m['rmse']:.4f} rad, tip {100 * m['tip']:.2f} cm, "
               f"torque error {100 * m['torque_rel_rms']:.2f}%{'' if m['success'] else '  (not reproduced)'}")
     print(f"M = {overall['M']}, overall rmse {overall['rmse']:.4f} rad, max tip error "
-          f"{100 * overall['tip']:.2f} cm, {overall['wall_time_s']:.0f} s -> {cfg['out']}")
+          f"{100 * overall['tip']:.2f} cm, {overall['wall_time_s']:.0f} s -> {cfg.out}")
     return 0 if overall["success"] else 1
 
 
@@ -157,12 +158,12 @@ def _train_args(p) -> None:
 
 
 def _run(args, command: str) -> int:
-    from .config import ConfigError
-    from .io.basis import BasisFileError
-    from .motion import MotionError
+    """Run a subcommand: bad input (:class:`tflearn.errors.InputError`) is one line on
+    stderr and exit status 2; any other exception is a bug and keeps its traceback."""
+    from .errors import InputError
     try:
         return args.func(args)
-    except (ConfigError, MotionError, BasisFileError, FileNotFoundError, KeyError) as err:
+    except InputError as err:
         print(f"{command}: error: {err}", file=sys.stderr)
         return 2
 

@@ -1,10 +1,12 @@
-"""Training configuration: YAML files plus dotted ``key=value`` overrides.
+"""Training configuration: typed sections read once, from YAML files plus dotted overrides.
 
-A config is a nested mapping validated against :data:`DEFAULTS`: every key must exist
-there (unknown keys are refused, naming the key and the closest known ones) and values
-must have the default's type. Overrides use dotted keys (``solver.em.steps=200``); the
-shorthands ``data=``, ``out=`` and ``seed=`` address the top-level keys. Values are parsed
-as YAML scalars (``1e-3``, ``true``, ``[1, 2]``).
+A config is a :class:`Config` (pydantic models, frozen, strict: no key outside the
+schema, no value of another type). It is built from the defaults below ← a YAML file ←
+``key=value`` overrides with dotted keys (``solver.em.steps=200``; values parsed as YAML
+scalars: ``1e-3``, ``true``, ``[1, 2]``). ``body`` is a mapping read by
+:func:`tflearn.body.from_config` and is replaced whole, never merged. Every failure is a
+:class:`ConfigError` naming the file or override, the key and the problem: an unknown key
+with the closest known ones, a bad value with what it must be.
 """
 from __future__ import annotations
 
@@ -12,48 +14,112 @@ import copy
 import difflib
 import re
 from pathlib import Path
+from typing import Any, Literal, Optional, Type, Union
 
 import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-DEFAULTS: dict = {
-    # A folder of .npz motions, a list of .npz files, or "gestures" (the built-in library).
-    "data": "gestures",
-    "out": "runs/gestures",
-    "seed": 0,
-    "body": {"preset": "arm"},
-    "model": {
-        "fields": 0,             # M; 0 = the smallest M that still reproduces every motion
-        "stiffness": "diag",     # scalar | diag | block | full
-        "phases": "fixed",       # fixed (onset 0, duration λ) | variable (learned onsets/durations)
-    },
-    "solver": {
-        # pipeline (below) | slsqp: the thesis' baseline, SLSQP with numerical derivatives
-        # on the torque cost from a seeded random guess (needs model.fields ≥ 1, diag K)
-        "method": "pipeline",
-        "init": {
-            "candidates": 48,    # multi-start candidates per field added
-            "stiffness_grid": [0.25, 0.5, 1.0, 2.0, 4.0, 8.0],
-        },
-        "each": {"max_fields": 3, "tol": 1e-5},   # per-motion growth: fields, relative torque cost
-        # Levenberg–Marquardt steps per EM refinement; stop when a step gains < tol (relative)
-        "em": {"steps": 100, "tol": 1e-6},
-        "path": {
-            "steps": 20, "lr": 0.003,
-            "method": "dopri5", "rtol": 1e-6, "atol": 1e-8,
-            "max_evals": 20000,  # right-hand-side evaluations per simulation; past it: failed
-            "adjoint": False,
-            "velocity_weight": 0.1,
-        },
-        "merge": {"distance": 0.05},   # merge pooled fields closer than this (rad, and relative K)
-        "slsqp": {"max_iter": 200},    # iterations of the baseline (solver.method: slsqp)
-    },
-    "success": {"rmse": 0.03, "tip": 0.02},
-    "log": {"tensorboard": True, "progress": True},
-}
+from .errors import InputError
+
+SOLVERS = ("dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun", "euler", "midpoint",
+           "heun3", "rk4", "explicit_adams", "implicit_adams")
+
+class Section(BaseModel):
+    """A config section: strict types, unknown keys refused, immutable."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
-class ConfigError(ValueError):
-    """A bad config key or value; the message names it."""
+class ModelSection(Section):
+    fields: int = Field(0, ge=0)                 # M; 0 = the smallest M reproducing every motion
+    stiffness: Literal["scalar", "diag", "block", "full"] = "diag"
+    phases: Literal["fixed", "variable"] = "fixed"   # variable: learned onsets/durations
+
+
+class InitSection(Section):
+    candidates: int = Field(48, ge=1)            # multi-start candidates per field added
+    stiffness_grid: list[float] = [0.25, 0.5, 1.0, 2.0, 4.0, 8.0]
+
+
+class EachSection(Section):                     # per-motion growth
+    max_fields: int = Field(3, ge=1)
+    tol: float = Field(1e-5, ge=0)               # relative torque cost
+
+
+class EMSection(Section):                       # Levenberg–Marquardt steps per EM refinement
+    steps: int = Field(100, ge=0)
+    tol: float = Field(1e-6, ge=0)               # stop when a step gains < tol (relative)
+
+
+class PathSection(Section):                     # simulation options and path matching
+    steps: int = Field(20, ge=0)
+    lr: float = Field(0.003, ge=0)
+    method: Literal[SOLVERS] = "dopri5"
+    rtol: float = Field(1e-6, ge=0)
+    atol: float = Field(1e-8, ge=0)
+    max_evals: int = Field(20000, ge=1)          # right-hand-side evaluations; past it: failed
+    adjoint: bool = False
+    velocity_weight: float = Field(0.1, ge=0)
+
+    def options(self):
+        """These settings as :class:`tflearn.simulate.SimOptions`."""
+        from .simulate import SimOptions
+        return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
+                          max_evals=self.max_evals, adjoint=self.adjoint)
+
+
+class MergeSection(Section):                    # merge pooled fields that nearly coincide
+    distance: float = Field(0.05, ge=0)          # centres closer than this (rad)
+    stiffness: float = Field(0.05, ge=0)         # and stiffnesses within this fraction
+
+
+class SlsqpSection(Section):
+    max_iter: int = Field(200, ge=1)             # iterations of the baseline
+
+
+class SolverSection(Section):
+    # pipeline | slsqp: the thesis' baseline, SLSQP with numerical derivatives on the
+    # torque cost from a seeded random guess (needs model.fields ≥ 1, diag K)
+    method: Literal["pipeline", "slsqp"] = "pipeline"
+    init: InitSection = InitSection()
+    each: EachSection = EachSection()
+    em: EMSection = EMSection()
+    path: PathSection = PathSection()
+    merge: MergeSection = MergeSection()
+    slsqp: SlsqpSection = SlsqpSection()
+
+
+class SuccessSection(Section):
+    rmse: float = Field(0.03, ge=0)              # joint RMSE (rad)
+    tip: float = Field(0.02, ge=0)               # maximum hand-tip error (m)
+
+
+class LogSection(Section):
+    tensorboard: bool = True
+    progress: bool = True
+
+
+class Config(Section):
+    """The training config (``train CONFIG``); see configs/gestures.yaml."""
+
+    # "gestures" (the built-in library), a folder of .npz motions, or a list of .npz files
+    data: Union[str, list[str]] = "gestures"
+    strict: bool = False                         # stop at the first bad motion file
+    out: str = "runs/gestures"
+    seed: int = Field(0, ge=0)
+    body: dict[str, Any] = {"preset": "arm"}
+    model: ModelSection = ModelSection()
+    solver: SolverSection = SolverSection()
+    success: SuccessSection = SuccessSection()
+    log: LogSection = LogSection()
+
+    def replace(self, **changes) -> "Config":
+        """A validated copy with top-level keys replaced (nested sections as mappings)."""
+        return validate(merge(self.model_dump(), changes), type(self))
+
+
+class ConfigError(InputError):
+    """A bad config file, key or value; the message names it."""
 
 
 class _Loader(yaml.SafeLoader):
@@ -66,51 +132,68 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 
-def check(cfg: dict, ref: dict, where: str = "") -> None:
-    """Validate ``cfg`` against the reference mapping ``ref`` (keys, types, choices);
-    raises :class:`ConfigError` naming the first bad key (prefixed by ``where``)."""
-    for key, val in cfg.items():
-        path = f"{where}{key}"
-        if key not in ref:
-            close = difflib.get_close_matches(key, list(ref), n=3)
-            hint = f" (did you mean {', '.join(close)}?)" if close else f" (known: {', '.join(ref)})"
-            raise ConfigError(f"unknown config key {path!r}{hint}")
-        default = ref[key]
-        if isinstance(default, dict):
-            if key == "body":
-                if not isinstance(val, dict):
-                    raise ConfigError(f"config key 'body' must be a mapping, got {val!r}")
-                continue
-            if not isinstance(val, dict):
-                raise ConfigError(f"config key {path!r} must be a mapping, got {val!r}")
-            check(val, default, path + ".")
-        elif key == "data":
-            if not isinstance(val, (str, list)):
-                raise ConfigError(f"config key 'data' must be a folder, a list of .npz files or "
-                                  f"'gestures', got {val!r}")
-        elif isinstance(default, bool):
-            if not isinstance(val, bool):
-                raise ConfigError(f"config key {path!r} must be true or false, got {val!r}")
-        elif isinstance(default, (int, float)):
-            if isinstance(val, bool) or not isinstance(val, (int, float)):
-                raise ConfigError(f"config key {path!r} must be a number, got {val!r}")
-            if isinstance(default, int) and not isinstance(val, int):
-                raise ConfigError(f"config key {path!r} must be an integer, got {val!r}")
-            if val < 0:
-                raise ConfigError(f"config key {path!r} must be non-negative, got {val!r}")
-        elif not isinstance(val, type(default)):
-            raise ConfigError(f"config key {path!r} must be a {type(default).__name__}, got {val!r}")
-    choices = {"model.stiffness": ("scalar", "diag", "block", "full"),
-               "model.phases": ("fixed", "variable"),
-               "solver.method": ("pipeline", "slsqp")}
-    for path, allowed in choices.items():
-        head, _, leaf = path.partition(".")
-        if where.endswith(head + ".") and leaf in cfg and cfg[leaf] not in allowed:
-            raise ConfigError(f"config key {path!r} must be one of {allowed}, got {cfg[leaf]!r}")
+# ------------------------------------------------------------------------ error messages
+
+def _schema_at(schema: Type[BaseModel], loc: tuple) -> Optional[Type[BaseModel]]:
+    """The section model reached by following ``loc`` from ``schema`` (None past a leaf)."""
+    for key in loc:
+        field = schema.model_fields.get(key) if isinstance(key, str) else None
+        ann = field.annotation if field else None
+        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+            return None
+        schema = ann
+    return schema
 
 
-def parse_override(text: str) -> tuple:
-    """``a.b.c=value`` → (["a", "b", "c"], parsed value)."""
+_WANTS = {"int_type": "an integer", "int_parsing": "an integer", "int_from_float": "an integer",
+          "float_type": "a number", "float_parsing": "a number", "bool_type": "true or false",
+          "bool_parsing": "true or false", "string_type": "a str", "list_type": "a list",
+          "dict_type": "a mapping", "model_type": "a mapping", "model_attributes_type": "a mapping"}
+
+
+def _message(err: dict, schema: Type[BaseModel]) -> str:
+    """One pydantic error as a sentence naming the dotted key."""
+    loc = tuple(k for k in err["loc"] if isinstance(k, str))
+    key = ".".join(loc)
+    kind, value = err["type"], err.get("input")
+    if kind == "extra_forbidden":
+        known = list((_schema_at(schema, loc[:-1]) or schema).model_fields)
+        close = difflib.get_close_matches(loc[-1], known, n=3)
+        hint = f"did you mean {', '.join(close)}?" if close else f"known: {', '.join(known)}"
+        return f"unknown config key {key!r} ({hint})"
+    if err["loc"][:1] == ("data",):
+        return (f"config key 'data' must be a folder, a list of .npz files or 'gestures', "
+                f"got {value!r}")
+    if kind in ("greater_than_equal", "greater_than"):
+        limit = err.get("ctx", {}).get("ge", err.get("ctx", {}).get("gt"))
+        what = "non-negative" if limit == 0 and kind == "greater_than_equal" else f"≥ {limit}"
+        return f"config key {key!r} must be {what}, got {value!r}"
+    if kind == "literal_error":
+        return f"config key {key!r} must be one of {err['ctx']['expected']}, got {value!r}"
+    if kind.startswith("int") and (isinstance(value, str) or isinstance(value, bool)):
+        return f"config key {key!r} must be a number (an integer), got {value!r}"
+    if kind.startswith("float") and isinstance(value, bool):
+        return f"config key {key!r} must be a number, got {value!r}"
+    wants = _WANTS.get(kind)
+    if wants:
+        return f"config key {key!r} must be {wants}, got {value!r}"
+    return f"config key {key!r}: {err['msg']} (got {value!r})"
+
+
+def validate(doc: dict, schema: Type[BaseModel] = Config, where: str = ""):
+    """``doc`` as a ``schema`` instance; raises :class:`ConfigError` (prefixed by ``where``)
+    naming the first bad key."""
+    try:
+        return schema.model_validate(doc)
+    except ValidationError as err:
+        msg = _message(err.errors()[0], schema)
+        raise ConfigError(f"{where}: {msg}" if where else msg) from None
+
+
+# ----------------------------------------------------------------------------- reading
+
+def parse_override(text: str) -> dict:
+    """``a.b.c=value`` → {"a": {"b": {"c": parsed value}}}."""
     key, sep, raw = text.partition("=")
     if not sep or not key:
         raise ConfigError(f"override {text!r} is not of the form key=value")
@@ -118,18 +201,30 @@ def parse_override(text: str) -> tuple:
         value = yaml.load(raw, Loader=_Loader) if raw != "" else ""
     except yaml.YAMLError as err:
         raise ConfigError(f"override {text!r}: cannot parse value ({err})") from None
-    return key.split("."), value
+    node: dict = {}
+    cur = node
+    keys = key.split(".")
+    for k in keys[:-1]:
+        cur = cur.setdefault(k, {})
+    cur[keys[-1]] = value
+    return node
 
 
 def read(path) -> dict:
     """The mapping in a YAML file (not validated); errors name the file."""
     path = Path(path)
     try:
-        doc = yaml.load(path.read_text(), Loader=_Loader) or {}
+        text = path.read_bytes().decode("utf-8")
     except OSError as err:
         raise ConfigError(f"{path}: cannot read config ({err.strerror})") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not a YAML text file (not UTF-8 at byte {err.start})") from None
+    try:
+        doc = yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML ({err})") from None
+    if doc is None:
+        return {}
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: a config must be a mapping of keys to values")
     return doc
@@ -146,31 +241,25 @@ def merge(base: dict, new: dict) -> dict:
     return out
 
 
-def load(path=None, overrides=(), defaults: dict = DEFAULTS) -> dict:
-    """``defaults`` ← YAML file ← overrides, validated against ``defaults`` (the training
-    config's by default). Raises :class:`ConfigError`."""
-    cfg = copy.deepcopy(defaults)
+def layer(doc: dict, overrides, schema: Type[BaseModel]) -> dict:
+    """``doc`` with each override applied in turn, each checked (errors name it)."""
+    for text in overrides:
+        doc = merge(doc, parse_override(text))
+        validate(doc, schema, f"override {text!r}")
+    return doc
+
+
+def load(path=None, overrides=(), schema: Type[BaseModel] = Config):
+    """The defaults ← the YAML file at ``path`` ← dotted overrides, as a validated
+    ``schema`` instance. Raises :class:`ConfigError`."""
+    doc = {}
     if path is not None:
         doc = read(path)
-        try:
-            check(doc, defaults)
-        except ConfigError as err:
-            raise ConfigError(f"{path}: {err}") from None
-        cfg = merge(cfg, doc)
-    for text in overrides:
-        keys, value = parse_override(text)
-        node = {}
-        cur = node
-        for k in keys[:-1]:
-            cur = cur.setdefault(k, {})
-        cur[keys[-1]] = value
-        try:
-            check(node, defaults)
-        except ConfigError as err:
-            raise ConfigError(f"override {text!r}: {err}") from None
-        cfg = merge(cfg, node)
-    return cfg
+        validate(doc, schema, str(path))
+    return validate(layer(doc, overrides, schema), schema)
 
 
-def dump(cfg: dict, path) -> None:
-    Path(path).write_text(yaml.safe_dump(cfg, sort_keys=False))
+def dump(cfg: BaseModel, path) -> None:
+    """Write a config as YAML (readable back by :func:`load`), atomically."""
+    from .io.files import write_text
+    write_text(path, yaml.safe_dump(cfg.model_dump(), sort_keys=False))

@@ -27,6 +27,7 @@ import roma
 import torch
 
 from .body import Body
+from .configspace import rotvec_to_rotmat
 
 
 @lru_cache(maxsize=64)
@@ -44,11 +45,6 @@ def _constants(body: Body, dtype: torch.dtype, device: torch.device) -> dict:
         "gravity": t(body.gravity),
         "tip": t(body.tip_point),
     }
-
-
-def rotvec_to_rotmat(v: torch.Tensor) -> torch.Tensor:
-    """R = exp([v]×) (...×3 → ...×3×3), exact and smooth at v = 0 (via a unit quaternion)."""
-    return roma.unitquat_to_rotmat(roma.rotvec_to_unitquat(v))
 
 
 def hinge_rotmat(axis: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:

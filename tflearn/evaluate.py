@@ -9,42 +9,47 @@ from pathlib import Path
 import torch
 
 from . import config as config_mod
+from .config import Config
+from .data import check_resolution, load_motions
 from .fields import FieldProgram, MotionWeights
 from .fit import path as path_fit
 from .fit.targets import Targets, prepare
 from .fit.torque import solve_weights
 from .io import basis as basis_io
+from .io.files import write_text
+from .metrics import score, summarize
 from .motion import Motion, save as save_motion
-from .simulate import simulate
-from .train import check_resolution, load_motions, summarize
+from .simulate import SimOptions, simulate
+
+
+def run_config(run) -> tuple:
+    """(config, simulation options) of a run folder: its config.yaml, or the defaults."""
+    path = Path(run) / "config.yaml"
+    cfg = config_mod.load(path) if path.exists() else Config()
+    return cfg, cfg.solver.path.options()
 
 
 def synthesize(lb: basis_io.LearnedBasis, tg: Targets, path_steps: int = 20,
-               lr: float = 0.003, **sim_kw) -> MotionWeights:
+               lr: float = 0.003, options: SimOptions = SimOptions()) -> MotionWeights:
     """Held-out synthesis: with the basis frozen, fit new motions' weights by exact NNLS
     on their torques, then refine the weights alone by path matching."""
-    z = torch.zeros(tg.N, lb.basis.M, dtype=torch.float64)
-    weights = MotionWeights(z, z, tg.duration, names=tg.names)
+    weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names)
     solve_weights(lb.basis, weights, tg)
     for p in lb.basis.parameters():
         p.requires_grad_(False)
     if path_steps:
         path_fit.path_match(lb.body, lb.basis, weights, tg, steps=path_steps, lr=lr,
-                            fields=False, **sim_kw)
+                            fields=False, options=options)
     return weights
 
 
-def weights_for(lb: basis_io.LearnedBasis, tg: Targets):
-    """The basis' weights for the motions of ``tg`` (by name); None where a name is new."""
-    rows = [lb.names.index(n) if n in lb.names else None for n in tg.names]
-    if any(r is None for r in rows):
-        return None
-    w = lb.weights
-    idx = torch.as_tensor(rows)
-    return MotionWeights(w.a[idx].detach(), w.b[idx].detach(), tg.duration,
-                         w.step_onset[idx].detach(), w.step_duration[idx].detach(),
-                         w.pulse_onset[idx].detach(), w.pulse_duration[idx].detach(),
-                         names=tg.names)
+def weights_for(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
+    """The basis' weights for the motions of ``tg`` (by name, each with its own
+    duration); raises :class:`~tflearn.errors.InputError` naming a motion the basis does not hold."""
+    rows = [lb.index(n) for n in tg.names]
+    w = lb.weights.select_motions(rows)
+    w.duration.copy_(tg.duration)
+    return w
 
 
 def evaluate_run(run, data=None, out=None) -> dict:
@@ -55,10 +60,8 @@ def evaluate_run(run, data=None, out=None) -> dict:
     (or ``out``) and returns its content."""
     run = Path(run)
     lb = basis_io.load(run / "basis.json")
-    cfg = config_mod.load(run / "config.yaml") if (run / "config.yaml").exists() else config_mod.load()
-    p = cfg["solver"]["path"]
-    sim_kw = {"method": p["method"], "rtol": p["rtol"], "atol": p["atol"], "max_evals": p["max_evals"]}
-    motions = load_motions(data if data is not None else cfg["data"], lb.body)
+    cfg, options = run_config(run)
+    motions = load_motions(data if data is not None else cfg.data, lb.body, strict=cfg.strict)
     resolution = dict(zip([m.name for m in motions], check_resolution(lb.body, motions)))
     known = [m for m in motions if m.name in lb.names]
     new = [m for m in motions if m.name not in lb.names]
@@ -67,11 +70,12 @@ def evaluate_run(run, data=None, out=None) -> dict:
         if not group:
             continue
         tg = prepare(lb.body, group)
-        weights = synthesize(lb, tg, p["steps"], p["lr"], **sim_kw) if synth else weights_for(lb, tg)
-        m = path_fit.metrics(lb.body, lb.basis, weights, tg, **sim_kw)
-        ok = path_fit.succeeded(m, cfg["success"]["rmse"], cfg["success"]["tip"])
-        s = summarize(m, ok, tg, lb.basis.M, 0.0)
-        for j, (name, row) in enumerate(s["motions"].items()):
+        p = cfg.solver.path
+        weights = synthesize(lb, tg, p.steps, p.lr, options) if synth else weights_for(lb, tg)
+        s = score(lb.body, lb.basis, weights, tg, options)
+        ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
+        summary = summarize(s, ok, tg, lb.basis.M, 0.0)
+        for j, (name, row) in enumerate(summary["motions"].items()):
             row["synthesized"] = synth
             row["torque_resolution"] = resolution[name]
             results[name] = row
@@ -82,7 +86,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
                "tip": max(r["tip"] for r in results.values()),
                "success": all(r["success"] for r in results.values()), "M": lb.basis.M}
     doc = {"motions": results, "overall": overall}
-    Path(out or run / "evaluation.json").write_text(json.dumps(doc, indent=1))
+    write_text(out or run / "evaluation.json", json.dumps(doc, indent=1))
     return doc
 
 
@@ -95,7 +99,7 @@ def simulate_basis_motion(basis_path, name: str, out, rate=None, duration=None) 
     t = torch.arange(0, int(round(duration * rate)) + 1, dtype=torch.float64) / rate
     with torch.no_grad():
         tr = simulate(lb.body, FieldProgram(lb.basis, lb.weights, index=[j]), lb.q0[j:j + 1],
-                      lb.qd0[j:j + 1], t, rtol=1e-9, atol=1e-10)
+                      lb.qd0[j:j + 1], t, SimOptions(rtol=1e-9, atol=1e-10, max_evals=None))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_motion(Motion(name, t, tr.q[0], tr.v[0]), out)

@@ -100,8 +100,10 @@ class Stiffness(nn.Module):
     @torch.no_grad()
     def project_(self, k_min: float = K_RANGE[0], k_max: float = K_RANGE[1]) -> None:
         """Keep k (scalar) or each diag(L)² in [k_min, k_max] and |L_ij| ≤ √k_max, so K stays
-        well conditioned (its eigenvalues ≤ n·k_max): a stiffness no motion constrains
-        cannot run off and make simulations stiff."""
+        bounded: λ_max(K) ≤ ‖L‖_F² ≤ n(n+1)/2 · k_max for a full factor (n(n+1)/2 entries of
+        L, each squared ≤ k_max), k_max for scalar and diag, and the largest block's
+        b(b+1)/2 · k_max for block. A stiffness no motion constrains cannot run off and
+        make simulations stiff."""
         if self.kind == "scalar":
             self.raw.clamp_(math.log(k_min), math.log(k_max))
             return
@@ -137,6 +139,16 @@ class FieldBasis(nn.Module):
         self.blocks = list(blocks) if blocks is not None else [eta.shape[1]]
         self.stiffness = Stiffness(K, kind, self.blocks)
 
+    @classmethod
+    def empty(cls, n: int, kind: str = "diag", blocks: Optional[Sequence[int]] = None) -> "FieldBasis":
+        """A basis with no fields over n coordinates."""
+        return cls(torch.zeros(0, n, dtype=torch.float64),
+                   torch.zeros(0, n, n, dtype=torch.float64), kind=kind, blocks=blocks)
+
+    @property
+    def kind(self) -> str:
+        return self.stiffness.kind
+
     @property
     def M(self) -> int:
         return self.eta.shape[0]
@@ -148,6 +160,18 @@ class FieldBasis(nn.Module):
     def K(self) -> torch.Tensor:
         """Stiffness matrices (M×n×n)."""
         return self.stiffness()
+
+    @torch.no_grad()
+    def select(self, idx: Sequence[int]) -> "FieldBasis":
+        """A new basis (detached) holding fields ``idx`` in that order."""
+        idx = torch.as_tensor(list(idx), dtype=torch.long)
+        return FieldBasis(self.eta[idx], self.K()[idx], kind=self.kind, blocks=self.blocks)
+
+    @torch.no_grad()
+    def extend(self, eta: torch.Tensor, K: torch.Tensor) -> "FieldBasis":
+        """A new basis (detached): these fields followed by new ones, η (k×n), K (k×n×n)."""
+        return FieldBasis(torch.cat([self.eta, as_float(eta)]), torch.cat([self.K(), as_float(K)]),
+                          kind=self.kind, blocks=self.blocks)
 
     @torch.no_grad()
     def project_(self) -> None:
@@ -193,6 +217,43 @@ class MotionWeights(nn.Module):
         self.register_buffer("duration", duration.clone())
         self.names = list(names) if names is not None else [f"motion{j}" for j in range(len(duration))]
         self.project_()
+
+    PER_FIELD = ("a_raw", "b_raw", "step_onset", "step_duration", "pulse_onset", "pulse_duration")
+
+    @classmethod
+    def zeros(cls, M: int, duration: torch.Tensor,
+              names: Optional[Sequence[str]] = None) -> "MotionWeights":
+        """Zero weights on M fields for motions of these durations (N), default phases."""
+        z = torch.zeros(len(duration), M, dtype=torch.float64)
+        return cls(z, z, duration, names=names)
+
+    def _arrays(self) -> dict:
+        return {k: getattr(self, k).detach() for k in self.PER_FIELD}
+
+    def _with(self, arrays: dict, duration=None, names=None) -> "MotionWeights":
+        a = arrays
+        return MotionWeights(a["a_raw"], a["b_raw"], self.duration if duration is None else duration,
+                             a["step_onset"], a["step_duration"], a["pulse_onset"],
+                             a["pulse_duration"], names=self.names if names is None else names)
+
+    def select_fields(self, idx: Sequence[int]) -> "MotionWeights":
+        """New weights (detached) on fields ``idx`` only, in that order."""
+        idx = torch.as_tensor(list(idx), dtype=torch.long)
+        return self._with({k: v[:, idx] for k, v in self._arrays().items()})
+
+    def extend_fields(self, k: int = 1) -> "MotionWeights":
+        """New weights (detached) with k more fields: zero weights, default phases."""
+        z = torch.zeros(self.N, k, dtype=self.a_raw.dtype)
+        lam = self.duration[:, None].expand(self.N, k)
+        fill = {"step_duration": lam, "pulse_duration": lam}
+        return self._with({key: torch.cat([v, fill.get(key, z)], dim=1)
+                           for key, v in self._arrays().items()})
+
+    def select_motions(self, idx: Sequence[int]) -> "MotionWeights":
+        """New weights (detached) of motions ``idx`` only, in that order."""
+        idx = torch.as_tensor(list(idx), dtype=torch.long)
+        return self._with({k: v[idx] for k, v in self._arrays().items()},
+                          duration=self.duration[idx], names=[self.names[i] for i in idx.tolist()])
 
     @property
     def a(self) -> torch.Tensor:
@@ -257,3 +318,37 @@ class FieldProgram(nn.Module):
             w = w[..., self.index, :]
         chi = self.basis(q)
         return (w.unsqueeze(-1) * chi).sum(-2)
+
+
+# ------------------------------------------------------------------ the model's one state
+
+def model_state(basis: FieldBasis, weights: MotionWeights) -> dict:
+    """The exact state of a model (basis + weights) as plain tensors and JSON values: the
+    one serialisation used by checkpoints, path matching's best point and experiment rows
+    (:func:`state_to_json` for JSON files). :func:`model_from_state` inverts it exactly."""
+    return {"basis": {k: v.detach().clone() for k, v in basis.state_dict().items()},
+            "weights": {k: v.detach().clone() for k, v in weights.state_dict().items()},
+            "kind": basis.kind, "blocks": list(basis.blocks), "names": list(weights.names)}
+
+
+def model_from_state(state: dict) -> tuple:
+    """(FieldBasis, MotionWeights) from :func:`model_state` (tensors or nested lists)."""
+    def tensors(d):
+        return {k: v if isinstance(v, torch.Tensor) else torch.tensor(v, dtype=torch.float64)
+                for k, v in d.items()}
+    b, w = tensors(state["basis"]), tensors(state["weights"])
+    M, n = b["eta"].shape
+    basis = FieldBasis(torch.zeros(M, n, dtype=torch.float64),
+                       torch.eye(n, dtype=torch.float64).expand(M, n, n),
+                       kind=state["kind"], blocks=state["blocks"])
+    basis.load_state_dict(b)
+    weights = MotionWeights.zeros(M, w["duration"], names=state["names"])
+    weights.load_state_dict(w)
+    return basis, weights
+
+
+def state_to_json(state: dict) -> dict:
+    """A :func:`model_state` with every tensor as a nested list (float64 values are kept
+    exactly by JSON's shortest round-trip repr)."""
+    return {k: ({n: v.tolist() for n, v in x.items()} if k in ("basis", "weights") else x)
+            for k, x in state.items()}

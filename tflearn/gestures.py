@@ -127,8 +127,9 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
     t = torch.arange(0, int(round(lam * rate)) + 1, dtype=torch.float64) / rate
     q0 = torch.zeros(len(gestures), body.nv, dtype=torch.float64)
     with torch.no_grad():
-        tr = sim.simulate(body, FieldProgram(basis, weights), q0, q0, t, method="dopri8",
-                          rtol=rtol, atol=atol, options={"step_t": t[1:]})
+        tr = sim.simulate(body, FieldProgram(basis, weights), q0, q0, t,
+                          sim.SimOptions(method="dopri8", rtol=rtol, atol=atol,
+                                         solver_options={"step_t": t[1:]}))
     out = []
     for j, g in enumerate(gestures):
         T = int(round(g.duration * rate)) + 1

@@ -49,131 +49,12 @@ import torch
 from scipy.interpolate import make_interp_spline
 
 from . import dynamics
+from .configspace import align_quaternions, body_acceleration, body_velocity, unwrap_rotvec, wrap_rotvec
 from .body import Body, arm
 
 DTYPE = torch.float64
 ARRAYS = ("t", "q", "qd")
 MIN_SAMPLES = 4
-TAYLOR_THETA2 = 0.25  # below θ² = 0.25 the J_r coefficients use their Taylor series
-
-
-# ----------------------------------------------------------------------------------------
-# SO(3) helpers (batched torch, any leading shape ...)
-# ----------------------------------------------------------------------------------------
-
-def hat(v: torch.Tensor) -> torch.Tensor:
-    """Skew matrix [v]× (...×3 → ...×3×3), [v]× w = v × w."""
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(v.shape + (3,))
-
-
-# Taylor coefficients in s = θ²: a = Σ (−s)ⁿ/(2n+2)!, b = Σ (−s)ⁿ/(2n+3)!, and d/ds.
-_A = [(-1) ** n / math.factorial(2 * n + 2) for n in range(8)]
-_B = [(-1) ** n / math.factorial(2 * n + 3) for n in range(8)]
-_DA = [(n + 1) * c for n, c in enumerate(_A[1:])]
-_DB = [(n + 1) * c for n, c in enumerate(_B[1:])]
-
-
-def _series(coef, s):
-    """Σ coef[n] sⁿ by Horner's rule."""
-    out = torch.full_like(s, coef[-1])
-    for c in reversed(coef[:-1]):
-        out = out * s + c
-    return out
-
-
-def _jr_coefficients(s: torch.Tensor):
-    """a(s), b(s) and their derivatives da/ds, db/ds at s = θ² (... each).
-
-    a = (1 − cos θ)/θ²,   b = (θ − sin θ)/θ³,
-    da/ds = (θ sin θ/2 − (1 − cos θ))/θ⁴,   db/ds = (θ(1 − cos θ) − 3(θ − sin θ))/(2θ⁵),
-    with 1 − cos θ = 2 sin²(θ/2). Below s = ``TAYLOR_THETA2`` (θ < 0.5), where the closed
-    forms cancel, their Taylor series (8 terms; relative error < 1e-14 everywhere) are
-    used; the closed forms are evaluated at a safe θ there so that values and autograd
-    derivatives stay finite at v = 0.
-    """
-    small = s < TAYLOR_THETA2
-    th = torch.sqrt(torch.where(small, torch.ones_like(s), s))
-    sn, omc = torch.sin(th), 2 * torch.sin(th / 2) ** 2
-    closed = (omc / th**2, (th - sn) / th**3, (th * sn / 2 - omc) / th**4,
-              (th * omc - 3 * (th - sn)) / (2 * th**5))
-    series = (_series(_A, s), _series(_B, s), _series(_DA, s), _series(_DB, s))
-    return tuple(torch.where(small, x, y) for x, y in zip(series, closed))
-
-
-def right_jacobian(v: torch.Tensor) -> torch.Tensor:
-    """J_r(v) = I − a [v]× + b [v]×² (...×3 → ...×3×3), so that ω = J_r(v) v̇ is the
-    body-frame angular velocity of R = exp([v]×) ([ω]× = Rᵀ Ṙ). J_r(0) = I."""
-    a, b, _, _ = _jr_coefficients((v * v).sum(-1))
-    K = hat(v)
-    eye = torch.eye(3, dtype=v.dtype, device=v.device)
-    return eye - a[..., None, None] * K + b[..., None, None] * (K @ K)
-
-
-def body_velocity(v: torch.Tensor, vd: torch.Tensor) -> torch.Tensor:
-    """ω = J_r(v) v̇ = v̇ − a v×v̇ + b v×(v×v̇)  (...×3, ...×3 → ...×3)."""
-    a, b, _, _ = _jr_coefficients((v * v).sum(-1))
-    vxvd = torch.cross(v, vd, dim=-1)
-    return vd - a[..., None] * vxvd + b[..., None] * torch.cross(v, vxvd, dim=-1)
-
-
-def body_acceleration(v: torch.Tensor, vd: torch.Tensor, vdd: torch.Tensor) -> torch.Tensor:
-    """ω̇ = J_r(v) v̈ + (d/dt J_r) v̇ (...×3 each → ...×3).
-
-    With K = [v]×, K̇ = [v̇]× and K̇ v̇ = 0:
-        (d/dt J_r) v̇ = −ȧ v×v̇ + ḃ v×(v×v̇) + b v̇×(v×v̇),   ȧ = 2 (v·v̇) da/ds, ḃ likewise.
-    """
-    a, b, da, db = _jr_coefficients((v * v).sum(-1))
-    sd = 2 * (v * vd).sum(-1)
-    vxvd = torch.cross(v, vd, dim=-1)
-    jdot_vd = (-(da * sd)[..., None] * vxvd + (db * sd)[..., None] * torch.cross(v, vxvd, dim=-1)
-               + b[..., None] * torch.cross(vd, vxvd, dim=-1))
-    return body_velocity(v, vdd) + jdot_vd
-
-
-def _nearest_equivalent(v: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """The rotation vector (|v| + 2πk) v̂ equivalent to v that is closest to ref (...×3).
-
-    All vectors on v's axis with length ≡ |v| (mod 2π) give the same rotation; the
-    closest to ref along that line has k = round((v̂·ref − |v|)/2π). For v = 0 the axis
-    is taken from ref (x̂ when ref = 0 too).
-    """
-    th = v.norm(dim=-1, keepdim=True)
-    rn = ref.norm(dim=-1, keepdim=True)
-    ex = torch.zeros_like(v)
-    ex[..., 0] = 1.0
-    ref_axis = torch.where(rn > 0, ref / torch.where(rn > 0, rn, 1.0), ex)
-    axis = torch.where(th > 0, v / torch.where(th > 0, th, 1.0), ref_axis)
-    k = torch.round(((axis * ref).sum(-1, keepdim=True) - th) / (2 * math.pi))
-    return (th + 2 * math.pi * k) * axis
-
-
-def unwrap_rotvec(v: torch.Tensor) -> torch.Tensor:
-    """Unwrap a sequence of rotation vectors (...×T×3, time on dim −2) so that it is
-    continuous across |v| = π.
-
-    The sample of smallest |v| (per sequence) is kept as it is; going forwards and then
-    backwards from it, each sample is replaced by its equivalent (|v| + 2πk) v̂ closest to
-    its already unwrapped neighbour. Anchoring at the smallest rotation keeps the lift
-    away from the chart's singular shell |v| = 2π unless the motion really winds
-    (leaves the rest rotation, crosses π and comes back near it).
-    """
-    T = v.shape[-2]
-    anchor = v.norm(dim=-1).argmin(dim=-1, keepdim=True)    # ...×1
-    out = list(v.unbind(-2))
-    for i in range(1, T):
-        out[i] = torch.where(anchor < i, _nearest_equivalent(out[i], out[i - 1]), out[i])
-    for i in range(T - 2, -1, -1):
-        out[i] = torch.where(anchor > i, _nearest_equivalent(out[i], out[i + 1]), out[i])
-    return torch.stack(out, dim=-2)
-
-
-def wrap_rotvec(v: torch.Tensor) -> torch.Tensor:
-    """The principal rotation vector (|v| ≤ π) of the same rotation (...×3)."""
-    th = v.norm(dim=-1, keepdim=True)
-    phi = th - 2 * math.pi * torch.round(th / (2 * math.pi))
-    return torch.where(th > 0, v * (phi / torch.where(th > 0, th, 1.0)), v)
 
 
 # ----------------------------------------------------------------------------------------
@@ -390,14 +271,6 @@ def load_dir(path, body: Optional[Body] = None) -> list[Motion]:
 # ----------------------------------------------------------------------------------------
 
 SPLINE_METHODS = ("quat", "rotvec")
-
-
-def align_quaternions(quat: torch.Tensor) -> torch.Tensor:
-    """Flip signs along a sequence of unit quaternions (...×T×4, time on dim −2) so that
-    successive ones have a non-negative dot product (q and −q are the same rotation)."""
-    dots = (quat[..., 1:, :] * quat[..., :-1, :]).sum(-1)
-    flips = torch.cat([torch.ones_like(dots[..., :1]), torch.where(dots < 0, -1.0, 1.0)], -1)
-    return quat * torch.cumprod(flips, dim=-1)[..., None]
 
 
 def quat_body_motion(p: torch.Tensor, pd: torch.Tensor, pdd: torch.Tensor):

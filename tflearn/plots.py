@@ -5,10 +5,13 @@ callers save it or log it to TensorBoard.
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
@@ -127,7 +130,11 @@ def motion_sheet(body: Body, t, paths: dict, title: str = "") -> plt.Figure:
 
 
 def save(fig: plt.Figure, path) -> None:
-    fig.savefig(path, dpi=110)
+    """Write a figure (format from the file's suffix) atomically and close it."""
+    from .io.files import replacing
+    path = Path(path)
+    with replacing(path) as tmp:
+        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
     plt.close(fig)
 
 

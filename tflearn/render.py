@@ -16,13 +16,13 @@ from typing import Callable
 import numpy as np
 import torch
 
-from . import config as config_mod
 from . import plots
-from .evaluate import weights_for
-from .fit import path as path_fit
+from .data import load_motions
+from .errors import InputError
+from .evaluate import run_config, weights_for
 from .fit.targets import prepare
 from .io import basis as basis_io
-from .train import load_motions
+from .metrics import score
 
 
 def video_support() -> str | None:
@@ -53,32 +53,31 @@ def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
     one (:func:`video_support`); ``log`` receives a line saying what was logged or
     why not. Returns the GIF's path.
 
-    Raises KeyError for a motion name the basis does not hold (the message lists the
-    names it holds) or one missing from the run's data, and ValueError for fps ≤ 0.
+    Raises :class:`~tflearn.errors.InputError` for a motion name the basis does not hold
+    (the message lists the names it holds) or one missing from the run's data, and for
+    fps ≤ 0.
     """
     if fps <= 0:
-        raise ValueError(f"fps must be positive, got {fps}")
+        raise InputError(f"fps must be positive, got {fps}")
     run = Path(run)
     lb = basis_io.load(run / "basis.json")
     lb.index(motion)
-    cfg = config_mod.load(run / "config.yaml") if (run / "config.yaml").exists() else config_mod.load()
-    found = [m for m in load_motions(cfg["data"], lb.body) if m.name == motion]
+    cfg, options = run_config(run)
+    found = [m for m in load_motions(cfg.data, lb.body) if m.name == motion]
     if not found:
-        raise KeyError(f"motion {motion!r} of {run / 'basis.json'} is not in the run's data "
-                       f"({cfg['data']!r})")
-    p = cfg["solver"]["path"]
+        raise InputError(f"motion {motion!r} of {run / 'basis.json'} is not in the run's data "
+                       f"({cfg.data!r})")
     tg = prepare(lb.body, found)
-    m = path_fit.metrics(lb.body, lb.basis, weights_for(lb, tg), tg,
-                         method=p["method"], rtol=p["rtol"], atol=p["atol"], max_evals=p["max_evals"])
+    s = score(lb.body, lb.basis, weights_for(lb, tg), tg, options)
     T = int(tg.mask[0].sum())
     t = tg.t[0, :T].numpy()
     paths = {"target": plots.joint_positions(lb.body, tg.q[0, :T]),
-             "reproduced": plots.joint_positions(lb.body, m["q_sim"][0, :T])}
+             "reproduced": plots.joint_positions(lb.body, s.q_sim[0, :T])}
     out = Path(out) if out is not None else run / "figures" / f"{motion}.gif"
     out.parent.mkdir(parents=True, exist_ok=True)
     reason = video_support() if tensorboard else None
     frames = _write_gif(paths, t, frame_samples(t, fps), fps, out,
-                        f"{motion}: rmse {m['rmse'][0]:.4f} rad, tip error {100 * m['tip'][0]:.2f} cm",
+                        f"{motion}: rmse {s.rmse[0]:.4f} rad, tip error {100 * s.tip[0]:.2f} cm",
                         keep=tensorboard and reason is None)
     if not tensorboard:
         return out

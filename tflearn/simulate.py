@@ -17,7 +17,7 @@ vectors (|v| ≤ π) and hinge angles — the coordinates of :mod:`tflearn.body`
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Optional
 
 import roma
@@ -26,6 +26,7 @@ from torchdiffeq import odeint, odeint_adjoint
 
 from . import dynamics
 from .body import Body
+from .configspace import pack, unpack
 
 TorqueProgram = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -34,49 +35,46 @@ TorqueProgram = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tenso
 calls = 0
 
 
-def n_position(body: Body) -> int:
-    """Size of the packed position block: 4 per ball joint, 1 per hinge."""
-    return sum(4 if l.joint == "ball" else l.dof for l in body.links)
+FAILURES = ("budget", "solver", "singular", "nonfinite")
 
 
-def pack(body: Body, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Coordinates ν (...×nv) and velocities v (...×nv) → ODE state (...×(n_pos+nv))."""
-    batch = torch.broadcast_shapes(q.shape[:-1], v.shape[:-1])
-    q, v = q.expand(batch + q.shape[-1:]), v.expand(batch + v.shape[-1:])
-    parts = []
-    for i, link in enumerate(body.links):
-        s = q[..., body.slice(i)]
-        parts.append(roma.rotvec_to_unitquat(s) if link.joint == "ball" else s)
-    return torch.cat(parts + [v], dim=-1)
+class SimulationFailed(Exception):
+    """A simulation that cannot go on. ``reason`` is one of :data:`FAILURES`:
+    ``budget`` (more right-hand-side evaluations than ``max_evals``), ``solver`` (the
+    integrator gave up, e.g. its step size underflowed), ``singular`` (a mass matrix
+    could not be factorised: the state blew up) or ``nonfinite`` (NaN or Inf in the
+    state or its derivative). Not a RuntimeError, so that ``except RuntimeError`` never
+    hides it and it never hides torch's own errors."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(f"simulation failed ({reason}): {message}")
+        self.reason, self.message = reason, message
 
 
-def unpack(body: Body, y: torch.Tensor):
-    """ODE state → (joint rotations list, ν principal coordinates, unit quaternions list, v)."""
-    rots, coords, quats, k = [], [], [], 0
-    for link in body.links:
-        if link.joint == "ball":
-            quat = roma.quat_normalize(y[..., k:k + 4])
-            quats.append(quat)
-            rots.append(roma.unitquat_to_rotmat(quat))
-            coords.append(roma.unitquat_to_rotvec(quat, shortest_arc=True))
-            k += 4
-        else:
-            quats.append(None)
-            rots.append(None)
-            coords.append(y[..., k:k + link.dof])
-            k += link.dof
-    return rots, torch.cat(coords, dim=-1), quats, y[..., k:]
+@dataclass(frozen=True)
+class SimOptions:
+    """How to integrate (one object, shared by every command and stage).
 
+    method: a torchdiffeq solver (``dopri5``, ``dopri8``, ``bosh3``, ``rk4`` ...);
+    rtol, atol: its tolerances; solver_options: torchdiffeq's own options
+    (``{"step_size": h}`` for fixed-step methods, ``{"step_t": t}``); max_evals: fail with
+    reason ``budget`` past this many right-hand-side evaluations over the whole run
+    (torchdiffeq's ``max_num_steps`` bounds the steps between two output times only);
+    adjoint: backpropagate with the adjoint method instead of through the solver."""
 
-class SimulationBudget(RuntimeError):
-    """A simulation needed more right-hand-side evaluations than its ``max_evals``."""
+    method: str = "dopri5"
+    rtol: float = 1e-7
+    atol: float = 1e-9
+    max_evals: Optional[int] = 100_000
+    adjoint: bool = False
+    solver_options: Optional[dict] = None
 
 
 class ArmODE(torch.nn.Module):
     """Right-hand side dy/dt for :func:`simulate` (an nn.Module so the adjoint can see
     the program's parameters). With ``track_work`` the state carries one more entry,
-    W with dW/dt = τ_program · v (the work done by the program's torques). With
-    ``max_evals`` it raises :class:`SimulationBudget` on evaluation max_evals + 1."""
+    W with dW/dt = τ_program · v (the work done by the program's torques). Raises
+    :class:`SimulationFailed` on evaluation max_evals + 1, and for a non-finite state."""
 
     def __init__(self, body: Body, program: TorqueProgram, track_work: bool = False,
                  max_evals: Optional[int] = None):
@@ -89,7 +87,9 @@ class ArmODE(torch.nn.Module):
     def forward(self, t, y):
         self.evals += 1
         if self.max_evals is not None and self.evals > self.max_evals:
-            raise SimulationBudget(f"simulation: more than {self.max_evals} right-hand-side evaluations")
+            raise SimulationFailed("budget", f"more than {self.max_evals} right-hand-side evaluations")
+        if not bool(torch.isfinite(y).all()):
+            raise SimulationFailed("nonfinite", f"NaN or Inf in the state at t = {float(t):.4g} s")
         body = self.body
         if self.track_work:
             y = y[..., :-1]
@@ -97,7 +97,11 @@ class ArmODE(torch.nn.Module):
         tau = self.program(t, coords, v)
         tau = tau.expand(v.shape) if tau.shape != v.shape else tau
         total = tau - body.damping * v if body.damping else tau
-        a = dynamics.forward_dynamics_rot(body, rots, coords, v, total)
+        try:
+            a = dynamics.forward_dynamics_rot(body, rots, coords, v, total)
+        except torch.linalg.LinAlgError:
+            raise SimulationFailed("singular", f"the mass matrix cannot be factorised at "
+                                               f"t = {float(t):.4g} s") from None
         dpos = []
         for i, link in enumerate(body.links):
             vi = v[..., body.slice(i)]
@@ -128,39 +132,41 @@ def zero_program(t, q, v):
 
 
 def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Tensor,
-             t: torch.Tensor, method: str = "dopri5", rtol: float = 1e-7, atol: float = 1e-9,
-             options: Optional[dict] = None, adjoint: bool = False,
-             track_work: bool = False, max_evals: Optional[int] = None) -> Trajectory:
+             t: torch.Tensor, options: SimOptions = SimOptions(), *,
+             track_work: bool = False) -> Trajectory:
     """Integrate the body from (q0, v0) at t[0] under ``program(t, ν, v) → τ``.
 
     Args:
         q0, v0: initial coordinates and velocities (...×nv); any leading batch shape.
         t: increasing sample times (T).
-        method, rtol, atol, options: passed to torchdiffeq (``dopri5``, ``dopri8``,
-            ``bosh3``, ``rk4``, ...); fixed-step methods need ``options={"step_size": h}``.
-        adjoint: backpropagate with the adjoint method (``odeint_adjoint``) instead of
-            through the solver's operations.
+        options: :class:`SimOptions` (solver, tolerances, budget, adjoint).
         track_work: also integrate the work done by the program's torques.
-        max_evals: raise :class:`SimulationBudget` past this many right-hand-side
-            evaluations (a bound on the whole run; torchdiffeq's ``max_num_steps``
-            bounds the steps between two consecutive output times only).
     Returns:
         :class:`Trajectory` with ν and v sampled at t (time on dimension -2).
+    Raises:
+        SimulationFailed: the integration cannot go on (see its ``reason``); a batch
+        fails as a whole (score its members one by one to tell which).
     """
     if t.ndim != 1 or t.numel() < 2 or not bool((t[1:] > t[:-1]).all()):
         raise ValueError("simulate: t must be a strictly increasing 1-D tensor of >= 2 times")
     global calls
     calls += 1
-    func = ArmODE(body, program, track_work, max_evals)
+    func = ArmODE(body, program, track_work, options.max_evals)
     y0 = pack(body, q0, v0)
     if track_work:
         y0 = torch.cat([y0, torch.zeros_like(y0[..., :1])], dim=-1)
-    kwargs = dict(method=method, rtol=rtol, atol=atol, options=options)
-    if adjoint:
-        params = tuple(p for p in func.parameters() if p.requires_grad)
-        ys = odeint_adjoint(func, y0, t, adjoint_params=params, **kwargs)
-    else:
-        ys = odeint(func, y0, t, **kwargs)
+    kwargs = dict(method=options.method, rtol=options.rtol, atol=options.atol,
+                  options=options.solver_options)
+    try:
+        if options.adjoint:
+            params = tuple(p for p in func.parameters() if p.requires_grad)
+            ys = odeint_adjoint(func, y0, t, adjoint_params=params, **kwargs)
+        else:
+            ys = odeint(func, y0, t, **kwargs)
+    except AssertionError as err:            # torchdiffeq's way of giving up
+        raise SimulationFailed("solver", str(err) or "the integrator gave up") from None
+    if not bool(torch.isfinite(ys).all()):
+        raise SimulationFailed("nonfinite", "NaN or Inf in the simulated path")
     ys = ys.movedim(0, -2)
     work = None
     if track_work:

@@ -30,48 +30,6 @@ from .targets import Targets
 from .torque import design, normal_equations
 
 
-def empty_model(tg: Targets, n: int, kind: str, blocks) -> tuple:
-    """A basis with no fields and matching empty weights."""
-    z = torch.zeros(0, n, dtype=torch.float64)
-    basis = FieldBasis(z, torch.zeros(0, n, n, dtype=torch.float64), kind=kind, blocks=blocks)
-    w = torch.zeros(tg.N, 0, dtype=torch.float64)
-    return basis, MotionWeights(w, w, tg.duration, names=tg.names)
-
-
-def add_field(basis: FieldBasis, weights: MotionWeights, eta: torch.Tensor, K: torch.Tensor):
-    """A new (basis, weights) with one more field (weights zero, default phases)."""
-    with torch.no_grad():
-        new_basis = FieldBasis(torch.cat([basis.eta, eta[None]]), torch.cat([basis.K(), K[None]]),
-                               kind=basis.stiffness.kind, blocks=_blocks(basis))
-        z = torch.zeros(weights.N, 1, dtype=torch.float64)
-        lam = weights.duration[:, None]
-
-        def cat(x, fill):
-            return torch.cat([x, fill], dim=1)
-        new_w = MotionWeights(cat(weights.a, z), cat(weights.b, z), weights.duration,
-                              cat(weights.step_onset, z), cat(weights.step_duration, lam),
-                              cat(weights.pulse_onset, z), cat(weights.pulse_duration, lam),
-                              names=weights.names)
-    return new_basis, new_w
-
-
-def keep_fields(basis: FieldBasis, weights: MotionWeights, keep: list):
-    """A new (basis, weights) with only the fields in ``keep``."""
-    idx = torch.as_tensor(keep, dtype=torch.long)
-    with torch.no_grad():
-        nb = FieldBasis(basis.eta[idx], basis.K()[idx], kind=basis.stiffness.kind,
-                        blocks=_blocks(basis))
-        nw = MotionWeights(weights.a[:, idx], weights.b[:, idx], weights.duration,
-                           weights.step_onset[:, idx], weights.step_duration[:, idx],
-                           weights.pulse_onset[:, idx], weights.pulse_duration[:, idx],
-                           names=weights.names)
-    return nb, nw
-
-
-def _blocks(basis: FieldBasis):
-    return basis.blocks
-
-
 def residual_torques(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
     """T_j(t) − F_j(t) (N×T×n) at the current weights."""
     with torch.no_grad():
@@ -186,35 +144,31 @@ def field_shares(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torc
     return (e / e.sum(-1, keepdim=True).clamp_min(1e-300)).amax(0)
 
 
-def merge_close(basis, weights, tg, distance: float):
+@torch.no_grad()
+def merge_close(basis: FieldBasis, weights: MotionWeights, distance: float, stiffness: float):
     """Merge pairs of fields whose centres are within ``distance`` (rad, Euclidean) and
-    whose stiffnesses differ by less than ``distance`` relatively; the merged field takes
-    the mean centre and stiffness. Returns (basis, weights, merged pairs)."""
-    with torch.no_grad():
-        eta, K = basis.eta, basis.K()
-        merged, used = [], set()
-        for i in range(basis.M):
-            for k in range(i + 1, basis.M):
-                if i in used or k in used:
-                    continue
-                close = (eta[i] - eta[k]).norm() < distance
-                similar = (K[i] - K[k]).norm() < distance * K[i].norm()
-                if bool(close and similar):
-                    merged.append((i, k))
-                    used |= {i, k}
-        if not merged:
-            return basis, weights, []
-        new_eta = eta.clone()
-        new_K = K.clone()
-        for i, k in merged:
-            new_eta[i] = 0.5 * (eta[i] + eta[k])
-            new_K[i] = 0.5 * (K[i] + K[k])
-        keep = [i for i in range(basis.M) if i not in {k for _, k in merged}]
-        basis.eta.copy_(new_eta)
-        nb, nw = keep_fields(basis, weights, keep)
-        nb2 = FieldBasis(nb.eta.detach(), new_K[torch.as_tensor(keep)], kind=basis.stiffness.kind,
-                         blocks=_blocks(basis))
-    return nb2, nw, merged
+    whose stiffnesses differ by less than the fraction ``stiffness`` (‖K_i − K_k‖_F <
+    stiffness · ‖K_i‖_F); the merged field takes the mean centre and stiffness and the
+    first field's place and weights. Returns new (basis, weights, merged pairs); the
+    inputs are left unchanged."""
+    eta, K = basis.eta.detach(), basis.K().detach()
+    merged, used = [], set()
+    for i in range(basis.M):
+        for k in range(i + 1, basis.M):
+            if i in used or k in used:
+                continue
+            if (eta[i] - eta[k]).norm() < distance and (K[i] - K[k]).norm() < stiffness * K[i].norm():
+                merged.append((i, k))
+                used |= {i, k}
+    if not merged:
+        return basis, weights, []
+    new_eta, new_K = eta.clone(), K.clone()
+    for i, k in merged:
+        new_eta[i] = 0.5 * (eta[i] + eta[k])
+        new_K[i] = 0.5 * (K[i] + K[k])
+    keep = [i for i in range(basis.M) if i not in {k for _, k in merged}]
+    nb = FieldBasis(new_eta[keep], new_K[keep], kind=basis.kind, blocks=basis.blocks)
+    return nb, weights.select_fields(keep), merged
 
 
 def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
@@ -225,7 +179,7 @@ def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
     fit starts from that fit's compromise; a pair found together need not."""
     from .torque import solve_weights
     n = tg.q.shape[-1]
-    b0, w0 = empty_model(tg, n, kind, blocks)
+    b0, w0 = FieldBasis.empty(n, kind, blocks), MotionWeights.zeros(0, tg.duration, tg.names)
     centres = candidate_centres(tg, tg.tau, candidates, generator)
     costs = score_candidates(b0, w0, tg, centres, stiffnesses)        # C×S
     best_k = costs.argmin(-1)
@@ -237,8 +191,7 @@ def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
             eta = torch.stack([centres[i], centres[j]])
             K = torch.stack([float(stiffnesses[best_k[i]]) * eye, float(stiffnesses[best_k[j]]) * eye])
             basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
-            z = torch.zeros(tg.N, 2, dtype=torch.float64)
-            weights = MotionWeights(z, z, tg.duration, names=tg.names)
+            weights = MotionWeights.zeros(2, tg.duration, tg.names)
             pairs.append((float(solve_weights(basis, weights, tg).sum()), len(pairs), basis, weights))
     pairs.sort(key=lambda p: p[:2])
     return [(b, w) for _, _, b, w in pairs[:keep]]
@@ -254,11 +207,12 @@ def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates
     Returns (basis, weights, costs per motion)."""
     from .torque import em, solve_weights
     n = tg.q.shape[-1]
-    basis, weights = empty_model(tg, n, kind, blocks)
+    basis, weights = FieldBasis.empty(n, kind, blocks), MotionWeights.zeros(0, tg.duration, tg.names)
     costs = torch.ones(tg.N, dtype=torch.float64)
     while basis.M < max_fields:
         c, s, _ = best_candidate(basis, weights, tg, candidates, stiffnesses, generator)
-        starts = [add_field(basis, weights, c, s * torch.eye(n, dtype=torch.float64))]
+        starts = [(basis.extend(c[None], s * torch.eye(n, dtype=torch.float64)[None]),
+                   weights.extend_fields(1))]
         if basis.M == 1:
             starts += best_pairs(tg, kind, blocks, candidates, stiffnesses, generator)
         fits = []
@@ -282,7 +236,6 @@ def pool(tg: Targets, fits: list, kind: str, blocks):
     eta = torch.cat([e for e, _ in fits])
     K = torch.cat([k for _, k in fits])
     basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
-    z = torch.zeros(tg.N, basis.M, dtype=torch.float64)
-    weights = MotionWeights(z, z, tg.duration, names=tg.names)
+    weights = MotionWeights.zeros(basis.M, tg.duration, tg.names)
     solve_weights(basis, weights, tg)
     return basis, weights

@@ -7,6 +7,8 @@ import torch
 
 from .. import motion as motion_mod
 from ..body import Body
+from ..fields import FieldBasis, FieldProgram, MotionWeights
+from ..simulate import SimOptions, simulate
 
 
 @dataclass
@@ -42,11 +44,30 @@ class Targets:
         return (self.wt * (self.tau ** 2).sum(-1)).sum(-1).clamp_min(1e-12)
 
     def select(self, idx) -> "Targets":
-        """The targets of some motions (a list of indices)."""
+        """The targets of some motions (a list of indices), on their own time grid (the
+        union of their sample times only, so a simulation of them ends with the longest
+        of them)."""
         idx = torch.as_tensor(idx, dtype=torch.long)
         sub = {k: getattr(self, k)[idx] for k in ("t", "mask", "w", "wt", "q", "v", "tau", "duration",
-                                                  "q0", "qd0", "index")}
-        return Targets(names=[self.names[i] for i in idx.tolist()], grid=self.grid, **sub)
+                                                  "q0", "qd0")}
+        grid, index = _union_grid(sub["t"])
+        return Targets(names=[self.names[i] for i in idx.tolist()], grid=grid, index=index, **sub)
+
+
+def _union_grid(t: torch.Tensor):
+    """The sorted union of all sample times (G) and each sample's index in it (N×T);
+    times are compared to 1e-9 s."""
+    return torch.unique(torch.round(t * 1e9) / 1e9, sorted=True, return_inverse=True)
+
+
+def simulate_targets(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
+                     options: SimOptions = SimOptions()):
+    """Every motion simulated from its own initial state under its own program, in one
+    batched ``odeint`` over the union grid: (q, v) at each motion's samples (N×T×n each).
+    Raises :class:`~tflearn.simulate.SimulationFailed` when the batch cannot go on."""
+    tr = simulate(body, FieldProgram(basis, weights), tg.q0, tg.qd0, tg.grid, options)
+    idx = tg.index.unsqueeze(-1).expand(-1, -1, body.nv)
+    return tr.q.gather(1, idx), tr.v.gather(1, idx)
 
 
 def _trapezoid(t: torch.Tensor) -> torch.Tensor:
@@ -64,7 +85,7 @@ def prepare(body: Body, motions: list, trim: int = 5) -> Targets:
     second derivative is weakest at its ends, and a fast motion sampled at 100 Hz can
     give end torques far from the true ones."""
     if not motions:
-        raise ValueError("no motions to fit")
+        raise ValueError("prepare: no motions")
     N, T, n = len(motions), max(len(m.t) for m in motions), body.nv
     z = dict(dtype=torch.float64)
     t = torch.zeros(N, T, **z)
@@ -83,7 +104,7 @@ def prepare(body: Body, motions: list, trim: int = 5) -> Targets:
         v[j, :k] = torch.as_tensor(m.qd, **z) if m.qd is not None else vel_j
         tau[j, :k] = tau_j
         q[j, k:], v[j, k:], tau[j, k:] = q[j, k - 1], v[j, k - 1], tau[j, k - 1]
-    grid, inverse = torch.unique(torch.round(t * 1e9) / 1e9, sorted=True, return_inverse=True)
+    grid, inverse = _union_grid(t)
     duration = t.amax(-1)
     wt = w.clone()
     for j, m in enumerate(motions):

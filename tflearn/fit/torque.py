@@ -20,6 +20,8 @@ alternative: gradient descent on fields and weights together.
 """
 from __future__ import annotations
 
+import math
+import warnings
 from typing import Callable, Optional
 
 import torch
@@ -27,6 +29,18 @@ import torch
 from ..fields import FieldBasis, MotionWeights, pulse_profile, step_profile
 from .nnls import nnls
 from .targets import Targets
+
+
+class DivergenceWarning(RuntimeWarning):
+    """A fitting step rejected because its cost, loss, gradient or simulation went
+    non-finite; the message names the motions."""
+
+
+def _warn_nonfinite(costs: torch.Tensor, tg: Targets, what: str) -> None:
+    bad = [n for n, c in zip(tg.names, costs.tolist()) if not math.isfinite(c)]
+    if bad:
+        warnings.warn(f"{what}: step rejected: non-finite torque cost for {', '.join(bad)}",
+                      DivergenceWarning, stacklevel=3)
 
 
 def design(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
@@ -222,7 +236,8 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
             delta = torch.linalg.solve(A + mu * torch.diag(d), -g)
             fp.assign(theta + delta)
             new_costs = solve_weights(basis, weights, tg, support)
-            if float(new_costs.sum()) < history[-1]:
+            _warn_nonfinite(new_costs, tg, "EM")
+            if float(new_costs.sum()) < history[-1]:         # False for NaN: rejected
                 theta = fp.vector()
                 costs, accepted, mu = new_costs, True, max(mu / 3, 1e-9)
                 break

@@ -1,0 +1,105 @@
+"""How well a model reproduces motions: simulation scored per motion, and the summaries
+that metrics.json and evaluation.json hold.
+
+For motion j simulated from its own initial state under its own torque program, the
+error of a sample is e = q_sim ⊖ q_target (:func:`tflearn.configspace.difference`); the
+scores are the joint-angle RMSE sqrt(mean_{t,k} e²) (rad), the largest hand-tip distance
+(m) and the relative RMS torque error sqrt(C_j) (:mod:`tflearn.fit.torque`). A motion
+whose simulation fails (:class:`~tflearn.simulate.SimulationFailed`) scores rmse = tip =
+∞ with its reason in ``failure``; the others are still scored, each on its own grid.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from . import dynamics
+from .body import Body
+from .configspace import difference
+from .fields import FieldBasis, MotionWeights
+from .fit.targets import Targets, simulate_targets
+from .fit.torque import relative_rms_torque_error
+from .simulate import SimOptions, SimulationFailed
+
+
+@dataclass
+class Scores:
+    """Per-motion scores of a simulation (lists of N plain floats) and the path.
+
+    rmse (rad), tip (m), torque (relative RMS torque error), q_sim (N×T×n, NaN for a
+    failed motion), failure (N: None, or why the simulation of that motion failed)."""
+
+    rmse: list
+    tip: list
+    torque: list
+    q_sim: torch.Tensor
+    failure: list
+
+    def succeeded(self, rmse: float, tip: float) -> list:
+        """Per motion: simulated, joint RMSE ≤ rmse and maximum tip error ≤ tip."""
+        return [f is None and r <= rmse and p <= tip
+                for f, r, p in zip(self.failure, self.rmse, self.tip)]
+
+
+def path_errors(body: Body, q_sim: torch.Tensor, tg: Targets):
+    """(joint RMSE (N), maximum tip distance (N)) of simulated paths against the targets."""
+    e = difference(body, tg.q, q_sim)
+    m = tg.mask.to(e.dtype)
+    rmse = ((e ** 2).mean(-1) * m).sum(-1).div(m.sum(-1)).sqrt()
+    tip = (dynamics.tip_position(body, q_sim) - dynamics.tip_position(body, tg.q)).norm(dim=-1)
+    return rmse, (tip * m).amax(-1)
+
+
+def _simulate_each(body, basis, weights, tg, options):
+    """q_sim (N×T×n) and failures (N): the batch at once, and if it fails each motion
+    alone on its own grid, so that one failing motion costs only itself."""
+    try:
+        return simulate_targets(body, basis, weights, tg, options)[0], [None] * tg.N
+    except SimulationFailed as err:
+        if tg.N == 1:
+            return torch.full_like(tg.q, float("nan")), [str(err)]
+    q_sim, failure = torch.full_like(tg.q, float("nan")), []
+    for j in range(tg.N):
+        one = tg.select([j])
+        try:
+            q_sim[j] = simulate_targets(body, basis, weights.select_motions([j]), one, options)[0][0]
+            failure.append(None)
+        except SimulationFailed as err:
+            failure.append(str(err))
+    return q_sim, failure
+
+
+@torch.no_grad()
+def score(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
+          options: SimOptions = SimOptions(), q_sim: Optional[torch.Tensor] = None) -> Scores:
+    """Simulate every motion (unless ``q_sim`` is given) and score it; see the module."""
+    failure = [None] * tg.N
+    if q_sim is None:
+        q_sim, failure = _simulate_each(body, basis, weights, tg, options)
+    rmse, tip = path_errors(body, q_sim, tg)
+    inf = float("inf")
+    rmse = [inf if f else float(r) for f, r in zip(failure, rmse)]
+    tip = [inf if f else float(p) for f, p in zip(failure, tip)]
+    torque = relative_rms_torque_error(basis, weights, tg).tolist()
+    return Scores(rmse, tip, torque, q_sim, failure)
+
+
+def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float) -> dict:
+    """metrics.json's content: per motion and overall joint RMSE (rad), maximum tip error
+    (m), relative RMS torque error, success, and the failure of a failed simulation.
+    The overall RMSE is over all samples of all motions."""
+    per = {}
+    for j, name in enumerate(tg.names):
+        per[name] = {"rmse": scores.rmse[j], "tip": scores.tip[j],
+                     "torque_rel_rms": scores.torque[j], "success": ok[j]}
+        if scores.failure[j]:
+            per[name]["failure"] = scores.failure[j]
+    counts = tg.mask.sum(-1).tolist()
+    overall_rmse = math.sqrt(sum(r * r * c for r, c in zip(scores.rmse, counts)) / sum(counts))
+    return {"motions": per,
+            "overall": {"rmse": overall_rmse, "tip": max(scores.tip),
+                        "torque_rel_rms": max(scores.torque), "success": all(ok),
+                        "M": M, "wall_time_s": wall}}
