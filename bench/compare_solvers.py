@@ -45,7 +45,8 @@ from tflearn import body as body_mod  # noqa: E402
 from tflearn import experiments  # noqa: E402
 from tflearn import gestures as gestures_mod  # noqa: E402
 from tflearn.fields import FieldBasis, MotionWeights  # noqa: E402
-from tflearn.fit import path as path_fit  # noqa: E402
+from tflearn.metrics import score  # noqa: E402
+from tflearn.simulate import SimOptions  # noqa: E402
 from tflearn.fit import torque  # noqa: E402
 from tflearn.fit.slsqp import fit_slsqp  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402
@@ -137,31 +138,21 @@ def _combine(models):
 def simulate_all(body, models, tg, args) -> list:
     """Reproduction metrics of each (basis, weights) on the single motion ``tg``.
 
-    All models are simulated in one batched odeint (one adaptive step size for all);
-    if that fails (non-finite, or more than ``--sim-budget`` right-hand-side
-    evaluations) each model is simulated alone. A failed simulation counts as not
-    reproduced (rmse = tip = inf, with the reason in "sim_error")."""
-    sim_kw = {"method": args.sim_method, "rtol": args.rtol, "atol": args.atol,
-              "max_evals": args.sim_budget}
-
-    def one(models_, tg_):
-        basis, weights = _combine(models_)
-        m = path_fit.metrics(body, basis, weights, tg_, **sim_kw)
-        if not all(math.isfinite(x) for x in m["rmse"] + m["tip"]):
-            raise FloatingPointError(m.get("error", "non-finite simulation"))
-        return [{"rmse": m["rmse"][j], "tip": m["tip"][j]} for j in range(len(models_))]
-
-    if args.batch_sim and len(models) > 1:
-        try:
-            return one(models, tg.select([0] * len(models)))
-        except Exception:                                   # noqa: BLE001 (solver failure)
-            pass
+    All models are simulated in one batched odeint (one adaptive step size for all;
+    :func:`tflearn.metrics.score` simulates each alone if the batch fails). A failed
+    simulation counts as not reproduced (rmse = tip = inf, the reason in "sim_error")."""
+    options = SimOptions(method=args.sim_method, rtol=args.rtol, atol=args.atol,
+                         max_evals=args.sim_budget)
+    groups = [models] if args.batch_sim and len(models) > 1 else [[m] for m in models]
     out = []
-    for model in models:
-        try:
-            out += one([model], tg)
-        except Exception as exc:                            # noqa: BLE001
-            out.append({"rmse": float("inf"), "tip": float("inf"), "sim_error": repr(exc)})
+    for group in groups:
+        basis, weights = _combine(group)
+        s = score(body, basis, weights, tg.select([0] * len(group)), options)
+        for j in range(len(group)):
+            row = {"rmse": s.rmse[j], "tip": s.tip[j]}
+            if s.failure[j]:
+                row["sim_error"] = s.failure[j]
+            out.append(row)
     return out
 
 

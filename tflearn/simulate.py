@@ -89,7 +89,7 @@ class ArmODE(torch.nn.Module):
         if self.max_evals is not None and self.evals > self.max_evals:
             raise SimulationFailed("budget", f"more than {self.max_evals} right-hand-side evaluations")
         if not bool(torch.isfinite(y).all()):
-            raise SimulationFailed("nonfinite", f"NaN or Inf in the state at t = {float(t):.4g} s")
+            raise SimulationFailed("nonfinite", f"NaN or Inf in the state at t = {float(t.detach()):.4g} s")
         body = self.body
         if self.track_work:
             y = y[..., :-1]
@@ -101,7 +101,7 @@ class ArmODE(torch.nn.Module):
             a = dynamics.forward_dynamics_rot(body, rots, coords, v, total)
         except torch.linalg.LinAlgError:
             raise SimulationFailed("singular", f"the mass matrix cannot be factorised at "
-                                               f"t = {float(t):.4g} s") from None
+                                               f"t = {float(t.detach()):.4g} s") from None
         dpos = []
         for i, link in enumerate(body.links):
             vi = v[..., body.slice(i)]

@@ -1,0 +1,169 @@
+"""Failures as results: one failure type for a simulation that cannot go on, scored per
+motion (a batch in which one motion fails still scores the others, each on its own
+time grid), and divergence (NaN/Inf in a cost, a loss, a gradient or a state) that
+rejects the step, names the motion and never reaches basis.json."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tflearn import gestures, metrics
+from tflearn import simulate as S
+from tflearn.fields import FieldProgram
+from tflearn.fit import path as path_fit
+from tflearn.fit import targets, torque
+from tflearn.fit.torque import DivergenceWarning
+from tflearn.motion import Motion
+
+DT = torch.float64
+OPTS = S.SimOptions(rtol=1e-7, atol=1e-9, max_evals=20000)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """come_here (3 s) and tuck, with their generating model in one basis."""
+    chosen = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
+    pairs = gestures.generate(gestures=chosen)
+    basis, weights, _ = gestures.library_model(chosen)
+    motions = [m for m, _ in pairs]
+    return pairs[0][1].body, basis, weights, targets.prepare(pairs[0][1].body, motions)
+
+
+def test_simulation_failed_is_its_own_type():
+    """Not a RuntimeError: ``except RuntimeError`` never hides it, nor it torch's errors."""
+    assert not issubclass(S.SimulationFailed, RuntimeError)
+    err = S.SimulationFailed("budget", "more than 5 right-hand-side evaluations")
+    assert err.reason == "budget" and "budget" in str(err)
+
+
+def _arm_run(program, options=S.SimOptions()):
+    body = gestures.arm()
+    t = torch.linspace(0, 0.5, 11, dtype=DT)
+    z = torch.zeros(1, 7, dtype=DT)
+    return S.simulate(body, program, z, z, t, options)
+
+
+def test_nonfinite_state_fails_with_its_reason():
+    def program(t, q, v):
+        return torch.full_like(v, float("nan")) if float(t) > 0.2 else torch.zeros_like(v)
+    with pytest.raises(S.SimulationFailed, match="NaN or Inf") as err:
+        _arm_run(program)
+    assert err.value.reason == "nonfinite"
+
+
+def test_singular_mass_matrix_fails_with_its_reason(monkeypatch):
+    def singular(*args, **kw):
+        raise torch.linalg.LinAlgError("not positive-definite")
+    monkeypatch.setattr(S.dynamics, "forward_dynamics_rot", singular)
+    with pytest.raises(S.SimulationFailed) as err:
+        _arm_run(S.zero_program)
+    assert err.value.reason == "singular"
+
+
+def test_integrator_giving_up_fails_with_its_reason(monkeypatch):
+    """torchdiffeq signals an underflowing step with an AssertionError (which vanishes
+    under ``python -O``); simulate turns it into SimulationFailed("solver")."""
+    def gives_up(*args, **kw):
+        raise AssertionError("underflow in dt 0.0")
+    monkeypatch.setattr(S, "odeint", gives_up)
+    with pytest.raises(S.SimulationFailed, match="underflow") as err:
+        _arm_run(S.zero_program)
+    assert err.value.reason == "solver"
+
+
+def test_budget_fails_with_its_reason():
+    with pytest.raises(S.SimulationFailed) as err:
+        _arm_run(lambda t, q, v: 50 * torch.sin(40 * q), S.SimOptions(max_evals=30))
+    assert err.value.reason == "budget"
+
+
+def test_select_simulates_on_its_own_grid(pair):
+    """A sub-selection's grid ends with its own longest motion, not the batch's."""
+    body, _, _, tg = pair
+    come_here = Motion("come_here", tg.t[0], tg.q[0], tg.v[0])
+    half = Motion("half", tg.t[1, :151], tg.q[1, :151], tg.v[1, :151])
+    tg = targets.prepare(body, [come_here, half])
+    short = 1
+    one = tg.select([short])
+    assert float(one.grid[-1]) == pytest.approx(float(tg.duration[short]))
+    assert float(tg.grid[-1]) > float(one.grid[-1])
+    assert torch.equal(one.grid[one.index[0]], one.t[0])
+
+
+def test_one_failing_motion_leaves_the_others_scored(pair):
+    """tuck's weights ×10⁴ make its simulation run past the budget; come_here is still
+    scored, exactly as it scores alone, and only tuck is reported failed."""
+    body, basis, weights, tg = pair
+    wild = weights.select_motions([0, 1])
+    with torch.no_grad():
+        wild.a_raw[1] *= 1e4
+    s = metrics.score(body, basis, wild, tg, OPTS)
+    alone = metrics.score(body, basis, weights.select_motions([0]), tg.select([0]), OPTS)
+    assert s.failure[0] is None and "budget" in s.failure[1]
+    assert s.rmse[0] == alone.rmse[0] and s.tip[0] == alone.tip[0]
+    assert s.rmse[0] < 1e-3 and s.rmse[1] == float("inf")
+    assert s.succeeded(0.03, 0.02) == [True, False]
+    summary = metrics.summarize(s, s.succeeded(0.03, 0.02), tg, basis.M, 0.0)
+    assert "failure" in summary["motions"]["tuck"] and "failure" not in summary["motions"]["come_here"]
+
+
+def test_path_step_rejects_a_diverged_point_naming_the_motion(pair):
+    """After a good step, weights that went NaN: the step is rejected with a
+    DivergenceWarning naming the motions, the parameters go back to the best point and
+    the learning rate halves."""
+    body, basis, weights, tg = pair
+    one, w = tg.select([0]), weights.select_motions([0])
+    kw = dict(options=S.SimOptions(rtol=1e-5, atol=1e-7, max_evals=20000))
+    first = path_fit.path_step(body, basis, w, one, lr=1e-3, **kw)
+    assert first.failure is None and first.best is not None
+    best_a = first.best["model"]["weights"]["a_raw"].clone()
+    with torch.no_grad():
+        w.a_raw.fill_(float("nan"))
+    with pytest.warns(DivergenceWarning, match="come_here"):
+        res = path_fit.path_step(body, basis, w, one, lr=1e-3, best=first.best,
+                                 optimizer_state=first.optimizer, **kw)
+    assert res.failure is not None and res.lr == 5e-4 and res.loss == float("inf")
+    assert torch.equal(w.a_raw.detach(), best_a)
+    assert torch.isfinite(w.a_raw).all()
+
+
+def test_path_step_failing_at_the_start_changes_nothing(pair):
+    body, basis, weights, tg = pair
+    w = weights.select_motions([0])
+    with torch.no_grad():
+        w.a_raw.fill_(float("nan"))
+    with pytest.warns(DivergenceWarning):
+        res = path_fit.path_step(body, basis, w, tg.select([0]), lr=1e-3, options=OPTS)
+    assert res.best is None and res.failure
+
+
+def test_em_rejects_a_nonfinite_trial_step(pair, monkeypatch):
+    """An LM trial whose torque cost is NaN is rejected (a warning names the motion) and
+    EM carries on from the last good point: its history stays finite and monotone."""
+    body, basis, weights, tg = pair
+    one = tg.select([0])
+    b = basis.select([0])
+    with torch.no_grad():
+        b.eta.add_(0.05)
+    w = weights.select_motions([0]).select_fields([0])
+    real = torque.solve_weights
+    calls = {"n": 0}
+
+    def flaky(*args, **kw):
+        calls["n"] += 1
+        costs = real(*args, **kw)
+        return torch.full_like(costs, float("nan")) if calls["n"] == 2 else costs
+    monkeypatch.setattr(torque, "solve_weights", flaky)
+    with pytest.warns(DivergenceWarning, match="come_here"):
+        history = torque.em(b, w, one, steps=10)
+    assert all(torch.isfinite(torch.tensor(history)))
+    assert all(y <= x for x, y in zip(history, history[1:])) and history[-1] < history[0]
+
+
+def test_program_of_a_scored_batch_is_unchanged(pair):
+    """Scoring never changes the model it scores (no in-place writes)."""
+    body, basis, weights, tg = pair
+    before = [p.detach().clone() for p in FieldProgram(basis, weights).parameters()]
+    metrics.score(body, basis, weights, tg, OPTS)
+    after = list(FieldProgram(basis, weights).parameters())
+    assert all(torch.equal(x, y) for x, y in zip(before, after))

@@ -1,0 +1,161 @@
+"""Resuming training: interrupted in-process and killed (SIGKILL) as a real process at
+several moments, a re-run of the same command ends with the uninterrupted run's
+basis.json; checkpoints are plain tensors (``weights_only``) and refuse another version
+or another config; artefacts are never half written."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from tflearn import train
+
+from test_learning import SMALL_OVERRIDES, assert_same_basis, small_config, small_run
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    return small_run(tmp_path_factory)       # the run shared with test_learning.py
+
+
+def test_resume_after_interrupt(run_dir, tmp_path):
+    """Interrupted after 1 checkpoint (inside stage "each"), then after 2 more (at the end
+    of "pool"), then after 2 more (inside "reduce"), then resumed to the end: basis.json
+    equals the uninterrupted run's (measured: identical, max |Δ| = 0)."""
+    out = tmp_path / "resumed"
+    cfg = small_config(run_dir["data"], out)
+    stops = []
+    for k in (1, 2, 2):
+        with pytest.raises(train.Interrupted):
+            train.run(cfg, stop_after=k)
+        state = torch.load(out / "checkpoint.pt", weights_only=True)
+        stops.append((state["stage"], state["cursor"]))
+        assert not (out / "basis.json").exists()
+    assert stops[0] == ("each", 1)
+    assert stops[1] == ("reduce", 0)
+    assert stops[2][0] == "reduce" and stops[2][1] == 2
+    metrics = train.run(cfg)
+    assert_same_basis(out / "basis.json", run_dir["out"] / "basis.json")
+    ref = json.loads((run_dir["out"] / "metrics.json").read_text())
+    for name, row in ref["motions"].items():
+        for key in ("rmse", "tip", "torque_rel_rms"):
+            assert abs(metrics["motions"][name][key] - row[key]) <= 1e-12
+    assert metrics["overall"]["M"] == ref["overall"]["M"]
+    assert metrics["history"] == ref["history"]
+
+
+def _train_command(config: Path, data: Path, out: Path) -> list:
+    return [sys.executable, "-m", "tflearn.cli", "train", str(config), f"data={data}",
+            f"out={out}", *SMALL_OVERRIDES]
+
+
+def _wait_for(predicate, proc, timeout=120.0):
+    """Poll until ``predicate()`` holds (True) or the process ends (False)."""
+    end = time.time() + timeout
+    while time.time() < end:
+        if predicate():
+            return True
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.02)
+    raise TimeoutError("the training process made no progress")
+
+
+def _checkpoint_stage(out: Path):
+    try:
+        return torch.load(out / "checkpoint.pt", weights_only=True)["stage"]
+    except Exception:  # noqa: BLE001 - absent, or (never: writes are atomic) unreadable
+        return None
+
+
+def test_sigkill_at_several_moments_then_rerun(run_dir, tmp_path):
+    """A real ``tflearn train`` process killed with SIGKILL while it fits the first
+    motion (no checkpoint yet), right after the first checkpoint, once it reaches the
+    reduce stage, and while it writes its artefacts; after each kill every file in the
+    output folder is whole (the checkpoint loads, no stray temporary file is taken for
+    an artefact), and re-running the same command ends with the uninterrupted run's
+    basis.json (fields and weights to 1e-6; measured: identical)."""
+    cfg_file = tmp_path / "empty.yaml"
+    cfg_file.write_text("")
+    out = tmp_path / "killed"
+    cmd = _train_command(cfg_file, run_dir["data"], out)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    moments = [
+        ("before any checkpoint", lambda: out.exists()),
+        ("after the first checkpoint", lambda: (out / "checkpoint.pt").exists()),
+        ("in the reduce stage", lambda: _checkpoint_stage(out) in ("reduce", "path", "done")),
+        ("while writing artefacts", lambda: (out / "figures").exists()),
+    ]
+    killed = []
+    for what, reached in moments:
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            if _wait_for(reached, proc):
+                proc.send_signal(signal.SIGKILL)
+                killed.append(what)
+        finally:
+            proc.wait(timeout=60)
+        if (out / "checkpoint.pt").exists():
+            torch.load(out / "checkpoint.pt", weights_only=True)    # whole, never half written
+        for name in ("basis.json", "metrics.json"):
+            if (out / name).exists():
+                json.loads((out / name).read_text())
+    assert len(killed) >= 3, killed
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert_same_basis(out / "basis.json", run_dir["out"] / "basis.json", tol=1e-6)
+    assert not list(out.glob(".*.tmp"))
+
+
+def test_checkpoint_is_plain_data(run_dir):
+    """The checkpoint loads with ``weights_only=True`` (no pickled objects)."""
+    state = torch.load(run_dir["out"] / "checkpoint.pt", weights_only=True)
+    assert state["format"] == train.CHECKPOINT_FORMAT and state["stage"] == "done"
+
+
+def test_checkpoint_of_other_config_refused(run_dir):
+    out = run_dir["out"]
+    before = (out / "checkpoint.pt").read_bytes()
+    cfg = small_config(run_dir["data"], out, "seed=1")
+    with pytest.raises(train.CheckpointError) as err:
+        train.run(cfg)
+    assert str(out / "checkpoint.pt") in str(err.value)
+    assert (out / "checkpoint.pt").read_bytes() == before
+
+
+@pytest.mark.parametrize("content,problem", [
+    ({"format": "tflearn-checkpoint/1", "stage": "each"}, "another tflearn version"),
+    ({"stage": "each", "cursor": 0}, "another tflearn version"),
+    ({"format": train.CHECKPOINT_FORMAT, "stage": "each"}, "not a complete checkpoint"),
+    (b"\x00garbage", "not a readable checkpoint"),
+])
+def test_bad_checkpoints_refused(run_dir, tmp_path, content, problem):
+    """A checkpoint of another version, an incomplete one, or random bytes: a
+    CheckpointError naming the file, nothing written."""
+    out = tmp_path / "run"
+    out.mkdir()
+    ckpt = out / "checkpoint.pt"
+    if isinstance(content, bytes):
+        ckpt.write_bytes(content)
+    else:
+        torch.save(content, ckpt)
+    with pytest.raises(train.CheckpointError, match=problem) as err:
+        train.run(small_config(run_dir["data"], out))
+    assert str(ckpt) in str(err.value)
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
+
+
+def test_pickled_checkpoint_is_not_loaded(run_dir, tmp_path):
+    """A checkpoint that would need pickle (an arbitrary object) is refused, not run."""
+    out = tmp_path / "run"
+    out.mkdir()
+    torch.save({"format": train.CHECKPOINT_FORMAT, "payload": Path("x")}, out / "checkpoint.pt")
+    with pytest.raises(train.CheckpointError, match="not a readable checkpoint"):
+        train.run(small_config(run_dir["data"], out))
