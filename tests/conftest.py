@@ -103,25 +103,29 @@ BODY_NAMES = ["arm", "arm_offsets", "chain3_ball", "chain4_hinge", "tree"]
 # ------------------------------------------------------------------------ pinocchio
 
 def to_pin(body: tb.Body):
-    """The Pinocchio model of a body; link i is Pinocchio joint i + 1."""
+    """The Pinocchio model of a body. Moving link i is Pinocchio joint i + 1 when the body
+    has no fixed joints; a fixed link's inertia is appended to the joint that carries it
+    (its parent's, placed by the fixed joint), and its children hang from that joint."""
     import pinocchio as pin
 
     model = pin.Model()
-    ids = []
+    frames = []                      # per link: (Pinocchio joint id, link frame in it)
     for link in body.links:
+        jid, above = (0, pin.SE3.Identity()) if link.parent < 0 else frames[link.parent]
+        place = above * pin.SE3(pin.exp3(np.array(link.offset, dtype=float)),
+                                np.array(link.origin, dtype=float))
         if link.joint == "fixed":
-            raise NotImplementedError("to_pin: fixed joints are not converted")
-        parent = 0 if link.parent < 0 else ids[link.parent]
-        place = pin.SE3(pin.exp3(np.array(link.offset, dtype=float)),
-                        np.array(link.origin, dtype=float))
-        jm = (pin.JointModelSpherical() if link.joint == "ball"
-              else pin.JointModelRevoluteUnaligned(np.array(link.axis, dtype=float)))
-        jid = model.addJoint(parent, jm, place, link.name)
+            frames.append((jid, place))
+        else:
+            jm = (pin.JointModelSpherical() if link.joint == "ball"
+                  else pin.JointModelRevoluteUnaligned(np.array(link.axis, dtype=float)))
+            frames.append((model.addJoint(jid, jm, place, link.name), pin.SE3.Identity()))
+        jid, place = frames[-1]
         model.appendBodyToJoint(
             jid, pin.Inertia(link.mass, np.array(link.com, dtype=float),
-                             np.array(link.inertia, dtype=float)), pin.SE3.Identity())
-        ids.append(jid)
-    assert ids == list(range(1, len(body.links) + 1))
+                             np.array(link.inertia, dtype=float)), place)
+    moving = [f[0] for f, l in zip(frames, body.links) if l.joint != "fixed"]
+    assert moving == list(range(1, len(moving) + 1))
     model.gravity.linear = np.array(body.gravity, dtype=float)
     return model
 

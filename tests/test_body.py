@@ -1,4 +1,5 @@
 """Body presets, anatomy conventions and tree configs."""
+import json
 import math
 
 import numpy as np
@@ -74,6 +75,29 @@ def test_tree_config_equals_the_preset():
     q, v, a = (torch.randn(4, 7, generator=g, dtype=DT) for _ in range(3))
     assert torch.allclose(dynamics.rnea(tree, q, v, a), dynamics.rnea(arm, q, v, a), atol=1e-13)
     assert torch.allclose(dynamics.forward_kinematics(tree, q), dynamics.forward_kinematics(arm, q))
+
+
+def test_general_links_in_a_config():
+    """Links given by mass, centre of mass and inertia (no cylinder size)."""
+    inertia = [[0.02, 0.001, 0.0], [0.001, 0.03, 0.0], [0.0, 0.0, 0.01]]
+    body = tb.from_config({"links": [
+        {"name": "base", "parent": -1, "joint": "ball", "origin": [0, 0, 0], "mass": 2.0,
+         "com": [0.0, 0.01, -0.1], "inertia": inertia},
+        {"parent": 0, "joint": "hinge", "origin": [0, 0, -0.2], "length": 0.2, "mass": 1.0,
+         "radius": 0.03}]})
+    assert body.links[0].inertia == tuple(map(tuple, inertia))
+    assert body.links[0].com == (0.0, 0.01, -0.1) and body.links[1].name == "link1"
+    assert body.tip_point == (0, 0, -0.2) and body.nv == 4
+    with pytest.raises(ValueError, match=r"body\.links\[0\]: .*'mass'"):
+        tb.from_config({"links": [{"parent": -1, "joint": "ball", "origin": [0, 0, 0],
+                                   "inertia": inertia}]})
+
+
+@pytest.mark.parametrize("body", [tb.arm(offsets=[[0.1, 0, 0], [0, 0, 0], [0, 0.2, 0]]),
+                                  tb.chain(3, "ball"), tb.chain(2, "hinge", damping=0.3)])
+def test_json_form_round_trips(body):
+    doc = json.loads(json.dumps(body.to_dict()))
+    assert tb.from_dict(doc) == body and tb.from_dict(doc).to_dict() == doc
 
 
 def test_preset_overrides():

@@ -21,7 +21,6 @@ from tflearn import motion as motion_mod
 from tflearn.fields import FieldBasis, MotionWeights
 from tflearn.fit import path as path_fit
 from tflearn.fit import targets, torque
-from tflearn.io import basis as bio
 from tflearn.simulate import SimOptions
 
 from conftest import to_pin
@@ -321,7 +320,7 @@ def test_run_artefacts(run_dir):
     # test_overall_rmse_in_double below)
     assert abs(overall["rmse"] - pooled_rmse(run_dir, metrics)) <= 1e-7 * overall["rmse"]
     doc = json.loads((out / "basis.json").read_text())
-    assert doc["format"] == bio.FORMAT
+    assert doc["format"] == "tflearn-basis/2"
     assert overall["M"] == len(doc["fields"]) >= 1
     assert [m["name"] for m in doc["motions"]] == names
     assert config.load(out / "config.yaml") == small_config(run_dir["data"], out)
@@ -453,25 +452,26 @@ def rotvec_to_quat(v):
 
 
 def pin_arm(body: dict):
-    """The arm of a basis.json "body" as a Pinocchio model (joints 1 shoulder, 2 elbow,
-    3 wrist), built from the numbers alone."""
+    """The arm of a basis.json "body" (tflearn-basis/2) as a Pinocchio model (joints 1
+    shoulder, 2 elbow, 3 wrist), built from the numbers alone."""
     import pinocchio as pin
-    L, m, r = body["lengths"], body["masses"], body["radii"]
-    offsets = body.get("offsets", [[0.0, 0.0, 0.0]] * 3)
     model = pin.Model()
-    parent = 0
-    joints = [pin.JointModelSpherical(), pin.JointModelRX(), pin.JointModelSpherical()]
-    origins = [np.zeros(3), np.array([0.0, 0.0, -L[0]]), np.array([0.0, 0.0, -L[1]])]
-    for i in range(3):
-        place = pin.SE3(pin.exp3(np.array(offsets[i], dtype=float)), origins[i])
-        jid = model.addJoint(parent, joints[i], place, f"j{i}")
-        ixx = m[i] * (3 * r[i] ** 2 + L[i] ** 2) / 12
-        izz = m[i] * r[i] ** 2 / 2
-        model.appendBodyToJoint(jid, pin.Inertia(m[i], np.array([0.0, 0.0, -L[i] / 2]),
-                                                 np.diag([ixx, ixx, izz])), pin.SE3.Identity())
-        parent = jid
+    joints = {"ball": pin.JointModelSpherical, "hinge": pin.JointModelRevoluteUnaligned}
+    assert [l["joint"] for l in body["links"]] == ["ball", "hinge", "ball"]
+    for i, link in enumerate(body["links"]):
+        place = pin.SE3(pin.exp3(np.array(link["offset"])), np.array(link["origin"]))
+        jm = joints[link["joint"]](*([np.array(link["axis"])] if link["joint"] == "hinge" else []))
+        jid = model.addJoint(link["parent"] + 1, jm, place, f"j{i}")
+        model.appendBodyToJoint(jid, pin.Inertia(link["mass"], np.array(link["com"]),
+                                                 np.array(link["inertia"])), pin.SE3.Identity())
     model.gravity.linear = np.array(body["gravity"], dtype=float)
     return model
+
+
+def tip_point(body: dict) -> np.ndarray:
+    """The end effector in the hand's frame (basis.json "body.tip", link 2 of the arm)."""
+    assert body["tip"]["link"] == 2
+    return np.array(body["tip"]["point"])
 
 
 def psi(u):
@@ -524,19 +524,19 @@ def independent_simulation(doc: dict, motion: dict, t: np.ndarray):
     y0 = np.concatenate([rotvec_to_quat(q0[0:3]), [q0[3]], rotvec_to_quat(q0[4:7]), qd0])
     sol = solve_ivp(rhs, (t[0], t[-1]), y0, method="DOP853", t_eval=t, rtol=1e-10, atol=1e-12)
     assert sol.success
-    L3 = doc["body"]["lengths"][2]
+    tip = tip_point(doc["body"])
     rots, hinge, tips, nus = [], [], [], []
     for y in sol.y.T:
         qs, th, qw, v = split(y)
         pin.forwardKinematics(model, data, np.concatenate([qs, [th], qw]))
         rots.append([quat_to_R(qs), quat_to_R(qw)])
         hinge.append(th)
-        tips.append(data.oMi[3].act(np.array([0.0, 0.0, -L3])))
+        tips.append(data.oMi[3].act(tip))
         nus.append(nu_of(qs, th, qw))
     return np.array(rots), np.array(hinge), np.array(tips), np.array(nus), sol.y[9:16].T
 
 
-def errors_against(rots, hinge, tips, q_ref: np.ndarray, model, L3: float):
+def errors_against(rots, hinge, tips, q_ref: np.ndarray, model, tip: np.ndarray):
     """(joint RMSE, max tip distance, per-sample errors T×7) of a simulated path against
     reference coordinates, with the definitions of tflearn.fit.path."""
     import pinocchio as pin
@@ -548,7 +548,7 @@ def errors_against(rots, hinge, tips, q_ref: np.ndarray, model, L3: float):
                                  pin.log3(Rw.T @ rots[k][1])]))
         qp = np.concatenate([pin.Quaternion(Rs).coeffs(), [q_ref[k, 3]], pin.Quaternion(Rw).coeffs()])
         pin.forwardKinematics(model, data, qp)
-        tip_err.append(np.linalg.norm(tips[k] - data.oMi[3].act(np.array([0.0, 0.0, -L3]))))
+        tip_err.append(np.linalg.norm(tips[k] - data.oMi[3].act(tip)))
     e = np.array(e)
     return float(np.sqrt((e ** 2).mean())), float(max(tip_err)), e
 
@@ -564,29 +564,28 @@ def test_independent_resimulation(run_dir, tmp_path):
     metrics = json.loads((run_dir["out"] / "metrics.json").read_text())
     model = pin_arm(doc["body"])
     # the hand-built model is the one conftest.to_pin builds from tflearn's own arm
-    from tflearn.io import basis as bio
-    ref_model = to_pin(bio.load(run_dir["out"] / "basis.json").body)
+        ref_model = to_pin(bio.load(run_dir["out"] / "basis.json").body)
     for j in range(1, 4):
         assert np.allclose(model.inertias[j].matrix(), ref_model.inertias[j].matrix(), atol=1e-15)
         assert np.allclose(model.jointPlacements[j].homogeneous,
                            ref_model.jointPlacements[j].homogeneous, atol=1e-15)
-    L3 = doc["body"]["lengths"][2]
+    tip = tip_point(doc["body"])
     for motion in doc["motions"]:
         name = motion["name"]
         target = np.load(run_dir["data"] / f"{name}.npz")
         t = target["t"] - target["t"][0]
         rots, hinge, tips, nus, v = independent_simulation(doc, motion, t)
-        rmse, tip, _ = errors_against(rots, hinge, tips, target["q"], model, L3)
+        rmse, tip_max, _ = errors_against(rots, hinge, tips, target["q"], model, tip)
         row = metrics["motions"][name]
         print(f"{name}: independent rmse {rmse:.6f} (metrics {row['rmse']:.6f}), "
-              f"tip {tip:.6f} (metrics {row['tip']:.6f})")
+              f"tip {tip_max:.6f} (metrics {row['tip']:.6f})")
         assert abs(rmse - row["rmse"]) <= 1e-3
-        assert abs(tip - row["tip"]) <= 1e-3
+        assert abs(tip_max - row["tip"]) <= 1e-3
         # against tflearn simulate
         npz = evaluate.simulate_basis_motion(run_dir["out"] / "basis.json", name, tmp_path / f"{name}.npz")
         sim = np.load(npz)
         assert sim["t"].shape == t.shape and np.abs(sim["t"] - t).max() <= 1e-9
-        _, _, e = errors_against(rots, hinge, tips, sim["q"], model, L3)
+        _, _, e = errors_against(rots, hinge, tips, sim["q"], model, tip)
         dv = np.abs(sim["qd"] - v).max()
         print(f"{name}: vs tflearn simulate max |Δν| {np.abs(e).max():.2e}, max |Δv| {dv:.2e}")
         assert np.abs(e).max() <= 1e-5

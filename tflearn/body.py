@@ -1,4 +1,4 @@
-"""Kinematic trees of rigid links: an immutable model, presets and a config reader.
+"""Kinematic trees of rigid links: an immutable model, presets, a config reader and a JSON form.
 
 A body is a tree of links. Link ``i`` hangs from link ``parent`` (or the fixed base
 when ``parent`` is -1) through a joint whose frame sits at ``origin`` in the parent
@@ -20,12 +20,17 @@ rest, world z up, gravity off.
 """
 from __future__ import annotations
 
+import json
+import math
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
 
 JOINT_DOFS = {"ball": 3, "hinge": 1, "fixed": 0}
+LINK_KEYS = ("name", "parent", "joint", "origin", "offset", "axis", "mass", "com", "inertia",
+             "length", "radius")
+BODY_KEYS = ("name", "links", "gravity", "damping", "tip")
 
 
 @dataclass(frozen=True)
@@ -62,11 +67,13 @@ class Link:
         if self.joint not in JOINT_DOFS:
             raise ValueError(f"link {self.name!r}: unknown joint type {self.joint!r} "
                              f"(expected one of {sorted(JOINT_DOFS)})")
-        if not self.mass > 0:
-            raise ValueError(f"link {self.name!r}: mass must be positive, got {self.mass}")
+        if not 0 < self.mass < math.inf:
+            raise ValueError(f"link {self.name!r}: mass must be positive and finite, "
+                             f"got {self.mass}")
         inertia = np.asarray(self.inertia, dtype=float)
-        if inertia.shape != (3, 3) or not np.allclose(inertia, inertia.T):
-            raise ValueError(f"link {self.name!r}: inertia must be a symmetric 3x3 matrix")
+        if (inertia.shape != (3, 3) or not np.isfinite(inertia).all()
+                or not np.allclose(inertia, inertia.T)):
+            raise ValueError(f"link {self.name!r}: inertia must be a finite symmetric 3x3 matrix")
         if np.linalg.eigvalsh(inertia).min() < 0:
             raise ValueError(f"link {self.name!r}: inertia must be positive semi-definite")
         if self.joint == "hinge":
@@ -78,6 +85,23 @@ class Link:
     def dof(self) -> int:
         return JOINT_DOFS[self.joint]
 
+    def to_dict(self) -> dict:
+        """Plain-JSON description: the attributes under their names, vectors as lists,
+        inertia as 3 rows, NaN length/radius as None (JSON null)."""
+        return {"name": self.name, "parent": int(self.parent), "joint": self.joint,
+                "origin": _floats(self.origin), "offset": _floats(self.offset),
+                "axis": _floats(self.axis), "mass": float(self.mass),
+                "com": _floats(self.com), "inertia": [_floats(row) for row in self.inertia],
+                "length": _or_null(self.length), "radius": _or_null(self.radius)}
+
+
+def _floats(xs) -> list:
+    return [float(x) for x in xs]
+
+
+def _or_null(x: float):
+    return None if math.isnan(x) else float(x)
+
 
 def cylinder_link(name: str, parent: int, joint: str, origin: Sequence[float],
                   length: float, mass: float, radius: float, **kw) -> Link:
@@ -85,8 +109,9 @@ def cylinder_link(name: str, parent: int, joint: str, origin: Sequence[float],
 
     Inertia about the centre: Ixx = Iyy = m(3r² + L²)/12, Izz = m r²/2.
     """
-    ixx = mass * (3 * radius**2 + length**2) / 12.0
-    izz = mass * radius**2 / 2.0
+    # x * x, not x**2: too large a size gives inf (refused by Link), not OverflowError
+    ixx = mass * (3 * radius * radius + length * length) / 12.0
+    izz = mass * radius * radius / 2.0
     inertia = ((ixx, 0.0, 0.0), (0.0, ixx, 0.0), (0.0, 0.0, izz))
     return Link(name=name, parent=parent, joint=joint, origin=tuple(map(float, origin)),
                 mass=float(mass), com=(0.0, 0.0, -length / 2.0), inertia=inertia,
@@ -143,17 +168,16 @@ class Body:
         """A copy with some attributes replaced (bodies are immutable)."""
         return replace(self, **changes)
 
-    @property
-    def summary(self) -> dict:
-        """Plain-JSON description of a chain of cylinder links (the basis.json ``body``)."""
-        out = {"lengths": [l.length for l in self.links],
-               "masses": [l.mass for l in self.links],
-               "radii": [l.radius for l in self.links],
-               "gravity": list(self.gravity), "damping": self.damping}
-        offsets = [list(l.offset) for l in self.links]
-        if any(any(o) for o in offsets):
-            out["offsets"] = offsets
-        return out
+    def to_dict(self) -> dict:
+        """Plain-JSON description of the whole tree (the basis.json ``body``)::
+
+            {"name", "links": [Link.to_dict(), ...], "gravity": [3], "damping": c,
+             "tip": {"link": i, "point": [3]}}
+
+        :func:`from_dict` inverts it exactly (JSON writes floats by their repr)."""
+        return {"name": self.name, "links": [link.to_dict() for link in self.links],
+                "gravity": _floats(self.gravity), "damping": float(self.damping),
+                "tip": {"link": int(self.tip_link), "point": _floats(self.tip_point)}}
 
 
 ARM_DEFAULTS = {
@@ -213,30 +237,44 @@ def chain(n: int = 2, joint: str = "hinge", length: float = 0.3, mass: float = 1
 PRESETS = {"arm": arm, "chain": chain}
 
 
+def _tuples(x):
+    """Config lists (nested) as tuples, other values unchanged."""
+    return tuple(map(_tuples, x)) if isinstance(x, list) else x
+
+
+def _link_from_config(spec: dict, i: int) -> Link:
+    spec = {k: _tuples(v) for k, v in spec.items()}
+    spec.setdefault("name", f"link{i}")
+    try:
+        if "inertia" in spec:
+            return Link(**{"com": (0.0, 0.0, 0.0), **spec})
+        return cylinder_link(spec.pop("name"), spec.pop("parent"), spec.pop("joint"),
+                             spec.pop("origin"), spec.pop("length"), spec.pop("mass"),
+                             spec.pop("radius"), **spec)
+    except KeyError as err:
+        raise ValueError(f"body.links[{i}]: missing key {err}") from None
+    except TypeError as err:
+        raise ValueError(f"body.links[{i}]: {err}") from None
+
+
 def from_config(cfg: dict | None) -> Body:
     """Build a body from a config mapping.
 
     Either ``{"preset": "arm", ...overrides}`` (the default when ``cfg`` is empty), or a
-    tree: ``{"links": [{"name", "parent", "joint", "origin", "length", "mass", "radius",
-    "offset"?, "axis"?}, ...], "tip": {"link": i, "point": [x, y, z]}, "gravity", "damping"}``.
+    tree: ``{"links": [...], "tip": {"link": i, "point": [x, y, z]}, "gravity", "damping"}``
+    whose links are cylinders ``{"name", "parent", "joint", "origin", "length", "mass",
+    "radius", "offset"?, "axis"?}`` or, when they give ``inertia`` (3×3 about the centre of
+    mass), general links ``{"name", "parent", "joint", "origin", "mass", "com"?, "inertia",
+    "offset"?, "axis"?}``. The tip defaults to the end of the last cylinder (its origin
+    for a general link).
     """
     cfg = dict(cfg or {})
     if "links" in cfg:
-        links = []
-        for i, spec in enumerate(cfg.pop("links")):
-            spec = dict(spec)
-            try:
-                links.append(cylinder_link(
-                    spec.pop("name", f"link{i}"), spec.pop("parent"), spec.pop("joint"),
-                    spec.pop("origin"), spec.pop("length"), spec.pop("mass"),
-                    spec.pop("radius"),
-                    **{k: tuple(v) if isinstance(v, list) else v for k, v in spec.items()}))
-            except KeyError as err:
-                raise ValueError(f"body.links[{i}]: missing key {err}") from None
-            except TypeError as err:
-                raise ValueError(f"body.links[{i}]: {err}") from None
-        tip = cfg.pop("tip", {"link": len(links) - 1, "point": [0, 0, -links[-1].length]})
-        body = Body(links=tuple(links), gravity=tuple(cfg.pop("gravity", (0, 0, 0))),
+        links = tuple(_link_from_config(spec, i) for i, spec in enumerate(cfg.pop("links")))
+        end = links[-1].length
+        tip = cfg.pop("tip", {"link": len(links) - 1,
+                              "point": [0, 0, -end if math.isfinite(end) else 0.0]})
+        body = Body(links=links, gravity=tuple(cfg.pop("gravity", (0, 0, 0))),
                     damping=float(cfg.pop("damping", 0.0)), tip_link=int(tip["link"]),
                     tip_point=tuple(tip["point"]), name=cfg.pop("name", "tree"))
         if cfg:
@@ -249,3 +287,99 @@ def from_config(cfg: dict | None) -> Body:
         return PRESETS[preset](**cfg)
     except TypeError as err:
         raise ValueError(f"body: {err}") from None
+
+
+def from_dict(doc) -> Body:
+    """The body of a :meth:`Body.to_dict` document (its exact inverse).
+
+    Every key is required and no other is accepted; numbers must be finite JSON numbers
+    (length and radius may be null). Raises ValueError naming the link and key at fault.
+    """
+    _require_keys(doc, BODY_KEYS, "body")
+    if not isinstance(doc["links"], list) or not doc["links"]:
+        raise ValueError(f"body.links: expected a non-empty list, got {json_kind(doc['links'])}")
+    links = tuple(_link_from_dict(spec, i) for i, spec in enumerate(doc["links"]))
+    tip = doc["tip"]
+    _require_keys(tip, ("link", "point"), "body.tip")
+    tip_link = _json_int(tip["link"], "body.tip.link")
+    if not -len(links) <= tip_link < len(links):
+        raise ValueError(f"body.tip.link: {tip_link} is not a link index (the body has "
+                         f"{len(links)} links)")
+    return Body(links=links, gravity=tuple(json_numbers(doc["gravity"], (3,), "body.gravity")),
+                damping=json_numbers(doc["damping"], (), "body.damping"), tip_link=tip_link,
+                tip_point=tuple(json_numbers(tip["point"], (3,), "body.tip.point")),
+                name=_json_str(doc["name"], "body.name"))
+
+
+def _link_from_dict(spec, i: int) -> Link:
+    where = f"body.links[{i}]"
+    if isinstance(spec, dict) and isinstance(spec.get("name"), str):
+        where = f"{where} ({spec['name']!r})"
+    _require_keys(spec, LINK_KEYS, where)
+    name = _json_str(spec["name"], f"{where}.name")
+    vectors = {k: tuple(json_numbers(spec[k], (3,), f"{where}.{k}"))
+               for k in ("origin", "offset", "axis", "com")}
+    sizes = {k: json_numbers(spec[k], (), f"{where}.{k}")
+             for k in ("length", "radius") if spec[k] is not None}
+    inertia = tuple(map(tuple, json_numbers(spec["inertia"], (3, 3), f"{where}.inertia")))
+    return Link(name=name, parent=_json_int(spec["parent"], f"{where}.parent"),
+                joint=_json_str(spec["joint"], f"{where}.joint"),
+                mass=json_numbers(spec["mass"], (), f"{where}.mass"), inertia=inertia,
+                **vectors, **sizes)
+
+
+def _require_keys(doc, keys: Sequence[str], where: str) -> None:
+    if not isinstance(doc, dict):
+        raise ValueError(f"{where}: expected an object, got {json_kind(doc)}")
+    missing = [k for k in keys if k not in doc]
+    if missing:
+        raise ValueError(f"{where}: missing key {missing[0]!r}")
+    unknown = sorted(set(doc) - set(keys))
+    if unknown:
+        raise ValueError(f"{where}: unknown key {unknown[0]!r}")
+
+
+def _json_str(x, where: str) -> str:
+    if not isinstance(x, str):
+        raise ValueError(f"{where}: expected a string, got {json_kind(x)}")
+    return x
+
+
+def _json_int(x, where: str) -> int:
+    if isinstance(x, bool) or not isinstance(x, int):
+        raise ValueError(f"{where}: expected an integer, got {json_kind(x)}")
+    return x
+
+
+def json_numbers(x, shape: Sequence[int], where: str):
+    """x checked to be nested JSON lists of the given shape holding finite numbers:
+    a float for shape (), else nested lists of floats. ValueError naming ``where`` (with
+    the index at fault) otherwise."""
+    if not shape:
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise ValueError(f"{where}: expected a number, got {json_kind(x)}")
+        try:
+            v = float(x)
+        except OverflowError:
+            v = math.inf
+        if not math.isfinite(v):
+            raise ValueError(f"{where}: expected a finite number, got {json_kind(x)}")
+        return v
+    if not isinstance(x, list) or len(x) != shape[0]:
+        raise ValueError(f"{where}: expected a list of {shape[0]}, got {json_kind(x)}")
+    return [json_numbers(e, shape[1:], f"{where}[{k}]") for k, e in enumerate(x)]
+
+
+def json_kind(x) -> str:
+    """A short description of a parsed JSON value for error messages."""
+    if isinstance(x, list):
+        return f"a list of {len(x)}"
+    if isinstance(x, dict):
+        return "an object"
+    if isinstance(x, str):
+        return "a string"
+    if x is None or isinstance(x, bool):
+        return json.dumps(x)
+    if isinstance(x, int) and x.bit_length() > 64:
+        return "an integer too large"
+    return repr(x)

@@ -1,31 +1,51 @@
 """``basis.json``: a learned basis of torque fields and its motions' weights.
 
-Format ``tflearn-basis/1`` (plain JSON, readable without tflearn)::
+Format ``tflearn-basis/2`` (plain JSON, readable without tflearn; nv coordinates, M
+fields)::
 
-    {"format": "tflearn-basis/1",
-     "body": {"lengths": [3], "masses": [3], "radii": [3], "gravity": [3], "damping": c},
-     "fields": [{"eta": [7], "K": 7×7}, ...],                      # M fields
-     "motions": [{"name", "duration", "rate", "q0": [7], "qd0": [7],
+    {"format": "tflearn-basis/2",
+     "body": {"name", "gravity": [3], "damping": c, "tip": {"link": i, "point": [3]},
+              "links": [{"name", "parent", "joint", "origin": [3], "offset": [3],
+                         "axis": [3], "mass", "com": [3], "inertia": 3×3,
+                         "length", "radius"}, ...]},                  # Body.to_dict()
+     "fields": [{"eta": [nv], "K": nv×nv}, ...],                   # M fields
+     "motions": [{"name", "duration", "rate", "q0": [nv], "qd0": [nv],
                   "a": [M], "b": [M], "step_onset": [M], "step_duration": [M],
                   "pulse_onset": [M], "pulse_duration": [M]}, ...]}
+
+The body is the whole kinematic tree of :mod:`tflearn.body` (links in topological order,
+parent −1 the base, joint "ball" / "hinge" / "fixed", offset the zero orientation as a
+rotation vector, inertia about the centre of mass in the link frame, length and radius
+null unless the link is a cylinder). Format ``tflearn-basis/1`` files still load: their
+body ``{"lengths": [3], "masses": [3], "radii": [3], "gravity": [3], "damping": c,
+"offsets"?: 3×3}`` is the arm of :func:`tflearn.body.arm`.
 
 It defines, for each motion, the torque program
     τ(t) = Σ_i (a_i ψ((t − s_i)/d_i) + b_i φ((t − p_i)/e_i)) χ_i(ν(t)) − c v
 with χ_i, ψ, φ as in :mod:`tflearn.fields`, started from (q0, qd0) at t = 0.
+
+Loading checks every number (finite; a, b ≥ 0; durations and rates > 0), every size
+against the body's nv and M, that each K is symmetric positive definite and that motion
+names are unique; a file that fails raises :class:`BasisFileError` "<path>: <problem>".
 """
 from __future__ import annotations
 
 import json
+import os
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from ..body import Body, arm
+from ..body import Body, arm, from_dict as body_from_dict, json_kind, json_numbers
 from ..fields import FieldBasis, MotionWeights
 
-FORMAT = "tflearn-basis/1"
+FORMAT = "tflearn-basis/2"
+FORMATS = ("tflearn-basis/1", FORMAT)
 _MOTION_ARRAYS = ("a", "b", "step_onset", "step_duration", "pulse_onset", "pulse_duration")
+_POSITIVE = ("duration", "rate", "step_duration", "pulse_duration")
+_NON_NEGATIVE = ("a", "b")
 
 
 class BasisFileError(ValueError):
@@ -61,7 +81,7 @@ def _lst(x) -> list:
 
 
 def to_dict(lb: LearnedBasis) -> dict:
-    """The JSON document of a :class:`LearnedBasis`."""
+    """The JSON document of a :class:`LearnedBasis` (format ``tflearn-basis/2``)."""
     w = lb.weights
     K = lb.basis.K()
     arrays = {"a": w.a, "b": w.b, "step_onset": w.step_onset, "step_duration": w.step_duration,
@@ -72,71 +92,173 @@ def to_dict(lb: LearnedBasis) -> dict:
              "q0": _lst(lb.q0[j]), "qd0": _lst(lb.qd0[j])}
         m.update({k: _lst(v[j]) for k, v in arrays.items()})
         motions.append(m)
-    return {"format": FORMAT, "body": lb.body.summary,
+    return {"format": FORMAT, "body": lb.body.to_dict(),
             "fields": [{"eta": _lst(lb.basis.eta[i]), "K": _lst(K[i])} for i in range(lb.basis.M)],
             "motions": motions}
 
 
 def save(lb: LearnedBasis, path) -> None:
-    """Write ``path`` (basis.json)."""
-    Path(path).write_text(json.dumps(to_dict(lb), indent=1))
+    """Write ``path`` (basis.json) atomically: the document goes to a temporary file in the
+    same folder, is flushed to disk, then replaces ``path`` in one step, so ``path`` is
+    always either the old file or the whole new one. Non-finite numbers raise ValueError."""
+    path = Path(path)
+    text = json.dumps(to_dict(lb), indent=1, allow_nan=False)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    try:
+        with open(tmp, "x", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    _fsync_folder(path.parent)
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (POSIX; elsewhere folders cannot be opened)."""
+    if os.name == "posix":
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def from_dict(doc: dict, kind: str = "full", blocks=None, where: str = "basis") -> LearnedBasis:
-    """Build a :class:`LearnedBasis` from a parsed document (``kind``: stiffness kind to fit)."""
-    def fail(msg):
-        raise BasisFileError(f"{where}: {msg}")
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        fail(f"not a {FORMAT} document (format = {doc.get('format') if isinstance(doc, dict) else None!r})")
+    """Build a :class:`LearnedBasis` from a parsed document (``kind``: stiffness kind to fit).
+
+    Raises :class:`BasisFileError` "<where>: <problem>" for any malformed document."""
+    try:
+        return _from_dict(doc, kind, blocks)
+    except ValueError as err:
+        raise BasisFileError(f"{where}: {err}") from None
+
+
+def _from_dict(doc, kind: str, blocks) -> LearnedBasis:
+    if not isinstance(doc, dict):
+        raise ValueError(f"not a basis document (a JSON object), got {json_kind(doc)}")
+    tag = doc.get("format")
+    if tag not in FORMATS:
+        known = " or ".join(FORMATS)
+        raise ValueError(f"unknown format tag {json_kind(tag)} (expected {known})"
+                         if isinstance(tag, str) and tag.startswith("tflearn-basis/")
+                         else f"not a basis document: format is {json_kind(tag)}, "
+                              f"expected {known}")
     for key in ("body", "fields", "motions"):
         if key not in doc:
-            fail(f"missing key {key!r}")
-    b = doc["body"]
+            raise ValueError(f"missing section {key!r}")
+    body = _body(doc["body"], tag)
+    eta, K = _fields(doc["fields"], body.nv)
+    q0, qd0, rate, weights = _motions(doc["motions"], len(eta), body.nv)
     try:
-        body = arm(lengths=b["lengths"], masses=b["masses"], radii=b["radii"],
-                   gravity=b.get("gravity", [0, 0, 0]), damping=b.get("damping", 0.0),
-                   offsets=b.get("offsets"))
-    except (KeyError, ValueError, TypeError) as err:
-        fail(f"body: {err}")
-    try:
-        eta = torch.tensor([f["eta"] for f in doc["fields"]], dtype=torch.float64)
-        K = torch.tensor([f["K"] for f in doc["fields"]], dtype=torch.float64)
-    except (KeyError, TypeError, ValueError) as err:
-        fail(f"fields: {err}")
-    M, nv = len(doc["fields"]), body.nv
-    if eta.shape != (M, nv) or K.shape != (M, nv, nv):
-        fail(f"fields: expected eta of length {nv} and K {nv}×{nv}")
-    if M and not torch.allclose(K, K.transpose(-1, -2), rtol=1e-10, atol=1e-12):
-        fail("fields: every K must be symmetric")
-    if M:
-        eig = torch.linalg.eigvalsh(K)
-        if not bool((eig > 1e-12 * eig.abs().amax(-1, keepdim=True).clamp_min(1e-300)).all()):
-            fail("fields: every K must be positive definite")
-    ms = doc["motions"]
-    try:
-        cols = {k: torch.tensor([m[k] for m in ms], dtype=torch.float64).reshape(len(ms), M)
-                for k in _MOTION_ARRAYS}
-        q0 = torch.tensor([m["q0"] for m in ms], dtype=torch.float64).reshape(len(ms), nv)
-        qd0 = torch.tensor([m["qd0"] for m in ms], dtype=torch.float64).reshape(len(ms), nv)
-        duration = torch.tensor([m["duration"] for m in ms], dtype=torch.float64)
-        rate = torch.tensor([m["rate"] for m in ms], dtype=torch.float64)
-        names = [str(m["name"]) for m in ms]
-    except (KeyError, TypeError, ValueError, RuntimeError) as err:
-        fail(f"motions: {err}")
-    if bool((cols["a"] < 0).any() or (cols["b"] < 0).any()):
-        fail("motions: weights a and b must be non-negative")
-    basis = FieldBasis(eta, K, kind=kind, blocks=blocks or body.blocks)
-    weights = MotionWeights(cols["a"], cols["b"], duration, cols["step_onset"],
-                            cols["step_duration"], cols["pulse_onset"], cols["pulse_duration"],
-                            names=names)
+        basis = FieldBasis(eta, K, kind=kind, blocks=blocks or body.blocks)
+    except RuntimeError as err:        # a Cholesky factorisation that fails
+        raise ValueError(f"fields: cannot factor K ({err})") from None
     return LearnedBasis(body, basis, weights, q0, qd0, rate)
 
 
+def _body(b, tag: str) -> Body:
+    try:
+        return body_from_dict(b) if tag == FORMAT else _arm_v1(b)
+    except ValueError as err:
+        text = str(err)
+        raise ValueError(text if text.startswith("body") else f"body: {text}") from None
+
+
+_V1_BODY = {"lengths": (3,), "masses": (3,), "radii": (3,), "gravity": (3,), "damping": (),
+            "offsets": (3, 3)}
+_V1_DEFAULTS = {"gravity": [0.0, 0.0, 0.0], "damping": 0.0, "offsets": None}
+
+
+def _arm_v1(b) -> Body:
+    """The arm of a ``tflearn-basis/1`` body section (gravity, damping, offsets optional)."""
+    if not isinstance(b, dict):
+        raise ValueError(f"body: expected an object, got {json_kind(b)}")
+    args = {}
+    for key, shape in _V1_BODY.items():
+        if key not in b and key not in _V1_DEFAULTS:
+            raise ValueError(f"body: missing key {key!r}")
+        val = b.get(key, _V1_DEFAULTS.get(key))
+        args[key] = None if val is None else json_numbers(val, shape, f"body.{key}")
+    return arm(**args)
+
+
+def _section(x, where: str) -> list:
+    if not isinstance(x, list):
+        raise ValueError(f"{where}: expected a list, got {json_kind(x)}")
+    for k, entry in enumerate(x):
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where}[{k}]: expected an object, got {json_kind(entry)}")
+    return x
+
+
+def _entry(entry: dict, key: str, shape: tuple, where: str) -> torch.Tensor:
+    if key not in entry:
+        raise ValueError(f"{where}: missing key {key!r}")
+    return torch.tensor(json_numbers(entry[key], shape, f"{where}.{key}"), dtype=torch.float64)
+
+
+def _stack(xs: list, shape: tuple) -> torch.Tensor:
+    return torch.stack(xs) if xs else torch.zeros((0,) + shape, dtype=torch.float64)
+
+
+def _fields(fields, nv: int):
+    """η (M×nv) and K (M×nv×nv), each K symmetric positive definite."""
+    eta, K = [], []
+    for i, f in enumerate(_section(fields, "fields")):
+        eta.append(_entry(f, "eta", (nv,), f"fields[{i}]"))
+        K.append(_entry(f, "K", (nv, nv), f"fields[{i}]"))
+        _check_spd(K[-1], f"fields[{i}].K")
+    return _stack(eta, (nv,)), _stack(K, (nv, nv))
+
+
+def _check_spd(K: torch.Tensor, where: str) -> None:
+    """K symmetric (to 1e-10 relative) with eigenvalues > 1e-12 · the largest |eigenvalue|."""
+    if not torch.allclose(K, K.T, rtol=1e-10, atol=1e-12):
+        raise ValueError(f"{where}: not symmetric")
+    try:
+        eig = torch.linalg.eigvalsh(K)
+    except RuntimeError:
+        raise ValueError(f"{where}: no eigenvalues (numbers too large?)") from None
+    if not bool((eig > 1e-12 * eig.abs().max().clamp_min(1e-300)).all()):
+        raise ValueError(f"{where}: not positive definite (smallest eigenvalue "
+                         f"{float(eig.min()):.3g})")
+
+
+def _motions(motions, M: int, nv: int):
+    """q0, qd0 (N×nv), rate (N) and the :class:`MotionWeights` of the motions."""
+    cols = {k: [] for k in ("q0", "qd0", "duration", "rate") + _MOTION_ARRAYS}
+    shapes = {"q0": (nv,), "qd0": (nv,), "duration": (), "rate": ()}
+    names = []
+    for j, m in enumerate(_section(motions, "motions")):
+        where = f"motions[{j}]"
+        name = m.get("name")
+        if not isinstance(name, str):
+            raise ValueError(f"{where}.name: expected a string, got {json_kind(name)}")
+        if name in names:
+            raise ValueError(f"{where}: duplicate motion name {name!r}")
+        names.append(name)
+        where = f"{where} ({name!r})"
+        for key, col in cols.items():
+            col.append(_entry(m, key, shapes.get(key, (M,)), where))
+            if key in _POSITIVE and not bool((col[-1] > 0).all()):
+                raise ValueError(f"{where}.{key}: must be positive")
+            if key in _NON_NEGATIVE and not bool((col[-1] >= 0).all()):
+                raise ValueError(f"{where}.{key}: weights must be non-negative")
+    t = {k: _stack(v, shapes.get(k, (M,))) for k, v in cols.items()}
+    weights = MotionWeights(t["a"], t["b"], t["duration"], t["step_onset"], t["step_duration"],
+                            t["pulse_onset"], t["pulse_duration"], names=names)
+    return t["q0"], t["qd0"], t["rate"], weights
+
+
 def load(path, kind: str = "full") -> LearnedBasis:
-    """Read a basis.json; errors name the file and the problem."""
+    """Read a basis.json; errors are :class:`BasisFileError` "<path>: <problem>"."""
     path = Path(path)
     try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise BasisFileError(f"{path}: cannot read JSON ({err})") from None
+        doc = json.loads(path.read_bytes())
+    except OSError as err:
+        raise BasisFileError(f"{path}: cannot read ({err.strerror or err})") from None
+    except (ValueError, RecursionError) as err:     # JSONDecodeError, UnicodeDecodeError
+        raise BasisFileError(f"{path}: not JSON ({err})") from None
     return from_dict(doc, kind=kind, where=str(path))
