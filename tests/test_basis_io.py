@@ -84,7 +84,7 @@ def test_round_trip(tmp_path, kind):
     assert max_diff(back.rate, lb.rate) == 0.0
     assert back.body == lb.body                # every link, gravity, damping, tip
     assert back.index("second motion") == 1
-    with pytest.raises(KeyError, match="third"):
+    with pytest.raises(bio.UnknownMotionError, match="third"):
         back.index("third")
     # the same document again
     bio.save(back, tmp_path / "again.json")

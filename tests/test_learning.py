@@ -21,6 +21,7 @@ from tflearn import motion as motion_mod
 from tflearn.fields import FieldBasis, MotionWeights
 from tflearn.fit import path as path_fit
 from tflearn.fit import targets, torque
+from tflearn.io import basis as bio
 from tflearn.simulate import SimOptions
 
 from conftest import to_pin

@@ -31,15 +31,15 @@ names are unique; a file that fails raises :class:`BasisFileError` "<path>: <pro
 from __future__ import annotations
 
 import json
-import os
-import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from ..body import Body, arm, from_dict as body_from_dict, json_kind, json_numbers
+from ..errors import InputError
 from ..fields import FieldBasis, MotionWeights
+from .files import write_text
 
 FORMAT = "tflearn-basis/2"
 FORMATS = ("tflearn-basis/1", FORMAT)
@@ -48,7 +48,11 @@ _POSITIVE = ("duration", "rate", "step_duration", "pulse_duration")
 _NON_NEGATIVE = ("a", "b")
 
 
-class BasisFileError(ValueError):
+class UnknownMotionError(InputError):
+    """A motion name that a basis does not hold."""
+
+
+class BasisFileError(InputError):
     """A basis.json that cannot be read: the message names the file and the problem."""
 
 
@@ -73,7 +77,8 @@ class LearnedBasis:
         try:
             return self.names.index(name)
         except ValueError:
-            raise KeyError(f"no motion named {name!r} in the basis (has {self.names})") from None
+            raise UnknownMotionError(f"no motion named {name!r} in the basis "
+                                     f"(it has {', '.join(self.names)})") from None
 
 
 def _lst(x) -> list:
@@ -98,31 +103,14 @@ def to_dict(lb: LearnedBasis) -> dict:
 
 
 def save(lb: LearnedBasis, path) -> None:
-    """Write ``path`` (basis.json) atomically: the document goes to a temporary file in the
-    same folder, is flushed to disk, then replaces ``path`` in one step, so ``path`` is
-    always either the old file or the whole new one. Non-finite numbers raise ValueError."""
-    path = Path(path)
-    text = json.dumps(to_dict(lb), indent=1, allow_nan=False)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
+    """Write ``path`` (basis.json) atomically (:func:`tflearn.io.files.write_text`): it is
+    always either the old file or the whole new one. Non-finite numbers raise ValueError
+    (a diverged model never reaches a basis file)."""
     try:
-        with open(tmp, "x", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    _fsync_folder(path.parent)
-
-
-def _fsync_folder(folder: Path) -> None:
-    """Make a rename in ``folder`` durable (POSIX; elsewhere folders cannot be opened)."""
-    if os.name == "posix":
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        text = json.dumps(to_dict(lb), indent=1, allow_nan=False)
+    except ValueError:
+        raise ValueError(f"{path}: not written: the model holds NaN or Inf") from None
+    write_text(path, text)
 
 
 def from_dict(doc: dict, kind: str = "full", blocks=None, where: str = "basis") -> LearnedBasis:
