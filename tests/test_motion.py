@@ -6,13 +6,17 @@ program evaluated on the samples, away from the ends: relative RMS error ≤ 1 %
 """
 from __future__ import annotations
 
+import io
 import math
 import re
 
+import hypothesis.extra.numpy as hnp
+import hypothesis.strategies as st
 import numpy as np
 import pytest
 import roma
 import torch
+from hypothesis import HealthCheck, given, settings
 
 from tflearn import dynamics
 from tflearn import configspace as C
@@ -22,6 +26,7 @@ from tflearn.fields import FieldBasis, FieldProgram, MotionWeights
 from tflearn.simulate import SimOptions, simulate
 
 F64 = torch.float64
+ARRAYS = M.ARRAYS
 PI = math.pi
 
 
@@ -519,36 +524,197 @@ def test_construction_errors_name_the_motion():
         M.torques(chain(2), M.Motion("w", t, q))
 
 
-def test_load_dir(tmp_path):
+def write_good(folder, names):
+    """Save example motions under ``names`` in ``folder``; returns them by name."""
     good = {}
-    for i, name in enumerate(["reach", "wave", "a_first"]):
+    for i, name in enumerate(names):
         t, q, qd = example(seed=i, qd=bool(i % 2))
         good[name] = M.Motion(name, t, q, qd)
-        M.save(good[name], tmp_path / f"{name}.npz")
-    (tmp_path / "notes.txt").write_text("ignored")
-    motions = M.load_dir(tmp_path)
-    assert [m.name for m in motions] == ["a_first", "reach", "wave"]
-    assert all(torch.equal(m.q, good[m.name].q) for m in motions)
+        M.save(good[name], folder / f"{name}.npz")
+    return good
 
+
+def write_bad(folder):
+    """Two bad files (sorted: junk.npz, narrow.npz); returns (name, problem) pairs."""
     t, q, _ = example()
-    write(tmp_path / "narrow.npz", t=t, q=q[:, :6])
-    (tmp_path / "junk.npz").write_text("junk")
-    write(tmp_path / "three.npz", t=t[:3], q=q[:3])
+    (folder / "junk.npz").write_text("junk")
+    write(folder / "narrow.npz", t=t, q=q[:, :6])
+    return [("junk.npz", "not a readable .npz file"),
+            ("narrow.npz", "array 'q' has shape (10, 6), expected (10, 7)")]
+
+
+def test_load_dir_skips_bad_files_with_a_warning(tmp_path):
+    good = write_good(tmp_path, ["reach", "a_first"])
+    bad = write_bad(tmp_path)
+    (tmp_path / "notes.txt").write_text("ignored")
+    with pytest.warns(M.MotionFileWarning) as record:
+        motions = M.load_dir(tmp_path)
+    assert [m.name for m in motions] == ["a_first", "reach"]
+    assert all(torch.equal(m.q, good[m.name].q) for m in motions)
+    messages = [str(w.message) for w in record]
+    assert len(messages) == 2
+    for msg, (name, problem) in zip(messages, bad):
+        assert msg.startswith(f"{tmp_path / name}: {problem}") and msg.endswith("; skipped")
+
+
+def test_load_dir_strict_raises_for_the_first_bad_file(tmp_path):
+    write_good(tmp_path, ["reach", "wave"])
+    (name, problem), _ = write_bad(tmp_path)
+    with pytest.raises(M.MotionFileError) as info:
+        M.load_dir(tmp_path, strict=True)
+    assert str(info.value).startswith(f"{tmp_path / name}: {problem}")
+
+
+def test_load_dir_without_readable_files(tmp_path):
+    with pytest.raises(M.MotionFileError, match="not a directory"):
+        M.load_dir(tmp_path / "missing")
+    with pytest.raises(M.MotionFileError, match=re.escape(
+            f"{tmp_path}: no readable motion files (no .npz files)")):
+        M.load_dir(tmp_path)
+    bad = write_bad(tmp_path)
     with pytest.raises(M.MotionFileError) as info:
         M.load_dir(tmp_path)
     msg = str(info.value)
-    assert msg.startswith(f"{tmp_path}: 3 bad motion file(s):")
-    for name, fragment in [("junk.npz", "not a readable .npz file"),
-                           ("narrow.npz", "array 'q' has shape (10, 6), expected (10, 7)"),
-                           ("three.npz", "has 3 samples")]:
-        assert f"{tmp_path / name}: {fragment}" in msg
-    assert "reach" not in msg and "wave" not in msg
+    assert msg.startswith(f"{tmp_path}: no readable motion files (")
+    assert all(f"{tmp_path / name}: {problem}" in msg for name, problem in bad)
 
 
-def test_load_dir_not_a_directory(tmp_path):
-    with pytest.raises(M.MotionFileError, match="not a directory"):
-        M.load_dir(tmp_path / "missing")
-    assert M.load_dir(tmp_path) == []
+def test_save_is_atomic(tmp_path, monkeypatch):
+    """A save that fails midway leaves the old file whole and no temporary file."""
+    old, new = write_good(tmp_path, ["wave", "other"]).values()
+    path = tmp_path / "wave.npz"
+
+    def half_written(f, **arrays):
+        f.write(b"PK\x03\x04 partial")
+        raise OSError("disk full")
+    monkeypatch.setattr(M.np, "savez", half_written)
+    with pytest.raises(OSError, match="disk full"):
+        M.save(new, path)
+    assert torch.equal(M.load(path).q, old.q)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.npz", "wave.npz"]
+
+
+# ------------------------------------------------------------ hostile files (hypothesis)
+
+FUZZ = settings(max_examples=60, deadline=None,
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
+SPECIAL = st.sampled_from([np.nan, np.inf, -np.inf, 1e308, -1e308, 1e-308, -1e-308, -1.0,
+                           -1e3, 0.0])
+
+
+def valid_npz_bytes(with_qd=True) -> bytes:
+    t, q, qd = example(qd=with_qd)
+    buf = io.BytesIO()
+    np.savez(buf, **({"t": t, "q": q, "qd": qd} if with_qd else {"t": t, "q": q}))
+    return buf.getvalue()
+
+
+def check_loads_or_refuses(path):
+    """load(path) is a valid Motion or a MotionFileError naming the file, nothing else.
+    Returns the motion, or None when refused."""
+    try:
+        m = M.load(path)
+    except M.MotionFileError as err:
+        assert str(err).startswith(f"{path}: "), str(err)
+        return None
+    assert m.t.dtype == m.q.dtype == F64 and m.T >= M.MIN_SAMPLES
+    assert m.q.shape == (m.T, 7) and (m.qd is None or m.qd.shape == m.q.shape)
+    assert bool(torch.isfinite(m.q).all()) and bool((torch.diff(m.t) > 0).all())
+    return m
+
+
+@FUZZ
+@given(data=st.binary(max_size=600))
+def test_random_bytes_are_refused(tmp_path, data):
+    path = tmp_path / "fuzz.npz"
+    path.write_bytes(data)
+    assert check_loads_or_refuses(path) is None
+
+
+@FUZZ
+@given(with_qd=st.booleans(), frac=st.floats(0.0, 1.0, exclude_max=True))
+def test_truncated_files_are_refused(tmp_path, with_qd, frac):
+    data = valid_npz_bytes(with_qd)
+    path = tmp_path / "cut.npz"
+    path.write_bytes(data[:int(frac * len(data))])
+    assert check_loads_or_refuses(path) is None
+
+
+@FUZZ
+@given(st.data())
+def test_corrupted_bytes_load_or_are_refused(tmp_path, data):
+    raw = bytearray(valid_npz_bytes())
+    for _ in range(data.draw(st.integers(1, 4))):
+        raw[data.draw(st.integers(0, len(raw) - 1))] = data.draw(st.integers(0, 255))
+    path = tmp_path / "flipped.npz"
+    path.write_bytes(bytes(raw))
+    check_loads_or_refuses(path)
+
+
+@FUZZ
+@given(st.data())
+def test_special_values(tmp_path, data):
+    """NaN, Inf, extremes and negative times substituted into a valid motion: it loads
+    exactly when every value is finite and t strictly increases."""
+    arrays = dict(zip(ARRAYS, example()))
+    for _ in range(data.draw(st.integers(1, 3))):
+        a = arrays[data.draw(st.sampled_from(ARRAYS))]
+        a[data.draw(st.tuples(*(st.integers(0, n - 1) for n in a.shape)))] = data.draw(SPECIAL)
+    path = write(tmp_path / "special.npz", **arrays)
+    ok = (all(np.isfinite(a).all() for a in arrays.values())
+          and bool((np.diff(arrays["t"]) > 0).all()))
+    assert (check_loads_or_refuses(path) is not None) == ok
+
+
+SHAPES = hnp.array_shapes(min_dims=0, max_dims=3, min_side=0, max_side=9)
+DTYPES = st.sampled_from([np.float64, np.float32, np.float16, np.int64, np.uint8, np.bool_,
+                          np.complex128])
+
+
+@FUZZ
+@given(st.data())
+def test_random_shapes_and_dtypes(tmp_path, data):
+    """t, q and qd of random shapes (often the right ones) and dtypes: they load exactly
+    when the dtypes are real, the shapes right and the values valid."""
+    T = data.draw(st.integers(0, 9), label="T")
+    right = {"t": (T,), "q": (T, 7), "qd": (T, 7)}
+    arrays = {name: data.draw(hnp.arrays(DTYPES, st.one_of(st.just(right[name]), SHAPES)),
+                              label=name) for name in ARRAYS}
+    if arrays["t"].shape == (T,) and data.draw(st.booleans(), label="ordered t"):
+        arrays["t"] = np.arange(T).astype(arrays["t"].dtype)
+    if data.draw(st.booleans(), label="drop qd"):
+        del arrays["qd"]
+    path = write(tmp_path / "shapes.npz", **arrays)
+    loaded = check_loads_or_refuses(path) is not None
+    valid = (all(a.dtype.kind in "iuf" and a.shape == right[n] for n, a in arrays.items())
+             and T >= M.MIN_SAMPLES)
+    if valid:
+        with np.errstate(over="ignore"):
+            f64 = [a.astype(np.float64) for a in arrays.values()]
+        valid = all(np.isfinite(a).all() for a in f64) and bool((np.diff(f64[0]) > 0).all())
+    assert loaded == valid
+
+
+TRIPPED = []
+
+
+class Tripwire:
+    """Unpickling one records it: a loader that honours pickles would run this."""
+
+    def __reduce__(self):
+        return (TRIPPED.append, ("unpickled",))
+
+
+@FUZZ
+@given(st.lists(st.one_of(st.none(), st.integers(), st.text(max_size=5),
+                          st.just(Tripwire())), min_size=10, max_size=10),
+       st.sampled_from(["t", "q", "qd"]))
+def test_object_arrays_are_refused_unpickled(tmp_path, items, name):
+    arrays = dict(zip(ARRAYS, example()))
+    arrays[name] = np.array(items + [None], dtype=object)[:10]
+    path = write(tmp_path / "pickled.npz", **arrays)
+    assert check_loads_or_refuses(path) is None
+    assert TRIPPED == []
 
 
 # ------------------------------------------------------------ torque resolution

@@ -15,12 +15,15 @@ scipy (max |x − x_scipy| / max(1, max |x_scipy|), batches of 12 problems):
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import scipy.optimize as so
 import torch
 
-from tflearn.fit.nnls import nnls, nnls_lstsq
+from tflearn.fit.nnls import (NNLSError, NNLSResult, NNLSWarning, nnls, nnls_lstsq,
+                              warn_unconverged)
 
 BATCH = (3, 4)
 
@@ -102,7 +105,10 @@ def test_matches_scipy(kind, ridge, tol, k):
     rng = np.random.default_rng(1000 * k + sum(map(ord, kind)))
     A, y = batch_problem(rng, kind, k)
     kw = {} if ridge is None else {"ridge": ridge}
-    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y), **kw)
+    sol = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y), **kw)
+    assert isinstance(sol, NNLSResult) and sol.converged.shape == BATCH
+    assert bool(sol.converged.all()) and 0 <= sol.iterations <= 3 * k + 10
+    x = sol.x
     assert x.shape == BATCH + (k,) and x.dtype == torch.float64
     x = x.numpy()
     ref = scipy_nnls(A, y)
@@ -127,7 +133,7 @@ def test_kkt(kind):
         A, y = batch_problem(rng, kind, k)
         G = np.swapaxes(A, -1, -2) @ A
         h = np.einsum("...mk,...m->...k", A, y)
-        x = nnls(torch.from_numpy(G), torch.from_numpy(h)).numpy()
+        x = nnls(torch.from_numpy(G), torch.from_numpy(h)).x.numpy()
         xmin, g_pos, g_zero = kkt_violation(G, h, x)
         assert xmin >= 0.0
         assert g_pos <= (1e-8 if kind == "ill100" else 1e-11)
@@ -155,7 +161,7 @@ def test_mixed_active_sets():
         ys.append(y)
         n_pos.append(j)
     A, y = np.stack(As), np.stack(ys)
-    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y)).numpy()
+    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y)).x.numpy()
     ref = scipy_nnls(A, y)
     assert rel_err(x, ref) <= 1e-10
     assert [int((xi > 0).sum()) for xi in x] == n_pos
@@ -169,7 +175,7 @@ def test_shared_G_broadcasts():
     Y = rng.normal(size=BATCH + (30,))
     G = A.T @ A
     H = Y @ A
-    x = nnls(torch.from_numpy(G), torch.from_numpy(H)).numpy()
+    x = nnls(torch.from_numpy(G), torch.from_numpy(H)).x.numpy()
     assert x.shape == BATCH + (k,)
     ref = np.stack([so.nnls(A, yy)[0] for yy in Y.reshape(-1, 30)]).reshape(BATCH + (k,))
     assert rel_err(x, ref) <= 1e-10
@@ -185,7 +191,7 @@ def test_rank_deficient():
     A[..., 3] = A[..., 1]          # duplicate column
     A[..., 5] = 0.0                # a field that never acts
     y = rng.normal(size=BATCH + (25,))
-    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y)).numpy()
+    x = nnls_lstsq(torch.from_numpy(A), torch.from_numpy(y)).x.numpy()
     ref = scipy_nnls(A, y)
 
     def obj(z):
@@ -203,12 +209,55 @@ def test_zero_rhs_and_not_differentiable():
     """h = 0 → x = 0; the solve runs under no_grad (the envelope theorem needs no dx*/dθ)."""
     G = torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone().requires_grad_(True)
     h = torch.zeros(2, 4, dtype=torch.float64)
-    x = nnls(G, h)
+    x = nnls(G, h).x
     assert torch.equal(x, torch.zeros(2, 4, dtype=torch.float64))
     assert not x.requires_grad
     # A diagonal G: x_i = max(h_i, 0) / G_ii exactly.
     d = torch.tensor([1.0, 2.0, 4.0, 0.5], dtype=torch.float64)
     h2 = torch.tensor([[1.0, -1.0, 2.0, 3.0]], dtype=torch.float64)
-    x2 = nnls(torch.diag(d)[None], h2)
+    x2 = nnls(torch.diag(d)[None], h2).x
     torch.testing.assert_close(x2, torch.tensor([[1.0, 0.0, 0.5, 6.0]], dtype=torch.float64),
                                rtol=1e-11, atol=0)
+
+
+def hard_and_easy():
+    """A batch of two k = 3 problems with G = I: h = (1, 2, 3) needs 3 outer iterations
+    (x = h), h = (−1, 2, −3) one (x = (0, 2, 0))."""
+    G = torch.eye(3, dtype=torch.float64)
+    h = torch.tensor([[1.0, 2.0, 3.0], [-1.0, 2.0, -3.0]], dtype=torch.float64)
+    return G, h
+
+
+def test_convergence_is_reported_per_element():
+    G, h = hard_and_easy()
+    short = nnls(G, h, max_iter=1)
+    assert short.converged.tolist() == [False, True] and short.iterations == 1
+    torch.testing.assert_close(short.x[1], torch.tensor([0.0, 2.0, 0.0], dtype=torch.float64))
+    full = nnls(G, h)
+    assert full.converged.tolist() == [True, True] and full.iterations == 3
+    torch.testing.assert_close(full.x, h.clamp_min(0))
+
+
+def test_throw_raises_naming_the_count():
+    G, h = hard_and_easy()
+    with pytest.raises(NNLSError, match="did not converge for 1 of 2 problem"):
+        nnls(G, h, max_iter=2, throw=True)
+    assert bool(nnls(G, h, throw=True).converged.all())
+    assert issubclass(NNLSError, ArithmeticError)
+
+
+def test_nan_input_is_not_converged():
+    """A NaN in h never frees an index, so the loop stops at once; it must not pass for
+    converged."""
+    G, h = hard_and_easy()
+    h[0, 1] = float("nan")
+    assert nnls(G, h).converged.tolist() == [False, True]
+
+
+def test_warn_unconverged_names_the_elements():
+    G, h = hard_and_easy()
+    with pytest.warns(NNLSWarning, match=r"^fit: NNLS did not converge for hard after 1 "):
+        warn_unconverged(nnls(G, h, max_iter=1), ["hard", "easy"], "fit")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_unconverged(nnls(G, h), ["hard", "easy"], "fit")

@@ -8,7 +8,9 @@ hinge's is θ̇). Everything is float64 torch.
 
 Files are ``.npz`` archives holding float arrays ``t`` (T), ``q`` (T×nv) and optionally
 ``qd`` (T×nv); the motion is named after the file stem. Bad files raise
-:class:`MotionFileError` naming the file and the problem.
+:class:`MotionFileError` naming the file and the problem (:func:`load_dir` skips them
+with a :class:`MotionFileWarning` unless ``strict``). Files are read without pickle
+support (``allow_pickle=False``) and written atomically.
 
 Torques (thesis appendix A). The samples are joined by a quintic interpolating spline
 (C⁴, exact derivatives) and inverse dynamics is applied to it. The thesis splines unit
@@ -39,6 +41,9 @@ gravity is included; c is the body's viscous damping, which the simulator subtra
 from __future__ import annotations
 
 import math
+import os
+import uuid
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -71,6 +76,10 @@ class MotionError(ValueError):
 
 class MotionFileError(MotionError):
     """A motion file (or directory of files) that cannot be loaded; names the file(s)."""
+
+
+class MotionFileWarning(UserWarning):
+    """A bad motion file skipped by :func:`load_dir`; the message names the file."""
 
 
 class _Problem(Exception):
@@ -237,19 +246,34 @@ def load(path, body: Optional[Body] = None) -> Motion:
 
 
 def save(motion: Motion, path) -> None:
-    """Write a motion to ``path`` (.npz, exactly that name) as float64 t, q and qd if any."""
+    """Write a motion to ``path`` (.npz, exactly that name) as float64 t, q and qd if any.
+
+    Atomic: the archive is written to a temporary file in the same folder, then renamed
+    over ``path`` (``os.replace``), so readers see the old file or the whole new one.
+    """
+    path = Path(path)
     arrays = {"t": motion.t.numpy(), "q": motion.q.numpy()}
     if motion.qd is not None:
         arrays["qd"] = motion.qd.numpy()
-    with open(path, "wb") as f:
-        np.savez(f, **arrays)
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with open(tmp, "xb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
-def load_dir(path, body: Optional[Body] = None) -> list[Motion]:
+def load_dir(path, body: Optional[Body] = None, strict: bool = False) -> list[Motion]:
     """All ``*.npz`` motions in a directory, sorted by name.
 
-    Every file is tried; if any fails, one :class:`MotionFileError` lists all the bad
-    files with their problems (one per line).
+    Non-strict (default): every readable file is loaded and each bad one is skipped with
+    one :class:`MotionFileWarning` "<file>: <problem>; skipped". Strict: the first bad
+    file (in name order) raises its :class:`MotionFileError`. Either way a path that is
+    not a directory, or one with no readable motion file (none at all, or all bad:
+    the problems are listed), raises :class:`MotionFileError` naming the directory.
     """
     path = Path(path)
     if not path.is_dir():
@@ -259,10 +283,14 @@ def load_dir(path, body: Optional[Body] = None) -> list[Motion]:
         try:
             motions.append(load(file, body))
         except MotionFileError as err:
-            errors.append(str(err))
-    if errors:
-        raise MotionFileError(str(path), f"{len(errors)} bad motion file(s):\n  "
-                              + "\n  ".join(errors))
+            if strict:
+                raise
+            errors.append(err)
+    if not motions:
+        found = "; ".join(map(str, errors)) if errors else "no .npz files"
+        raise MotionFileError(str(path), f"no readable motion files ({found})")
+    for err in errors:
+        warnings.warn(f"{err}; skipped", MotionFileWarning, stacklevel=2)
     return sorted(motions, key=lambda m: m.name)
 
 

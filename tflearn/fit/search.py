@@ -116,7 +116,7 @@ def score_candidates(basis: FieldBasis, weights: MotionWeights, tg: Targets,
         h = torch.cat([h_o.expand(h_n.shape[:3] + h_o.shape[-1:]), h_n], -1)
     else:
         G, h = G_nn, h_n
-    x = nnls(G, h)
+    x = nnls(G, h).x
     cost = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1))[..., 0, 0]
     return cost.sum(-1).transpose(0, 1)                                    # C×S
 

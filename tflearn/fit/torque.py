@@ -27,7 +27,7 @@ from typing import Callable, Optional
 import torch
 
 from ..fields import FieldBasis, MotionWeights, pulse_profile, step_profile
-from .nnls import nnls
+from .nnls import nnls, warn_unconverged
 from .targets import Targets
 
 
@@ -76,7 +76,9 @@ def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
         both = support.unsqueeze(-1) & support.unsqueeze(-2)
         G = torch.where(both, G, 0.0) + torch.diag_embed((~support).to(G.dtype))
         h = torch.where(support, h, -1.0)
-    x = nnls(G, h)
+    sol = nnls(G, h)
+    warn_unconverged(sol, tg.names, "solve_weights")
+    x = sol.x
     M = basis.M
     weights.a_raw.copy_(x[:, :M])
     weights.b_raw.copy_(x[:, M:])
