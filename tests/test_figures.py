@@ -16,6 +16,7 @@ from tflearn import cli, config, gestures, plots, render
 from tflearn import motion as motion_mod
 from tflearn.fields import FieldBasis, pulse_profile, step_profile
 from tflearn.io import basis as bio
+from tflearn.errors import InputError
 
 DT = torch.float64
 
@@ -234,7 +235,7 @@ def test_render_cli(tiny_run, capsys):
     assert err.startswith("tflearn render: error:") and "'wave'" in err
     assert all(p.name in err for p in tiny_run["programs"])
     assert not (run / "x.gif").exists()
-    with pytest.raises(KeyError):
+    with pytest.raises(InputError, match="wave"):
         render.render(run, "wave")
     with pytest.raises(ValueError):
         render.render(run, g.name, fps=0)

@@ -565,7 +565,7 @@ def test_independent_resimulation(run_dir, tmp_path):
     metrics = json.loads((run_dir["out"] / "metrics.json").read_text())
     model = pin_arm(doc["body"])
     # the hand-built model is the one conftest.to_pin builds from tflearn's own arm
-        ref_model = to_pin(bio.load(run_dir["out"] / "basis.json").body)
+    ref_model = to_pin(bio.load(run_dir["out"] / "basis.json").body)
     for j in range(1, 4):
         assert np.allclose(model.inertias[j].matrix(), ref_model.inertias[j].matrix(), atol=1e-15)
         assert np.allclose(model.jointPlacements[j].homogeneous,

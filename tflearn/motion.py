@@ -41,8 +41,6 @@ gravity is included; c is the body's viscous damping, which the simulator subtra
 from __future__ import annotations
 
 import math
-import os
-import uuid
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,6 +54,8 @@ from scipy.interpolate import make_interp_spline
 from . import dynamics
 from .configspace import align_quaternions, body_acceleration, body_velocity, unwrap_rotvec, wrap_rotvec
 from .body import Body, arm
+from .errors import InputError
+from .io.files import replacing
 
 DTYPE = torch.float64
 ARRAYS = ("t", "q", "qd")
@@ -66,7 +66,7 @@ MIN_SAMPLES = 4
 # Motions and their validation
 # ----------------------------------------------------------------------------------------
 
-class MotionError(ValueError):
+class MotionError(InputError):
     """An invalid motion. ``problem`` is the message without the motion's name."""
 
     def __init__(self, where: str, problem: str):
@@ -255,15 +255,8 @@ def save(motion: Motion, path) -> None:
     arrays = {"t": motion.t.numpy(), "q": motion.q.numpy()}
     if motion.qd is not None:
         arrays["qd"] = motion.qd.numpy()
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(tmp, "xb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with replacing(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
 
 
 def load_dir(path, body: Optional[Body] = None, strict: bool = False) -> list[Motion]:
