@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tflearn import body as body_mod  # noqa: E402
-from tflearn import experiments  # noqa: E402
+from tflearn.experiments import common as experiments  # noqa: E402
 from tflearn import gestures as gestures_mod  # noqa: E402
 from tflearn.fields import FieldBasis, MotionWeights  # noqa: E402
 from tflearn.fit import path as path_fit  # noqa: E402
