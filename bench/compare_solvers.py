@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tflearn import body as body_mod  # noqa: E402
-from tflearn import experiments  # noqa: E402
+from tflearn.experiments import common  # noqa: E402
 from tflearn import gestures as gestures_mod  # noqa: E402
 from tflearn.fields import FieldBasis, MotionWeights  # noqa: E402
 from tflearn.metrics import score  # noqa: E402
@@ -61,9 +61,9 @@ F64 = torch.float64
 
 def guess_for(g: gestures_mod.Gesture, seed: int, gesture_index: int, r: float) -> dict:
     """The §4.1 guess: each generating parameter times 1 + (r − 1)·u, u ~ U[0, 1] drawn
-    once per (seed, gesture) (:func:`tflearn.experiments.noise_draws`)."""
-    true = experiments.generating([g])
-    return experiments.noised(true, experiments.noise_draws(true, seed, gesture_index), r)
+    once per (seed, gesture) (:func:`tflearn.experiments.common.noise_draws`)."""
+    true = common.generating([g])
+    return common.noised(true, common.noise_draws(true, seed, gesture_index), r)
 
 
 # --------------------------------------------------------------------------- the solvers
@@ -87,7 +87,7 @@ def count_normal_equations():
 
 
 def run_method(method: str, guess: dict, tg, args) -> dict:
-    basis, weights = experiments.build(guess, tg)
+    basis, weights = common.build(guess, tg)
     if method == "slsqp":
         res = fit_slsqp(basis, weights, tg, max_iter=args.slsqp_iter, ftol=args.slsqp_ftol)
         basis, weights = res["basis"], res["weights"]
@@ -169,7 +169,7 @@ def run_case(case) -> list:
     g, tg, index = _STATE["gestures"][name]
     guess = guess_for(g, seed, index, r)
     with torch.no_grad():
-        b0, w0 = experiments.build(guess, tg)
+        b0, w0 = common.build(guess, tg)
         initial = float(torque.torque_cost(b0, w0, tg).sum())
     rows, models = [], []
     for method in args.methods:

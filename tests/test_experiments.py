@@ -6,13 +6,19 @@ full sizes, where the quick size contains the same case (same gesture, r and see
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
 import torch
 
+from typing import get_args
+
 from tflearn import cli, experiments, gestures
 from tflearn.config import ConfigError
+from tflearn.experiments import common
+from tflearn.fields import model_from_state
+from tflearn.experiments.config import ExperimentConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "experiments"
@@ -28,21 +34,36 @@ def quick(name: str, tmp_path: Path, *overrides: str) -> dict:
 
 # ------------------------------------------------------------------------------- configs
 
+def test_the_registry_covers_every_experiment():
+    """Every experiment name the config accepts has a module providing the interface."""
+    names = get_args(ExperimentConfig.model_fields["experiment"].annotation)
+    assert set(experiments.EXPERIMENTS) == set(names)
+    for name, module in experiments.EXPERIMENTS.items():
+        for attr in ("run", "summary", "figures", "goals", "thesis"):
+            assert callable(getattr(module, attr)), (name, attr)
+        words = common.text(name)
+        assert words["title"] and words["setup"] and module.thesis()
+
+
 @pytest.mark.parametrize("name", experiments.EXPERIMENTS)
 def test_every_experiment_has_a_config(name):
     cfg = experiments.load_config(CONFIGS / f"{name}.yaml")
-    assert cfg["experiment"] == name and not cfg["quick"]
+    assert cfg.experiment == name and not cfg.quick
+    assert not cfg.train.log.tensorboard and not cfg.train.log.progress
     q = experiments.load_config(CONFIGS / f"{name}.yaml", quick=True)
-    assert q["quick"] and q["out"].endswith("-quick")
+    assert q.quick and q.out.endswith("-quick")
+    assert q.simulation.options().max_evals == q.simulation.max_evals
 
 
 @pytest.mark.parametrize("text, message", [
     ("experiment: basin\nseedz: 3\n", "unknown config key 'seedz' (did you mean seeds"),
-    ("experiment: basin\ngestures: [come_here, wave]\n", "unknown gestures ['wave']"),
-    ("experiment: nope\n", "experiment must be one of"),
-    ("experiment: basin\nmethods: [slsqp, magic]\n", "unknown methods ['magic']"),
+    ("experiment: basin\ngestures: [come_here, wave]\n", "'gestures': unknown gestures ['wave']"),
+    ("experiment: nope\n", "'experiment' must be one of"),
+    ("experiment: basin\nmethods: [slsqp, magic]\n", "'methods' must be one of"),
+    ("experiment: basin\nsimulation: {budget: 100}\n", "unknown config key 'simulation.budget'"),
     ("experiment: basin\nquick: {r: fast}\n", "'quick.r' must be a list"),
-    ("experiment: basin\ntrain: {model: {stiffness: wobbly}}\n", "'model.stiffness' must be one of"),
+    ("experiment: basin\nquick: {gestures: [wave]}\n", "'quick.gestures': unknown gestures"),
+    ("experiment: basin\ntrain: {model: {stiffness: wobbly}}\n", "'train.model.stiffness' must be one of"),
 ])
 def test_bad_experiment_config_names_file_and_key(tmp_path, text, message):
     path = tmp_path / "bad.yaml"
@@ -50,6 +71,22 @@ def test_bad_experiment_config_names_file_and_key(tmp_path, text, message):
     with pytest.raises(ConfigError) as err:
         experiments.load_config(path, quick=True)
     assert str(path) in str(err.value) and message in str(err.value)
+
+
+def test_bad_override_names_file_and_key():
+    with pytest.raises(ConfigError) as err:
+        experiments.load_config(CONFIGS / "basin.yaml", overrides=["simulation.budget=5"])
+    assert "basin.yaml" in str(err.value) and "'simulation.budget'" in str(err.value)
+    cfg = experiments.load_config(CONFIGS / "basin.yaml", True, ["simulation.max_evals=5", "seeds=1"])
+    assert cfg.simulation.max_evals == 5 and cfg.seeds == 1 and cfg.gestures == ["come_here"]
+
+
+def test_only_the_pipeline_case_imports_train():
+    """The package runs the pipeline through one function (common.fit_pipeline_case)."""
+    package = ROOT / "tflearn" / "experiments"
+    users = [p.name for p in package.glob("*.py") if re.search(r"\bimport train\b|tflearn\.train\b|"
+                                                              r"from \.\.train\b", p.read_text())]
+    assert users == ["common.py"]
 
 
 def test_overrides_may_follow_options():
@@ -67,23 +104,23 @@ def test_overrides_may_follow_options():
 # -------------------------------------------------------------------------- noise model
 
 def test_noise_multiplies_each_parameter_by_a_factor_in_1_r():
-    true = experiments.generating([gestures.GESTURES["planar_line"]])
-    u = experiments.noise_draws(true, seed=3, salt=3)
-    assert experiments.noise_draws(true, seed=3, salt=3)["eta"].equal(u["eta"])   # seeded
+    true = common.generating([gestures.GESTURES["planar_line"]])
+    u = common.noise_draws(true, seed=3, salt=3)
+    assert common.noise_draws(true, seed=3, salt=3)["eta"].equal(u["eta"])   # seeded
     for r in (1.0, 2.6, 10.0):
-        guess = experiments.noised(true, u, r)
+        guess = common.noised(true, u, r)
         for key in true:
             t, g = true[key], guess[key]
             assert bool((g[t == 0] == 0).all())                    # zeros stay zero
             ratio = g[t != 0] / t[t != 0]
             assert float(ratio.min()) >= 1 - 1e-15 and float(ratio.max()) <= r + 1e-12
-    big = experiments.noised(true, u, 10.0)["k"] / true["k"]
+    big = common.noised(true, u, 10.0)["k"] / true["k"]
     assert torch.allclose(big, 1 + 9 * u["k"])
 
 
 def test_r90_is_the_last_r_of_the_leading_run_above_90_percent():
-    assert experiments.r90([1.2, 2, 3, 4], [1.0, 0.95, 0.85, 1.0]) == 2
-    assert experiments.r90([1.2, 2], [0.5, 1.0]) == 0.0
+    assert common.r90([1.2, 2, 3, 4], [1.0, 0.95, 0.85, 1.0]) == 2
+    assert common.r90([1.2, 2], [0.5, 1.0]) == 0.0
 
 
 # -------------------------------------------------------------------- the quick versions
@@ -109,7 +146,9 @@ def test_shared_quick(tmp_path):
     res = quick("shared", tmp_path)
     row = next(x for x in res["rows"] if x["method"] == "local")
     assert row["motions"] == ["come_here", "tuck", "backwards_reach"]
-    assert all(row["success"]) and len(row["params"]["eta"]) == 4
+    assert all(row["success"]) and len(row["model"]["basis"]["eta"]) == 4
+    basis, weights = model_from_state(row["model"])          # the one model serialiser
+    assert basis.M == 4 and weights.names == row["motions"]
     assert max(row["rmse"]) <= 0.03 and max(row["tip"]) <= 0.02
 
 
@@ -150,8 +189,8 @@ def test_report_from_quick_results(tmp_path):
     out = tmp_path / "docs" / "results.md"
     assert cli.main(["report", "--runs", str(runs), "--out", str(out)]) == 0
     text = out.read_text()
-    for title in experiments.TITLES.values():
-        assert f"## {title}" in text
+    for name in experiments.EXPERIMENTS:
+        assert f"## {common.text(name)['title']}" in text
     assert "(quick size)" in text and "recovered at r = 2.6, failed at r = 3" in text
     assert text.count("Not run yet") == 3
     for ref in ("results/fields.png", "results/profiles.png", "results/basin/success_vs_r.png"):

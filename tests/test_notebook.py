@@ -22,7 +22,7 @@ NOTEBOOK = ROOT / "notebooks" / "analysis.ipynb"
 # Appended to the executed copy only: the notebook's own results, for the checks below.
 PROBE = """
 import json
-print("PROBE " + json.dumps({"name": name, "rmse": sim["rmse"][0], "tip": sim["tip"][0],
+print("PROBE " + json.dumps({"name": name, "rmse": sim.rmse[0], "tip": sim.tip[0],
                              "end_shift": end_shift, "tip_shift": tip_shift}))
 """
 

@@ -84,7 +84,7 @@ def _experiment(args) -> int:
     cfg = experiments.load_config(path, quick=args.quick, overrides=args.overrides)
     result = experiments.run(cfg)
     print(experiments.text_summary(result))
-    print(f"{cfg['experiment']}: {result['elapsed_s']:.0f} s -> {cfg['out']}/results.json")
+    print(f"{cfg.experiment}: {result['elapsed_s']:.0f} s -> {cfg.out}/results.json")
     return 0
 
 

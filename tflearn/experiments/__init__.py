@@ -1,0 +1,54 @@
+"""The thesis' chapter 4 experiments, each run end to end from ``configs/experiments/NAME.yaml``.
+
+    tflearn experiment NAME [--quick] [key=value ...]  → OUT/results.json, OUT/figures/
+    tflearn report                                      → docs/results.md + its figures
+
+:data:`EXPERIMENTS` maps each name to its module — :mod:`.basin` (§4.1), :mod:`.shared`
+(§4.2), :mod:`.keyframes` (§4.3), :mod:`.filtering` (§4.5.4) — each providing
+``run(cfg)`` → {"rows", "summary"}, ``figures(cfg, result)`` → paths, ``summary(result)``
+(markdown), ``goals(result)`` → [(text, met)] and ``thesis()`` (the thesis' outcome).
+Configs: :mod:`.config`; shared services (guesses, methods, the case runner): :mod:`.common`;
+the report: :mod:`.report`, its words in text.yaml.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from . import basin, common, filtering, keyframes, shared
+from . import report as report_mod
+from ..config import dump
+from ..io.files import write_text
+from .config import ExperimentConfig, load_config
+
+EXPERIMENTS = {"basin": basin, "shared": shared, "keyframes": keyframes, "filtering": filtering}
+
+__all__ = ["EXPERIMENTS", "ExperimentConfig", "load_config", "run", "report", "text_summary"]
+
+
+def run(cfg: ExperimentConfig) -> dict:
+    """Run an experiment end to end: OUT/config.yaml, OUT/results.json, OUT/figures/*.png,
+    OUT/tensorboard; returns results.json's content."""
+    experiment, out = EXPERIMENTS[cfg.experiment], Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    dump(cfg, out / "config.yaml")
+    t0 = time.perf_counter()
+    result = experiment.run(cfg)
+    result.update(experiment=cfg.experiment, quick=cfg.quick, config=cfg.model_dump(),
+                  elapsed_s=time.perf_counter() - t0)
+    paths = experiment.figures(cfg, result)
+    result["figures"] = [p.name for p in paths]
+    write_text(out / "results.json", json.dumps(result, indent=1, default=float))
+    common.log_tensorboard(cfg, result, paths)
+    return result
+
+
+def text_summary(result: dict) -> str:
+    """Markdown tables of an experiment's outcome and cost, and its goals."""
+    return report_mod.outcome(EXPERIMENTS[result["experiment"]], result)
+
+
+def report(runs="runs/experiments", out="docs/results.md") -> Path:
+    """docs/results.md from the experiments' results under ``runs`` (:mod:`.report`)."""
+    return report_mod.report(EXPERIMENTS, runs, out)

@@ -1,0 +1,114 @@
+"""The experiment config: typed sections (:class:`tflearn.config.Section`) read from
+``configs/experiments/NAME.yaml``.
+
+A config is the defaults below ← the file ← (with ``quick``) the file's ``quick:``
+section ← dotted ``key=value`` overrides. The file, its ``quick:`` section and every
+override are each validated; a failure is a :class:`~tflearn.config.ConfigError` naming
+the file and the key (an unknown key with the closest known ones).
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_core import PydanticCustomError
+
+from ..config import (SOLVERS, Config, ConfigError, LogSection, Section, SuccessSection, layer,
+                      merge, read, validate)
+from ..gestures import GESTURES
+from ..simulate import SimOptions
+
+NAMES = ("basin", "shared", "keyframes", "filtering")
+METHODS = ("slsqp", "local", "pipeline")
+_QUIET = {"log": {"tensorboard": False, "progress": False}}
+
+
+class SlsqpSection(Section):
+    """The thesis' method: scipy SLSQP on the torque cost."""
+
+    max_iter: int = Field(200, ge=1)
+    ftol: float = Field(1e-12, ge=0)
+
+
+class LocalSection(Section):
+    """tflearn's local solver: EM steps, then path matching only where EM's relative
+    torque cost is ≤ ``path_gate`` (``path_steps`` and ``path_lr`` also serve the
+    weights-only path matching of ``filtering``)."""
+
+    em_steps: int = Field(300, ge=0)
+    em_tol: float = Field(1e-10, ge=0)
+    path_steps: int = Field(15, ge=0)
+    path_lr: float = Field(0.01, ge=0)
+    path_gate: float = Field(1e-3, ge=0)
+
+
+class SimulationSection(Section):
+    """How every check, path matching and resimulation integrates; a simulation needing
+    more than ``max_evals`` right-hand-side evaluations counts as failed."""
+
+    method: Literal[SOLVERS] = "dopri5"
+    rtol: float = Field(1e-6, ge=0)
+    atol: float = Field(1e-8, ge=0)
+    max_evals: int = Field(15000, ge=1)
+
+    def options(self) -> SimOptions:
+        """These settings as :class:`tflearn.simulate.SimOptions`."""
+        return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
+                          max_evals=self.max_evals)
+
+
+class ExperimentConfig(Section):
+    """One experiment (``tflearn experiment NAME``); see configs/experiments/."""
+
+    experiment: Literal[NAMES] = "basin"
+    out: str = "runs/experiments/basin"
+    gestures: list[str] = list(GESTURES)         # basin / shared / keyframes / filtering
+    r: list[float] = [1.2, 1.4, 1.8, 2.2, 2.6, 3.0, 4.2, 6.0, 8.0, 10.0]
+    seeds: int = Field(20, ge=1)
+    seed0: int = Field(0, ge=0)
+    methods: list[Literal[METHODS]] = list(METHODS)
+    straight_reach: bool = True                  # keyframes: add the straight-line reach
+    jobs: int = Field(1, ge=1)
+    slsqp: SlsqpSection = SlsqpSection()
+    local: LocalSection = LocalSection()
+    simulation: SimulationSection = SimulationSection()
+    success: SuccessSection = SuccessSection()
+    # the pipeline's training config; TensorBoard and progress bars off unless set
+    train: Config = Config(log=LogSection(tensorboard=False, progress=False))
+    quick: bool = False                          # set by load_config(quick=True)
+
+    @field_validator("gestures")
+    @classmethod
+    def _known_gestures(cls, names: list) -> list:
+        unknown = [g for g in names if g not in GESTURES]
+        if unknown:
+            raise PydanticCustomError("unknown_gesture", "unknown gestures {unknown} (known: {known})",
+                                      {"unknown": str(unknown), "known": ", ".join(GESTURES)})
+        return names
+
+    @field_validator("train", mode="before")
+    @classmethod
+    def _quiet(cls, doc):
+        return merge(_QUIET, doc) if isinstance(doc, dict) else doc
+
+
+class ExperimentFile(ExperimentConfig):
+    """A config file: the config and its ``quick:`` section (each key validated alone)."""
+
+    quick: ExperimentConfig = ExperimentConfig()
+
+
+def load_config(path, quick: bool = False, overrides=()) -> ExperimentConfig:
+    """The experiment config of the file at ``path``, with its ``quick:`` section applied
+    if ``quick``, then the dotted ``overrides``; raises :class:`ConfigError` naming the
+    file and the key."""
+    doc = read(path)
+    quick_doc = doc.pop("quick", None) or {}
+    validate({**doc, "quick": quick_doc}, ExperimentFile, str(path))
+    doc = merge(merge(doc, quick_doc) if quick else doc, {"quick": quick})
+    validate(doc, ExperimentConfig, str(path))
+    try:
+        doc = layer(doc, overrides, ExperimentConfig)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+    return validate(doc, ExperimentConfig, str(path))

@@ -1,0 +1,116 @@
+"""Experiment 3 (thesis §4.3, figure 4-9): motions not made by torque fields.
+
+For each gesture a three-keyframe eased spline through its postures at the start, the
+middle and the end, and a straight-line reach of the hand (:mod:`tflearn.keyframes`);
+each is learned by the ``pipeline`` (its own basis, M found). The baseline is the
+thesis' ``slsqp`` from the four generating fields of §4.2 (weights by NNLS), all
+motions together. Goal: joint RMSE ≤ 0.05 rad.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from . import common
+from .. import dynamics
+from .. import gestures as gestures_mod
+from ..body import Body, arm
+from ..fit import torque
+from ..fit.targets import prepare
+from ..keyframes import keyframe_motion, straight_reach
+from .config import ExperimentConfig
+
+TEXT = common.text("keyframes")
+GOAL_RMSE = 0.05                       # rad
+SHARED = ("come_here", "tuck", "backwards_reach")   # §4.2's four fields
+
+
+def thesis() -> str:
+    """The thesis' outcome, in words."""
+    return TEXT["thesis"]
+
+
+def keyframe_motions(body: Body, names: list, reach: bool = True) -> list:
+    """§4.3's motions: for each gesture a three-keyframe eased spline through its postures
+    at the start, the middle and the end, and (with ``reach``) a straight-line reach of
+    the hand from rest to where the planar line ends."""
+    source = common.gesture_motions(body, list(dict.fromkeys(names + ["planar_line"])))
+    out = []
+    for n in names:
+        m = source[n]
+        T = len(m.t)
+        out.append(keyframe_motion(f"{n}_keys", body, m.q[[0, T // 2, T - 1]],
+                                   [0.0, float(m.t[T // 2]), float(m.t[-1])]))
+    if reach:
+        end = dynamics.tip_position(body, source["planar_line"].q[-1])
+        out.append(straight_reach("straight_reach", body, torch.zeros(body.nv, dtype=common.F64), end, 3.0))
+    return out
+
+
+def _slsqp_row(body: Body, tg, cfg: ExperimentConfig) -> dict:
+    """The thesis' SLSQP from §4.2's four generating fields, weights by NNLS."""
+    guess = common.generating([gestures_mod.GESTURES[g] for g in SHARED])
+    zeros = torch.zeros(tg.N, 4, dtype=common.F64)
+    basis, weights = common.build({**guess, "a": zeros, "b": zeros}, tg)
+    torque.solve_weights(basis, weights, tg)
+    with torch.no_grad():
+        start = {"eta": basis.eta.clone(), "k": guess["k"], "a": weights.a.clone(), "b": weights.b.clone()}
+    fit = common.fit_slsqp_case(body, start, tg, cfg)
+    fit.pop("history")
+    return common.row("slsqp", "keyframes", None, cfg.seed0, fit,
+                      common.check(body, fit["basis"], fit["weights"], tg, cfg), tg.names)
+
+
+def run(cfg: ExperimentConfig) -> dict:
+    """Each keyframe motion learned by the pipeline alone, and the SLSQP baseline."""
+    body = arm()
+    motions = keyframe_motions(body, cfg.gestures, cfg.straight_reach)
+    tg = prepare(body, motions)
+    rows = [_slsqp_row(body, tg, cfg)] if "slsqp" in cfg.methods else []
+    if "pipeline" in cfg.methods:
+        for motion in motions:                         # each motion its own basis, M found
+            fit = common.fit_pipeline_case([motion], cfg, Path(cfg.out) / "pipeline" / motion.name,
+                                           cfg.seed0)
+            rows.append(common.row("pipeline", motion.name, None, cfg.seed0, fit,
+                                   common.pipeline_outcome(fit["metrics"], [motion.name]), [motion.name]))
+    return {"rows": rows, "summary": {"costs": common.costs(rows)}}
+
+
+def figures(cfg: ExperimentConfig, result: dict) -> list:
+    """Per motion: target vs the SLSQP baseline vs its own pipeline run, and the run's
+    animation."""
+    body, fig_dir = arm(), common.figure_dir(cfg)
+    tg = prepare(body, keyframe_motions(body, cfg.gestures, cfg.straight_reach))
+    sims, out = {}, []
+    slsqp = next((x for x in result["rows"] if x["method"] == "slsqp"), None)
+    if slsqp:
+        sims["thesis SLSQP"] = common.resimulate(body, slsqp, tg, cfg)
+    q = torch.full_like(tg.q, float("nan"))
+    for j, name in enumerate(tg.names):
+        run_dir = Path(cfg.out) / "pipeline" / name / "run"
+        if (run_dir / "basis.json").exists():
+            q[j] = common.pipeline_q(body, cfg, run_dir, tg.select([j]))[0][0]
+            out += common.animations(run_dir, [name], fig_dir)
+    sims["pipeline"] = q
+    return out + common.sheets(body, tg, sims, fig_dir)
+
+
+def summary(result: dict) -> str:
+    """Per method and motion: joint RMSE, tip error, the goal, M."""
+    rows = [[x["method"], name, f"{x['rmse'][k]:.4f}", f"{100 * x['tip'][k]:.2f}",
+             "yes" if x["rmse"][k] <= GOAL_RMSE else "no", x.get("M", 4)]
+            for x in result["rows"] for k, name in enumerate(x["motions"])]
+    return common.table(["method", "motion", "joint RMSE (rad)", "tip error (cm)",
+                         f"RMSE ≤ {GOAL_RMSE:g}", "M"], rows)
+
+
+def goals(result: dict) -> list:
+    """(text, met): per method, every motion with joint RMSE ≤ 0.05 rad."""
+    out = []
+    for method in dict.fromkeys(x["method"] for x in result["rows"]):
+        rmse = [r for x in result["rows"] if x["method"] == method for r in x["rmse"]]
+        out.append((f"{method}: every motion with joint RMSE ≤ {GOAL_RMSE:g} rad (worst "
+                    f"{max(rmse):.3f} rad; {sum(r <= GOAL_RMSE for r in rmse)}/{len(rmse)} motions)",
+                    max(rmse) <= GOAL_RMSE))
+    return out
