@@ -42,14 +42,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tflearn import body as body_mod  # noqa: E402
-from tflearn.experiments import common  # noqa: E402
 from tflearn import gestures as gestures_mod  # noqa: E402
+from tflearn.experiments import common  # noqa: E402
 from tflearn.fields import FieldBasis, MotionWeights  # noqa: E402
-from tflearn.metrics import score  # noqa: E402
-from tflearn.simulate import SimOptions  # noqa: E402
 from tflearn.fit import torque  # noqa: E402
 from tflearn.fit.slsqp import fit_slsqp  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402
+from tflearn.metrics import score  # noqa: E402
+from tflearn.simulate import SimOptions  # noqa: E402
 
 METHODS = ("slsqp", "em", "adam")
 SINGLE = ("come_here", "stiff_elbow_lift", "tuck")

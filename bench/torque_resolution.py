@@ -18,10 +18,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tflearn import gestures  # noqa: E402
-from tflearn import motion as motion_mod  # noqa: E402
-from tflearn.body import arm  # noqa: E402
-from tflearn.fit import targets, torque  # noqa: E402
+from tflearn import gestures
+from tflearn import motion as motion_mod
+from tflearn.body import arm
+from tflearn.fit import targets, torque
 
 
 def main(argv=None) -> int:

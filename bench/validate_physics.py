@@ -11,9 +11,15 @@ import numpy as np
 import pinocchio as pin
 import torch
 
-from tflearn import body as tb, dynamics, simulate
+from tflearn import body as tb
+from tflearn import dynamics, simulate
 
 torch.set_num_threads(1)
+
+
+def rel(x: torch.Tensor, ref: np.ndarray) -> float:
+    """max |x − ref| / max |ref|."""
+    return float(np.abs(x.numpy() - ref).max() / np.abs(ref).max())
 
 
 def to_pin(body):
@@ -21,9 +27,11 @@ def to_pin(body):
     for l in body.links:
         parent = 0 if l.parent < 0 else ids[l.parent]
         place = pin.SE3(pin.exp3(np.array(l.offset)), np.array(l.origin))
-        jm = pin.JointModelSpherical() if l.joint == "ball" else pin.JointModelRevoluteUnaligned(np.array(l.axis))
+        jm = (pin.JointModelSpherical() if l.joint == "ball"
+              else pin.JointModelRevoluteUnaligned(np.array(l.axis)))
         jid = model.addJoint(parent, jm, place, l.name)
-        model.appendBodyToJoint(jid, pin.Inertia(l.mass, np.array(l.com), np.array(l.inertia)), pin.SE3.Identity())
+        inertia = pin.Inertia(l.mass, np.array(l.com), np.array(l.inertia))
+        model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
         ids.append(jid)
     model.gravity.linear = np.array(body.gravity)
     return model
@@ -52,12 +60,12 @@ def main():
             qp = q_pin(body, q)
             tau = pin.rnea(model, data, qp, v, a)
             t = torch.tensor
-            worst["rnea"] = max(worst["rnea"], np.abs(dynamics.rnea(body, t(q), t(v), t(a)).numpy() - tau).max() / np.abs(tau).max())
+            worst["rnea"] = max(worst["rnea"], rel(dynamics.rnea(body, t(q), t(v), t(a)), tau))
             M = pin.crba(model, data, qp)
             M = np.triu(M) + np.triu(M, 1).T
-            worst["mass"] = max(worst["mass"], np.abs(dynamics.mass_matrix(body, t(q)).numpy() - M).max() / np.abs(M).max())
+            worst["mass"] = max(worst["mass"], rel(dynamics.mass_matrix(body, t(q)), M))
             acc = pin.aba(model, data, qp, v, tau)
-            worst["aba"] = max(worst["aba"], np.abs(dynamics.forward_dynamics(body, t(q), t(v), t(tau)).numpy() - acc).max() / np.abs(acc).max())
+            worst["aba"] = max(worst["aba"], rel(dynamics.forward_dynamics(body, t(q), t(v), t(tau)), acc))
     for k, e in worst.items():
         print(f"max relative error vs Pinocchio, {k}: {e:.2e}")
     arm = tb.arm()

@@ -73,6 +73,7 @@ def test_gestures_and_simulate(tmp_path, capsys):
 
 def test_simulate_errors(tmp_path, capsys):
     import torch
+
     from tflearn.body import arm
     basis, weights, _ = gestures.library_model([gestures.GESTURES["tuck"]])
     z = torch.zeros(1, 7, dtype=torch.float64)

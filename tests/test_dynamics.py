@@ -13,8 +13,18 @@ from tflearn import body as tb
 from tflearn import dynamics as D
 from tflearn.configspace import rotvec_to_rotmat
 
-from conftest import (ARM_OFFSETS, BODY_NAMES, DT, GRAVITY, full_symmetric, make_body,
-                      max_rel_err, q_to_pin, random_coords, to_pin)
+from conftest import (
+    ARM_OFFSETS,
+    BODY_NAMES,
+    DT,
+    GRAVITY,
+    full_symmetric,
+    make_body,
+    max_rel_err,
+    q_to_pin,
+    random_coords,
+    to_pin,
+)
 
 N_STATES = 20
 TOL = 1e-9

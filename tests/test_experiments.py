@@ -8,17 +8,16 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
+from typing import get_args
 
 import pytest
 import torch
 
-from typing import get_args
-
 from tflearn import cli, experiments, gestures
 from tflearn.config import ConfigError
 from tflearn.experiments import common
-from tflearn.fields import model_from_state
 from tflearn.experiments.config import ExperimentConfig
+from tflearn.fields import model_from_state
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "experiments"

@@ -14,9 +14,9 @@ from scipy.spatial.transform import Rotation
 from tflearn import body as tb
 from tflearn import cli, config, gestures, plots, render
 from tflearn import motion as motion_mod
+from tflearn.errors import InputError
 from tflearn.fields import FieldBasis, pulse_profile, step_profile
 from tflearn.io import basis as bio
-from tflearn.errors import InputError
 
 DT = torch.float64
 

@@ -18,8 +18,8 @@ import roma
 import torch
 from hypothesis import HealthCheck, given, settings
 
-from tflearn import dynamics
 from tflearn import configspace as C
+from tflearn import dynamics
 from tflearn import motion as M
 from tflearn.body import arm, chain
 from tflearn.fields import FieldBasis, FieldProgram, MotionWeights
@@ -745,6 +745,7 @@ def test_torque_resolution_flags_an_unresolved_motion():
     100 Hz its spline torques are 0.6% off the generating program's (true error) and
     the estimate, 1.6%, flags it; at 200 Hz it is resolved (0.04%)."""
     import dataclasses
+
     from tflearn import gestures
     program = [dataclasses.replace(gestures.random_gestures(3, seed=2024)[1], duration=1.5)]
     (m100, lb), = gestures.generate(gestures=program, rate=100.0)

@@ -22,8 +22,7 @@ import pytest
 import scipy.optimize as so
 import torch
 
-from tflearn.fit.nnls import (NNLSError, NNLSResult, NNLSWarning, nnls, nnls_lstsq,
-                              warn_unconverged)
+from tflearn.fit.nnls import NNLSError, NNLSResult, NNLSWarning, nnls, nnls_lstsq, warn_unconverged
 
 BATCH = (3, 4)
 

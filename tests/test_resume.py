@@ -71,7 +71,7 @@ def _wait_for(predicate, proc, timeout=120.0):
 def _checkpoint_stage(out: Path):
     try:
         return torch.load(out / "checkpoint.pt", weights_only=True)["stage"]
-    except Exception:  # noqa: BLE001 - absent, or (never: writes are atomic) unreadable
+    except Exception:
         return None
 
 

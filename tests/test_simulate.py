@@ -18,8 +18,8 @@ from torch.autograd import gradcheck
 from torch.func import functional_call
 from torchdiffeq import odeint
 
-from tflearn import configspace as C
 from tflearn import body as tb
+from tflearn import configspace as C
 from tflearn import dynamics as D
 from tflearn import fields as F
 from tflearn import simulate as S
@@ -231,7 +231,8 @@ def test_gradcheck_simulate_wrt_v0_and_field_centre(gen):
     def run(v0, eta):
         def prog(tt, q, v):
             return functional_call(program, {"basis.eta": eta}, (tt, q, v))
-        traj = S.simulate(body, prog, q0, v0, t, S.SimOptions(method="rk4", solver_options={"step_size": 0.01}))
+        rk4 = S.SimOptions(method="rk4", solver_options={"step_size": 0.01})
+        traj = S.simulate(body, prog, q0, v0, t, rk4)
         return traj.q, traj.v
 
     # The field centre matters to the result (so the check is not vacuous).

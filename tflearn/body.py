@@ -164,7 +164,7 @@ class Body:
         """Coordinates of link i's joint within ν."""
         return self._slices[i]
 
-    def with_(self, **changes) -> "Body":
+    def with_(self, **changes) -> Body:
         """A copy with some attributes replaced (bodies are immutable)."""
         return replace(self, **changes)
 

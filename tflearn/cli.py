@@ -27,6 +27,7 @@ def _train(args) -> int:
     from . import config
     cfg = config.load(args.config, args.overrides)
     import torch
+
     from . import train
     torch.set_num_threads(args.threads)
     metrics = train.run(cfg, restart=args.restart)
@@ -41,6 +42,7 @@ def _train(args) -> int:
 
 def _evaluate(args) -> int:
     import torch
+
     from . import evaluate
     torch.set_num_threads(args.threads)
     metrics = evaluate.evaluate_run(args.run, data=args.data, out=args.out)
@@ -68,6 +70,7 @@ def _positive_int(text: str) -> int:
 
 def _render(args) -> int:
     import torch
+
     from . import render
     torch.set_num_threads(args.threads)
     path = render.render(args.run, args.motion, out=args.out, fps=args.fps,
@@ -78,6 +81,7 @@ def _render(args) -> int:
 
 def _experiment(args) -> int:
     import torch
+
     from . import experiments
     torch.set_num_threads(1)
     path = args.name if args.name.suffix == ".yaml" else Path("configs/experiments") / f"{args.name}.yaml"

@@ -113,7 +113,7 @@ class Config(Section):
     success: SuccessSection = SuccessSection()
     log: LogSection = LogSection()
 
-    def replace(self, **changes) -> "Config":
+    def replace(self, **changes) -> Config:
         """A validated copy with top-level keys replaced (nested sections as mappings)."""
         return validate(merge(self.model_dump(), changes), type(self))
 

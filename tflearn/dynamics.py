@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import roma
 import torch
 
 from .body import Body
@@ -122,7 +121,7 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
     else:
         g = C["gravity"] if gravity else torch.zeros_like(C["gravity"])
     n_links = len(body.links)
-    w, vl, dw, dv, E = [None] * n_links, [None] * n_links, [None] * n_links, [None] * n_links, [None] * n_links
+    w, vl, dw, dv, E = ([None] * n_links for _ in range(5))
     for i, link in enumerate(body.links):
         E[i] = Rrel[i].transpose(-1, -2)
         r = C["origin"][i]
@@ -138,7 +137,7 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
         dv[i] = (_mv(E[i], dvp + torch.cross(dwp, r.expand_as(dwp), dim=-1))
                  + torch.cross(vl[i], wj, dim=-1))
     n, f = [None] * n_links, [None] * n_links
-    for i, link in enumerate(body.links):
+    for i in range(n_links):
         m, c, Ic = C["mass"][i], C["com"][i].expand_as(w[i]), C["Ic"][i]
         p = m * (vl[i] + torch.cross(w[i], c, dim=-1))
         L = _mv(Ic, w[i]) + torch.cross(c, p, dim=-1)

@@ -18,7 +18,8 @@ from .fit.torque import solve_weights
 from .io import basis as basis_io
 from .io.files import write_text
 from .metrics import score, summarize
-from .motion import Motion, save as save_motion
+from .motion import Motion
+from .motion import save as save_motion
 from .simulate import SimOptions, simulate
 
 

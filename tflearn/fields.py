@@ -140,7 +140,7 @@ class FieldBasis(nn.Module):
         self.stiffness = Stiffness(K, kind, self.blocks)
 
     @classmethod
-    def empty(cls, n: int, kind: str = "diag", blocks: Optional[Sequence[int]] = None) -> "FieldBasis":
+    def empty(cls, n: int, kind: str = "diag", blocks: Optional[Sequence[int]] = None) -> FieldBasis:
         """A basis with no fields over n coordinates."""
         return cls(torch.zeros(0, n, dtype=torch.float64),
                    torch.zeros(0, n, n, dtype=torch.float64), kind=kind, blocks=blocks)
@@ -162,13 +162,13 @@ class FieldBasis(nn.Module):
         return self.stiffness()
 
     @torch.no_grad()
-    def select(self, idx: Sequence[int]) -> "FieldBasis":
+    def select(self, idx: Sequence[int]) -> FieldBasis:
         """A new basis (detached) holding fields ``idx`` in that order."""
         idx = torch.as_tensor(list(idx), dtype=torch.long)
         return FieldBasis(self.eta[idx], self.K()[idx], kind=self.kind, blocks=self.blocks)
 
     @torch.no_grad()
-    def extend(self, eta: torch.Tensor, K: torch.Tensor) -> "FieldBasis":
+    def extend(self, eta: torch.Tensor, K: torch.Tensor) -> FieldBasis:
         """A new basis (detached): these fields followed by new ones, η (k×n), K (k×n×n)."""
         return FieldBasis(torch.cat([self.eta, as_float(eta)]), torch.cat([self.K(), as_float(K)]),
                           kind=self.kind, blocks=self.blocks)
@@ -222,7 +222,7 @@ class MotionWeights(nn.Module):
 
     @classmethod
     def zeros(cls, M: int, duration: torch.Tensor,
-              names: Optional[Sequence[str]] = None) -> "MotionWeights":
+              names: Optional[Sequence[str]] = None) -> MotionWeights:
         """Zero weights on M fields for motions of these durations (N), default phases."""
         z = torch.zeros(len(duration), M, dtype=torch.float64)
         return cls(z, z, duration, names=names)
@@ -230,18 +230,18 @@ class MotionWeights(nn.Module):
     def _arrays(self) -> dict:
         return {k: getattr(self, k).detach() for k in self.PER_FIELD}
 
-    def _with(self, arrays: dict, duration=None, names=None) -> "MotionWeights":
+    def _with(self, arrays: dict, duration=None, names=None) -> MotionWeights:
         a = arrays
         return MotionWeights(a["a_raw"], a["b_raw"], self.duration if duration is None else duration,
                              a["step_onset"], a["step_duration"], a["pulse_onset"],
                              a["pulse_duration"], names=self.names if names is None else names)
 
-    def select_fields(self, idx: Sequence[int]) -> "MotionWeights":
+    def select_fields(self, idx: Sequence[int]) -> MotionWeights:
         """New weights (detached) on fields ``idx`` only, in that order."""
         idx = torch.as_tensor(list(idx), dtype=torch.long)
         return self._with({k: v[:, idx] for k, v in self._arrays().items()})
 
-    def extend_fields(self, k: int = 1) -> "MotionWeights":
+    def extend_fields(self, k: int = 1) -> MotionWeights:
         """New weights (detached) with k more fields: zero weights, default phases."""
         z = torch.zeros(self.N, k, dtype=self.a_raw.dtype)
         lam = self.duration[:, None].expand(self.N, k)
@@ -249,7 +249,7 @@ class MotionWeights(nn.Module):
         return self._with({key: torch.cat([v, fill.get(key, z)], dim=1)
                            for key, v in self._arrays().items()})
 
-    def select_motions(self, idx: Sequence[int]) -> "MotionWeights":
+    def select_motions(self, idx: Sequence[int]) -> MotionWeights:
         """New weights (detached) of motions ``idx`` only, in that order."""
         idx = torch.as_tensor(list(idx), dtype=torch.long)
         return self._with({k: v[idx] for k, v in self._arrays().items()},

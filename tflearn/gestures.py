@@ -25,7 +25,8 @@ from . import simulate as sim
 from .body import Body, arm
 from .fields import FieldBasis, FieldProgram, MotionWeights
 from .io import basis as basis_io
-from .motion import RESOLVED, Motion, torque_resolution, save as save_motion
+from .motion import RESOLVED, Motion, torque_resolution
+from .motion import save as save_motion
 
 PI = math.pi
 

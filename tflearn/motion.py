@@ -52,8 +52,8 @@ import torch
 from scipy.interpolate import make_interp_spline
 
 from . import dynamics
-from .configspace import align_quaternions, body_acceleration, body_velocity, unwrap_rotvec, wrap_rotvec
 from .body import Body, arm
+from .configspace import align_quaternions, body_acceleration, body_velocity, unwrap_rotvec, wrap_rotvec
 from .errors import InputError
 from .io.files import replacing
 
@@ -208,14 +208,14 @@ def _read_npz(path: Path) -> dict:
         raise _Problem("no such file" if not path.exists() else "not a regular file")
     try:
         data = np.load(path, allow_pickle=False)
-    except Exception as err:  # noqa: BLE001 - any reader failure means "unreadable"
+    except Exception as err:
         raise _Problem(f"not a readable .npz file ({type(err).__name__}: {err})") from None
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise _Problem("not an .npz archive (a single .npy array?)")
     try:
         with data:
             arrays = {k: data[k] for k in data.files}
-    except Exception as err:  # noqa: BLE001 - e.g. a pickled (object) array, a bad member
+    except Exception as err:
         raise _Problem(f"not a readable .npz file ({type(err).__name__}: {err})") from None
     missing = [k for k in ("t", "q") if k not in arrays]
     if missing:

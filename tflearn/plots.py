@@ -10,13 +10,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from . import dynamics  # noqa: E402
-from .body import Body  # noqa: E402
+from . import dynamics
+from .body import Body
 
 COORD_LABELS = ["shoulder x", "shoulder y", "shoulder z", "elbow", "wrist x", "wrist y", "wrist z"]
 
@@ -261,7 +260,7 @@ def field_figure(body: Body, eta, K, dims=(0, 3), q_ref=None, title: str = "",
     bx.plot(arm_pts[:, 0], arm_pts[:, 1], "o-", color="0.35", ms=3, label="arm at q_ref")
     tip_eta = (joint_positions(body, eta_np[None])[0, -1] - c) @ e.T
     bx.plot(tip_eta[0], tip_eta[1], "k*", ms=9, label="hand at η")
-    for a, name in ((0, "x"), (1, "y")):
+    for a in (0, 1):
         v = ", ".join(f"{round(t, 2) + 0.0:.2f}" for t in e[a])
         (bx.set_xlabel if a == 0 else bx.set_ylabel)(f"e{a + 1} = ({v}) (m)", fontsize=8)
     bx.set_title(f"{head}hand force F = (Jᵀ)⁺χ, plane of largest spread", fontsize=9)

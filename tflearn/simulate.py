@@ -17,7 +17,7 @@ vectors (|v| ≤ π) and hinge angles — the coordinates of :mod:`tflearn.body`
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable, Optional
 
 import roma

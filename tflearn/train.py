@@ -90,7 +90,7 @@ class RunState:
         return {"format": CHECKPOINT_FORMAT, **asdict(self)}
 
     @classmethod
-    def from_dict(cls, doc: dict, where: str) -> "RunState":
+    def from_dict(cls, doc: dict, where: str) -> RunState:
         if not isinstance(doc, dict) or doc.get("format") != CHECKPOINT_FORMAT:
             found = doc.get("format") if isinstance(doc, dict) else None
             raise CheckpointError(f"{where}: a checkpoint of another tflearn version (format "
@@ -205,7 +205,7 @@ class Run:
             return None
         try:
             doc = torch.load(self.ckpt_path, weights_only=True)
-        except Exception as err:  # noqa: BLE001 - any unreadable file is reported the same way
+        except Exception as err:
             raise CheckpointError(f"{self.ckpt_path}: not a readable checkpoint "
                                   f"({type(err).__name__}); pass --restart to start afresh") from None
         state = RunState.from_dict(doc, str(self.ckpt_path))

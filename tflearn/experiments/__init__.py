@@ -16,10 +16,10 @@ import json
 import time
 from pathlib import Path
 
-from . import basin, common, filtering, keyframes, shared
-from . import report as report_mod
 from ..config import dump
 from ..io.files import write_text
+from . import basin, common, filtering, keyframes, shared
+from . import report as report_mod
 from .config import ExperimentConfig, load_config
 
 EXPERIMENTS = {"basin": basin, "shared": shared, "keyframes": keyframes, "filtering": filtering}

@@ -24,9 +24,8 @@ import torch
 import yaml
 
 from .. import gestures as gestures_mod
-from .. import plots
+from .. import plots, train
 from .. import simulate as sim_mod
-from .. import train
 from ..body import Body, arm
 from ..evaluate import weights_for
 from ..fields import FieldBasis, MotionWeights, model_from_state, model_state, state_to_json
@@ -498,8 +497,8 @@ def cost_table(costs: dict) -> str:
 
 def log_tensorboard(cfg: ExperimentConfig, result: dict, paths: list) -> None:
     """Figures and success rates to OUT/tensorboard."""
-    from torch.utils.tensorboard import SummaryWriter
     import matplotlib.image as mpimg
+    from torch.utils.tensorboard import SummaryWriter
     with SummaryWriter(str(Path(cfg.out) / "tensorboard")) as w:
         for p in (p for p in paths if p.suffix == ".png"):
             w.add_image(f"figures/{p.stem}", mpimg.imread(p)[..., :3], dataformats="HWC")

@@ -13,8 +13,18 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_core import PydanticCustomError
 
-from ..config import (SOLVERS, Config, ConfigError, LogSection, Section, SuccessSection, layer,
-                      merge, read, validate)
+from ..config import (
+    SOLVERS,
+    Config,
+    ConfigError,
+    LogSection,
+    Section,
+    SuccessSection,
+    layer,
+    merge,
+    read,
+    validate,
+)
 from ..gestures import GESTURES
 from ..simulate import SimOptions
 

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import torch
 
-from . import common
 from .. import dynamics, plots
 from .. import simulate as sim_mod
 from ..body import Body, arm
@@ -21,6 +20,7 @@ from ..evaluate import synthesize
 from ..fit.targets import prepare
 from ..io import basis as basis_io
 from ..keyframes import keyframe_motion, straight_reach
+from . import common
 from .config import ExperimentConfig
 
 TEXT = common.text("filtering")

@@ -12,13 +12,13 @@ from pathlib import Path
 
 import torch
 
-from . import common
 from .. import dynamics
 from .. import gestures as gestures_mod
 from ..body import Body, arm
 from ..fit import torque
 from ..fit.targets import prepare
 from ..keyframes import keyframe_motion, straight_reach
+from . import common
 from .config import ExperimentConfig
 
 TEXT = common.text("keyframes")

@@ -9,10 +9,10 @@ import json
 import shutil
 from pathlib import Path
 
-from . import common
 from .. import plots
 from ..body import arm
 from ..io.files import write_text
+from . import common
 
 
 def outcome(experiment, result: dict) -> str:

@@ -8,9 +8,9 @@ for the learning curves.
 """
 from __future__ import annotations
 
-from . import common
 from .. import plots
 from ..io import basis as basis_io
+from . import common
 from .config import ExperimentConfig
 
 TEXT = common.text("shared")

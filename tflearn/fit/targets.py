@@ -18,7 +18,8 @@ class Targets:
     names (N); t (N×T) sample times; mask (N×T) real samples; w (N×T) trapezoid
     quadrature weights (zero on padding); wt (N×T) the same without the ``trim`` samples
     at each end, where spline torques are least reliable (used by torque costs);
-    q, v, tau (N×T×n) coordinates, body velocities and inverse-dynamics torques; duration (N); q0, qd0 (N×n); grid (G) the union of all
+    q, v, tau (N×T×n) coordinates, body velocities and inverse-dynamics torques;
+    duration (N); q0, qd0 (N×n); grid (G) the union of all
     sample times, index (N×T) each sample's position in it (for batched simulation)."""
 
     names: list
@@ -43,7 +44,7 @@ class Targets:
         """Σ_t w ‖τ‖² per motion (N): the normaliser of relative torque costs."""
         return (self.wt * (self.tau ** 2).sum(-1)).sum(-1).clamp_min(1e-12)
 
-    def select(self, idx) -> "Targets":
+    def select(self, idx) -> Targets:
         """The targets of some motions (a list of indices), on their own time grid (the
         union of their sample times only, so a simulation of them ends with the longest
         of them)."""

@@ -36,7 +36,8 @@ from pathlib import Path
 
 import torch
 
-from ..body import Body, arm, from_dict as body_from_dict, json_kind, json_numbers
+from ..body import Body, arm, json_kind, json_numbers
+from ..body import from_dict as body_from_dict
 from ..errors import InputError
 from ..fields import FieldBasis, MotionWeights
 from .files import write_text
