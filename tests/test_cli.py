@@ -182,3 +182,80 @@ def test_evaluate_new_motion(run_dir, tmp_path, capsys):
     # in training), but the frozen basis still explains the torques
     assert row_new["torque_rel_rms"] <= 0.05
     assert ev["overall"]["M"] == ref["overall"]["M"]
+
+
+# ------------------------------------------------------------ bad input: one line, exit 2
+
+def _train(tmp_path, *overrides, config=None):
+    config = config or ROOT / "configs" / "gestures.yaml"
+    return cli.train_main([str(config), f"out={tmp_path / 'out'}", "log.progress=false",
+                           "log.tensorboard=false", *overrides])
+
+
+def _one_line_error(capsys, prog: str, *words) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"{prog}: error:") and "Traceback" not in err, err
+    for w in words:
+        assert str(w) in err, (w, err)
+    return err
+
+
+@pytest.mark.parametrize("content,words", [
+    (b"seed: 1  # caf\xe9\n", ["not UTF-8"]),
+    (b"solver: {em: [1, 2\n", ["not valid YAML"]),
+    (b"- a\n- b\n", ["mapping"]),
+    (b"seed: -3\n", ["'seed'", "non-negative"]),
+    (b"body: {preset: octopus}\n", ["body", "octopus"]),
+    (b"body: {preset: arm, lengths: [0.3, 0.2]}\n", ["body", "3 entries"]),
+])
+def test_train_bad_config_file(tmp_path, capsys, content, words):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_bytes(content)
+    assert _train(tmp_path, config=cfg) == 2
+    _one_line_error(capsys, "train", *words)
+    assert not (tmp_path / "out").exists()
+
+
+def test_train_data_errors(tmp_path, capsys):
+    """A missing folder, an empty one, a folder of bad files, a bad file named alone:
+    one line naming it, exit 2, no output folder."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "broken.npz").write_bytes(b"PK\x03\x04 truncated")
+    cases = [(tmp_path / "nowhere", "nowhere"), (empty, "no .npz"), (bad, "broken.npz"),
+             (bad / "broken.npz", "broken.npz")]
+    for data, word in cases:
+        assert _train(tmp_path, f"data={data}") == 2
+        _one_line_error(capsys, "train", word)
+        assert not (tmp_path / "out").exists()
+
+
+def test_train_refuses_a_corrupt_checkpoint(run_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(b"\x80\x02 not a checkpoint")
+    assert _train(tmp_path, f"data={run_dir['data']}") == 2
+    _one_line_error(capsys, "train", out / "checkpoint.pt", "--restart")
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
+
+
+def test_evaluate_bad_basis_file(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "basis.json").write_text('{"format": "tflearn-basis/9"}')
+    assert cli.main(["evaluate", str(run)]) == 2
+    _one_line_error(capsys, "tflearn evaluate", run / "basis.json")
+    assert sorted(p.name for p in run.iterdir()) == ["basis.json"]
+
+
+def test_a_bug_keeps_its_traceback(tmp_path, monkeypatch):
+    """Only bad input (InputError) becomes exit 2; a genuine error propagates."""
+    from tflearn import train
+
+    def broken(*args, **kw):
+        raise ZeroDivisionError("a bug")
+    monkeypatch.setattr(train, "run", broken)
+    with pytest.raises(ZeroDivisionError):
+        _train(tmp_path)

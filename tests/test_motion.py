@@ -470,10 +470,10 @@ def bad_files():
         ("flat.npz", lambda p: write(p, t=flat_t, q=q), "not strictly increasing (t[4]"),
         ("backwards.npz", lambda p: write(p, t=t[::-1].copy(), q=q), "not strictly increasing"),
         ("three.npz", lambda p: write(p, t=t[:3], q=q[:3]), "has 3 samples, at least 4"),
-        ("text.npz", lambda p: p.write_text("not an archive"), "not a readable .npz file"),
+        ("text.npz", lambda p: p.write_text("not an archive"), "not an .npz archive (not a zip file)"),
         ("single.npz", lambda p: save_npy(p, q), "not an .npz archive"),
         ("pickled.npz", lambda p: write(p, t=t, q=np.array([None] * 10, dtype=object)),
-         "not a readable .npz file"),
+         "holds pickled (object) arrays, which are never loaded"),
         ("strings.npz", lambda p: write(p, t=t, q=np.full((10, 7), "x")),
          "array 'q' is not a real numeric array"),
         ("typo.npz", lambda p: write(p, t=t, q=q, qdot=qd), "unexpected array(s) 'qdot'"),
@@ -539,7 +539,7 @@ def write_bad(folder):
     t, q, _ = example()
     (folder / "junk.npz").write_text("junk")
     write(folder / "narrow.npz", t=t, q=q[:, :6])
-    return [("junk.npz", "not a readable .npz file"),
+    return [("junk.npz", "not an .npz archive"),
             ("narrow.npz", "array 'q' has shape (10, 6), expected (10, 7)")]
 
 

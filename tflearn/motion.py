@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 import warnings
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -202,21 +203,24 @@ class Motion:
 # Files
 # ----------------------------------------------------------------------------------------
 
+def _unreadable(err: Exception) -> str:
+    if "pickle" in str(err):
+        return "holds pickled (object) arrays, which are never loaded (allow_pickle=False)"
+    return f"not a readable .npz file ({type(err).__name__}: {err})"
+
+
 def _read_npz(path: Path) -> dict:
     """The arrays of an .npz file (raises _Problem when unreadable or malformed)."""
     if not path.is_file():
         raise _Problem("no such file" if not path.exists() else "not a regular file")
+    if not zipfile.is_zipfile(path):
+        raise _Problem("not an .npz archive (not a zip file)")
     try:
         data = np.load(path, allow_pickle=False)
-    except Exception as err:
-        raise _Problem(f"not a readable .npz file ({type(err).__name__}: {err})") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise _Problem("not an .npz archive (a single .npy array?)")
-    try:
         with data:
             arrays = {k: data[k] for k in data.files}
     except Exception as err:
-        raise _Problem(f"not a readable .npz file ({type(err).__name__}: {err})") from None
+        raise _Problem(_unreadable(err)) from None
     missing = [k for k in ("t", "q") if k not in arrays]
     if missing:
         raise _Problem(f"missing array {' and '.join(map(repr, missing))} "
