@@ -135,11 +135,9 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
     for j, g in enumerate(gestures):
         T = int(round(g.duration * rate)) + 1
         motion = Motion(g.name, t[:T], tr.q[j, :T], tr.v[j, :T])
-        lo, hi = spans[j]
-        own = FieldBasis(basis.eta[lo:hi].detach(), basis.K()[lo:hi].detach(), kind="scalar")
-        w = MotionWeights(weights.a[j:j + 1, lo:hi].detach(), weights.b[j:j + 1, lo:hi].detach(),
-                          weights.duration[j:j + 1], names=[g.name])
-        out.append((motion, basis_io.LearnedBasis(body, own, w, q0[j:j + 1], q0[j:j + 1],
+        own = range(*spans[j])
+        w = weights.select_motions([j]).select_fields(own)
+        out.append((motion, basis_io.LearnedBasis(body, basis.select(own), w, q0[j:j + 1], q0[j:j + 1],
                                                    torch.tensor([rate], dtype=torch.float64))))
     return out
 

@@ -183,8 +183,8 @@ class Motion:
 
     @property
     def rate(self) -> float:
-        """Samples per second, 1 / median(Δt)."""
-        return float(1.0 / torch.median(torch.diff(self.t)))
+        """Samples per second, (T − 1) / (t[-1] − t[0]) (exact for uniform sampling)."""
+        return (self.T - 1) / self.duration
 
     @property
     def q0(self) -> torch.Tensor:

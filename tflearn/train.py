@@ -388,9 +388,7 @@ class Run:
     def finish(self, state: RunState, tg: Targets) -> dict:
         basis, weights = self.final_model(state)
         scores, ok = self._check(basis, weights, tg, state, figures=True)
-        rate = torch.tensor([1.0 / float(torch.median(torch.diff(tg.t[j, :int(tg.mask[j].sum())])))
-                             for j in range(tg.N)], dtype=torch.float64)
-        lb = basis_io.LearnedBasis(self.body, basis, weights, tg.q0, tg.qd0, rate)
+        lb = basis_io.LearnedBasis(self.body, basis, weights, tg.q0, tg.qd0, tg.rate)
         metrics = summarize(scores, ok, tg, basis.M, state.elapsed + time.time() - self._t0)
         for name, eps in zip(tg.names, self.resolution):
             metrics["motions"][name]["torque_resolution"] = eps

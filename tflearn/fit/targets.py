@@ -40,6 +40,11 @@ class Targets:
     def N(self) -> int:
         return len(self.names)
 
+    @property
+    def rate(self) -> torch.Tensor:
+        """Samples per second of each motion (N), as :attr:`tflearn.motion.Motion.rate`."""
+        return (self.mask.sum(-1) - 1) / self.duration
+
     def torque_scale(self) -> torch.Tensor:
         """Σ_t w ‖τ‖² per motion (N): the normaliser of relative torque costs."""
         return (self.wt * (self.tau ** 2).sum(-1)).sum(-1).clamp_min(1e-12)

@@ -142,7 +142,7 @@ def _from_dict(doc, kind: str, blocks) -> LearnedBasis:
     q0, qd0, rate, weights = _motions(doc["motions"], len(eta), body.nv)
     try:
         basis = FieldBasis(eta, K, kind=kind, blocks=blocks or body.blocks)
-    except RuntimeError as err:        # a Cholesky factorisation that fails
+    except torch.linalg.LinAlgError as err:        # a Cholesky factorisation that fails
         raise ValueError(f"fields: cannot factor K ({err})") from None
     return LearnedBasis(body, basis, weights, q0, qd0, rate)
 
@@ -208,7 +208,7 @@ def _check_spd(K: torch.Tensor, where: str) -> None:
         raise ValueError(f"{where}: not symmetric")
     try:
         eig = torch.linalg.eigvalsh(K)
-    except RuntimeError:
+    except torch.linalg.LinAlgError:
         raise ValueError(f"{where}: no eigenvalues (numbers too large?)") from None
     if not bool((eig > 1e-12 * eig.abs().max().clamp_min(1e-300)).all()):
         raise ValueError(f"{where}: not positive definite (smallest eigenvalue "
