@@ -1,42 +1,91 @@
-"""The command line: ``tflearn SUBCOMMAND ...`` and ``train CONFIG [key=value ...]``.
+"""The command line: ``tflearn COMMAND ...`` and ``train CONFIG [key=value ...]``.
 
-Subcommands: ``gestures`` (write the gesture library), ``train`` (learn a basis),
-``evaluate`` (re-simulate a run's basis against motions), ``simulate`` (play one motion's
-torque program from a basis.json), ``render`` (animate one motion of a run, target and
-reproduction side by side, as a GIF and a TensorBoard video), ``experiment`` (run one of
-the thesis' chapter 4 experiments), ``report`` (write docs/results.md from their results).
+One grammar: every command that uses a trained model takes a run folder or its
+basis.json (MODEL); every command says what it wrote and where; bad input is one line,
+``PROG: FILE: problem``, and exit status 2, before any work; anything else is a bug and
+shows its traceback with a request to report it. Arguments and configs are checked
+before torch is imported, so ``--help`` and refusals answer at once.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import sys
+import traceback
 from pathlib import Path
+
+from . import __version__
+
+DESCRIPTION = """\
+Learn a shared basis of convergent torque fields from limb motions, and use it.
+
+commands:
+  gestures    write the thesis' gesture library (NAME.npz, NAME.json, NAME.png)
+  train       learn a basis from motions (the same as the train command)
+  evaluate    re-simulate a trained model on motions; new motions are synthesised
+  simulate    play one motion's torque program from a trained model
+  render      animate one motion: target and reproduction side by side (GIF)
+  experiment  run one of the thesis' chapter 4 experiments
+  report      write docs/results.md from the experiments' results
+
+MODEL is a run folder (written by train) or its basis.json.
+"""
+
+
+def _model_paths(model: Path) -> tuple:
+    """(run folder, basis.json) of a MODEL argument: a run folder or a basis.json."""
+    model = Path(model)
+    if model.is_dir():
+        return model, model / "basis.json"
+    return model.parent, model
+
+
+def _out_folder(path: Path) -> None:
+    """Create the folder ``path`` will be written into, saying so if it is new."""
+    folder = Path(path).parent
+    if not folder.exists():
+        folder.mkdir(parents=True)
+        print(f"created {folder}")
+
+
+def _motion_lines(motions: dict) -> list:
+    lines = []
+    for name, m in motions.items():
+        tags = [] if m["success"] else ["not reproduced"]
+        if m.get("synthesized"):
+            tags.append("synthesized")
+        if m.get("failure"):
+            tags.append(m["failure"])
+        lines.append(f"{name:>24s}: rmse {m['rmse']:.4f} rad, tip {100 * m['tip']:.2f} cm, "
+                     f"torque error {100 * m['torque_rel_rms']:.2f}%"
+                     + (f"  ({'; '.join(tags)})" if tags else ""))
+    return lines
 
 
 def _gestures(args) -> int:
     from . import gestures
+    if not args.out.exists():
+        print(f"created {args.out}")
     written = gestures.write(args.out, rate=args.rate, plots=not args.no_plots)
     for path in written:
         print(path)
-    print(f"wrote {len(gestures.GESTURES)} gestures to {args.out}")
+    print(f"wrote {len(gestures.GESTURES)} gestures ({len(written)} files) to {args.out}")
     return 0
 
 
 def _train(args) -> int:
     from . import config
-    cfg = config.load(args.config, args.overrides)
+    overrides = list(args.overrides) + (["log.progress=false"] if args.quiet else [])
+    cfg = config.load(args.config, overrides)
     import torch
 
     from . import train
     torch.set_num_threads(args.threads)
     metrics = train.run(cfg, restart=args.restart)
     overall = metrics["overall"]
-    for name, m in metrics["motions"].items():
-        print(f"{name:>24s}: rmse {m['rmse']:.4f} rad, tip {100 * m['tip']:.2f} cm, "
-              f"torque error {100 * m['torque_rel_rms']:.2f}%{'' if m['success'] else '  (not reproduced)'}")
+    print("\n".join(_motion_lines(metrics["motions"])))
     print(f"M = {overall['M']}, overall rmse {overall['rmse']:.4f} rad, max tip error "
-          f"{100 * overall['tip']:.2f} cm, {overall['wall_time_s']:.0f} s -> {cfg.out}")
+          f"{100 * overall['tip']:.2f} cm, {overall['wall_time_s']:.0f} s")
+    print(f"wrote basis.json, metrics.json, config.yaml, checkpoint.pt and figures/ to {cfg.out}")
     return 0 if overall["success"] else 1
 
 
@@ -45,19 +94,25 @@ def _evaluate(args) -> int:
 
     from . import evaluate
     torch.set_num_threads(args.threads)
-    metrics = evaluate.evaluate_run(args.run, data=args.data, out=args.out)
-    for name, m in metrics["motions"].items():
-        tag = " (synthesized)" if m.get("synthesized") else ""
-        print(f"{name:>24s}: rmse {m['rmse']:.4f} rad, tip {100 * m['tip']:.2f} cm{tag}")
-    print(json.dumps(metrics["overall"]))
+    run, _ = _model_paths(args.model)
+    out = args.out or run / "evaluation.json"
+    _out_folder(out)
+    metrics = evaluate.evaluate_run(run, data=args.data, out=out)
+    o = metrics["overall"]
+    print("\n".join(_motion_lines(metrics["motions"])))
+    print(f"M = {o['M']}, overall rmse {o['rmse']:.4f} rad, max tip error {100 * o['tip']:.2f} cm, "
+          f"all reproduced: {'yes' if o['success'] else 'no'}")
+    print(f"wrote {out}")
     return 0
 
 
 def _simulate(args) -> int:
     from . import evaluate
-    path = evaluate.simulate_basis_motion(args.basis, args.motion, args.out, rate=args.rate,
+    _, basis = _model_paths(args.model)
+    _out_folder(args.out)
+    path = evaluate.simulate_basis_motion(basis, args.motion, args.out, rate=args.rate,
                                           duration=args.duration)
-    print(path)
+    print(f"wrote {path}")
     return 0
 
 
@@ -73,37 +128,41 @@ def _render(args) -> int:
 
     from . import render
     torch.set_num_threads(args.threads)
-    path = render.render(args.run, args.motion, out=args.out, fps=args.fps,
+    run, _ = _model_paths(args.model)
+    if args.out is not None:
+        _out_folder(args.out)
+    path = render.render(run, args.motion, out=args.out, fps=args.fps,
                          tensorboard=not args.no_tensorboard)
-    print(path)
+    print(f"wrote {path}")
     return 0
 
 
 def _experiment(args) -> int:
-    import torch
-
     from . import experiments
-    torch.set_num_threads(1)
     path = args.name if args.name.suffix == ".yaml" else Path("configs/experiments") / f"{args.name}.yaml"
     cfg = experiments.load_config(path, quick=args.quick, overrides=args.overrides)
+    import torch
+    torch.set_num_threads(1)
     result = experiments.run(cfg)
     print(experiments.text_summary(result))
-    print(f"{cfg.experiment}: {result['elapsed_s']:.0f} s -> {cfg.out}/results.json")
+    print(f"{cfg.experiment}: {result['elapsed_s']:.0f} s; wrote {cfg.out}/results.json and "
+          f"{cfg.out}/figures/")
     return 0
 
 
 def _report(args) -> int:
     from . import experiments
-    print(experiments.report(args.runs, args.out))
+    print(f"wrote {experiments.report(args.runs, args.out)}")
     return 0
 
 
 def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__,
+    parser = argparse.ArgumentParser(prog=prog, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser.add_argument("--version", action="version", version=f"tflearn {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("gestures", help="generate the thesis' gesture library (npz + json + png)")
+    p = sub.add_parser("gestures", help="write the thesis' gesture library (npz + json + png)")
     p.add_argument("--out", type=Path, default=Path("runs/gestures"), help="output folder")
     p.add_argument("--rate", type=float, default=100.0, help="sampling rate in Hz (default 100)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
@@ -112,29 +171,29 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="learn a shared basis of torque fields (see configs/)")
     _train_args(p)
 
-    p = sub.add_parser("evaluate", help="re-simulate a run's basis against motions")
-    p.add_argument("run", type=Path, help="a run folder (with basis.json and config.yaml)")
+    p = sub.add_parser("evaluate", help="re-simulate a trained model on motions")
+    p.add_argument("model", type=Path, metavar="MODEL", help="a run folder or its basis.json")
     p.add_argument("--data", default=None, help="motions to evaluate (default: the run's data)")
     p.add_argument("--out", type=Path, default=None, help="metrics file (default RUN/evaluation.json)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_evaluate)
 
-    p = sub.add_parser("simulate", help="play one motion's torque program from a basis.json")
-    p.add_argument("basis", type=Path)
-    p.add_argument("--motion", required=True, help="motion name in the basis")
+    p = sub.add_parser("simulate", help="play one motion's torque program from a trained model")
+    p.add_argument("model", type=Path, metavar="MODEL", help="a run folder or its basis.json")
+    p.add_argument("--motion", required=True, help="motion name in the model")
     p.add_argument("--out", type=Path, required=True, help="output .npz")
     p.add_argument("--rate", type=float, default=None, help="samples per second (default: the motion's)")
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the motion's)")
     p.set_defaults(func=_simulate)
 
-    p = sub.add_parser("render", help="animate one motion of a run: target and reproduced arm (GIF)")
-    p.add_argument("run", type=Path, help="a run folder (with basis.json and config.yaml)")
-    p.add_argument("--motion", required=True, help="motion name in the run's basis")
+    p = sub.add_parser("render", help="animate one motion: target and reproduced arm (GIF)")
+    p.add_argument("model", type=Path, metavar="MODEL", help="a run folder or its basis.json")
+    p.add_argument("--motion", required=True, help="motion name in the run's model")
     p.add_argument("--out", type=Path, default=None, help="output .gif (default RUN/figures/MOTION.gif)")
     p.add_argument("--fps", type=_positive_int, default=25, help="frames per second (default 25)")
     p.add_argument("--no-tensorboard", action="store_true",
-                   help="do not log the video to RUN/tensorboard")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+                   help="do not log the animation to RUN/tensorboard")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_render)
 
     p = sub.add_parser("experiment", help="run one of the thesis' chapter 4 experiments "
@@ -156,20 +215,30 @@ def _train_args(p) -> None:
     p.add_argument("config", type=Path, help="YAML config (e.g. configs/gestures.yaml)")
     p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. seed=3 out=runs/x")
     p.add_argument("--restart", action="store_true", help="discard a checkpoint in the output folder")
-    p.add_argument("--threads", type=int, default=1,
+    p.add_argument("--quiet", action="store_true", help="no progress display (log.progress=false)")
+    p.add_argument("--threads", type=_positive_int, default=1,
                    help="torch threads (default 1: the tensors are small, threads only add overhead)")
     p.set_defaults(func=_train)
 
 
-def _run(args, command: str) -> int:
-    """Run a subcommand: bad input (:class:`tflearn.errors.InputError`) is one line on
-    stderr and exit status 2; any other exception is a bug and keeps its traceback."""
+def _run(args, prog: str) -> int:
+    """Run a command: bad input (:class:`tflearn.errors.InputError`) is one line on stderr
+    and exit status 2; any other exception is a bug: its traceback, a request to report
+    it, and exit status 3."""
     from .errors import InputError
     try:
         return args.func(args)
     except InputError as err:
-        print(f"{command}: error: {err}", file=sys.stderr)
+        print(f"{prog}: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted (re-run the same command to resume)", file=sys.stderr)
+        return 130
+    except Exception:
+        traceback.print_exc()
+        print(f"{prog}: this is a bug in tflearn {__version__}; please report it with the "
+              f"command line and the traceback above", file=sys.stderr)
+        return 3
 
 
 def _parse(parser: argparse.ArgumentParser, argv):
@@ -184,13 +253,14 @@ def _parse(parser: argparse.ArgumentParser, argv):
 
 
 def main(argv=None) -> int:
-    args = _parse(build_parser(), argv)
-    return _run(args, f"tflearn {args.command}")
+    return _run(_parse(build_parser(), argv), "tflearn")
 
 
 def train_main(argv=None) -> int:
     """The ``train`` console script: ``train CONFIG [key=value ...]``."""
-    p = argparse.ArgumentParser(prog="train", description="Learn a shared basis of torque fields.")
+    p = argparse.ArgumentParser(prog="train", description="Learn a shared basis of torque fields "
+                                "from motions (the same as tflearn train).")
+    p.add_argument("--version", action="version", version=f"tflearn {__version__}")
     _train_args(p)
     return _run(_parse(p, argv), "train")
 

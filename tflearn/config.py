@@ -200,7 +200,7 @@ def parse_override(text: str) -> dict:
     try:
         value = yaml.load(raw, Loader=_Loader) if raw != "" else ""
     except yaml.YAMLError as err:
-        raise ConfigError(f"override {text!r}: cannot parse value ({err})") from None
+        raise ConfigError(f"override {text!r}: cannot parse value ({_yaml_problem(err)})") from None
     node: dict = {}
     cur = node
     keys = key.split(".")
@@ -208,6 +208,13 @@ def parse_override(text: str) -> dict:
         cur = cur.setdefault(k, {})
     cur[keys[-1]] = value
     return node
+
+
+def _yaml_problem(err: yaml.YAMLError) -> str:
+    """A YAML error on one line: what, and where (line and column, from 1)."""
+    mark = getattr(err, "problem_mark", None)
+    what = getattr(err, "problem", None) or str(err).splitlines()[0]
+    return f"{what} at line {mark.line + 1}, column {mark.column + 1}" if mark else what
 
 
 def read(path) -> dict:
@@ -222,7 +229,7 @@ def read(path) -> dict:
     try:
         doc = yaml.load(text, Loader=_Loader)
     except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+        raise ConfigError(f"{path}: not valid YAML ({_yaml_problem(err)})") from None
     if doc is None:
         return {}
     if not isinstance(doc, dict):
