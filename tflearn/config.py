@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any, Literal, Optional, Type, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic_core import PydanticCustomError
 
 from .errors import InputError
 
@@ -113,6 +114,17 @@ class Config(Section):
     success: SuccessSection = SuccessSection()
     log: LogSection = LogSection()
 
+    @field_validator("body")
+    @classmethod
+    def _body_builds(cls, body: dict) -> dict:
+        """The body section must build a body (:func:`tflearn.body.from_config`)."""
+        from .body import from_config
+        try:
+            from_config(body)
+        except (ValueError, TypeError) as err:
+            raise PydanticCustomError("body", "{problem}", {"problem": str(err)}) from None
+        return body
+
     def replace(self, **changes) -> Config:
         """A validated copy with top-level keys replaced (nested sections as mappings)."""
         return validate(merge(self.model_dump(), changes), type(self))
@@ -168,6 +180,8 @@ def _message(err: dict, schema: Type[BaseModel]) -> str:
         limit = err.get("ctx", {}).get("ge", err.get("ctx", {}).get("gt"))
         what = "non-negative" if limit == 0 and kind == "greater_than_equal" else f"≥ {limit}"
         return f"config key {key!r} must be {what}, got {value!r}"
+    if kind == "body":
+        return f"config key 'body': {err['ctx']['problem']}"
     if kind == "literal_error":
         return f"config key {key!r} must be one of {err['ctx']['expected']}, got {value!r}"
     if kind.startswith("int") and (isinstance(value, str) or isinstance(value, bool)):

@@ -130,7 +130,8 @@ def _from_dict(doc, kind: str, blocks) -> LearnedBasis:
     tag = doc.get("format")
     if tag not in FORMATS:
         known = " or ".join(FORMATS)
-        raise ValueError(f"unknown format tag {json_kind(tag)} (expected {known})"
+        raise ValueError(f"unknown format tag {tag[:40]!r} (expected {known}; written by a "
+                         f"newer tflearn?)"
                          if isinstance(tag, str) and tag.startswith("tflearn-basis/")
                          else f"not a basis document: format is {json_kind(tag)}, "
                               f"expected {known}")
