@@ -167,3 +167,23 @@ def test_program_of_a_scored_batch_is_unchanged(pair):
     metrics.score(body, basis, weights, tg, OPTS)
     after = list(FieldProgram(basis, weights).parameters())
     assert all(torch.equal(x, y) for x, y in zip(before, after))
+
+
+def test_search_never_picks_a_nonfinite_candidate(pair, monkeypatch):
+    """Candidate scores that come out NaN are ranked +∞ (never chosen) with a warning
+    naming the motions; the search still finds come_here's field."""
+    from tflearn.fit import search
+    body, basis, weights, tg = pair
+    one = tg.select([0])
+    real = search.score_candidates
+
+    def some_nan(*args, **kw):
+        costs = real(*args, **kw).clone()
+        costs[0] = float("nan")              # the first candidate of every chunk
+        return costs
+    monkeypatch.setattr(search, "score_candidates", some_nan)
+    gen = torch.Generator().manual_seed(0)
+    with pytest.warns(DivergenceWarning, match="come_here"):
+        empty = weights.select_motions([0]).select_fields([])
+        centre, k, cost = search.best_candidate(basis.select([]), empty, one, 16, [0.5, 1.0, 2.0], gen)
+    assert torch.isfinite(centre).all() and cost < 1.0

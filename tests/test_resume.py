@@ -111,7 +111,7 @@ def test_sigkill_at_several_moments_then_rerun(run_dir, tmp_path):
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert_same_basis(out / "basis.json", run_dir["out"] / "basis.json", tol=1e-6)
-    assert not list(out.glob(".*.tmp"))
+    assert not list(out.rglob(".*.tmp*"))
 
 
 def test_checkpoint_is_plain_data(run_dir):

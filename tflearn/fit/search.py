@@ -22,12 +22,15 @@ coincide, and :func:`field_shares` ranks fields for backward elimination.
 """
 from __future__ import annotations
 
+import math
+import warnings
+
 import torch
 
 from ..fields import FieldBasis, MotionWeights, step_profile
 from .nnls import nnls
 from .targets import Targets
-from .torque import design, normal_equations
+from .torque import DivergenceWarning, design, normal_equations
 
 
 def residual_torques(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
@@ -126,11 +129,21 @@ def best_candidate(basis, weights, tg, count: int, stiffnesses, generator,
     """(centre, stiffness, cost) of the best new field among data-driven candidates."""
     residual = residual_torques(basis, weights, tg)
     centres = candidate_centres(tg, residual, count, generator)
-    costs = torch.cat([score_candidates(basis, weights, tg, centres[i:i + chunk], stiffnesses)
-                       for i in range(0, centres.shape[0], chunk)])
+    costs = _finite(torch.cat([score_candidates(basis, weights, tg, centres[i:i + chunk], stiffnesses)
+                               for i in range(0, centres.shape[0], chunk)]), tg)
     flat = int(costs.argmin())
     c, s = divmod(flat, costs.shape[1])
     return centres[c], float(stiffnesses[s]), float(costs[c, s])
+
+
+def _finite(costs: torch.Tensor, tg: Targets) -> torch.Tensor:
+    """Candidate costs with NaN as +∞ (a non-finite candidate is never chosen), warning
+    once, naming the motions, when there were any."""
+    bad = torch.isnan(costs)
+    if bool(bad.any()):
+        warnings.warn(f"search: {int(bad.sum())} candidate field(s) rejected: non-finite torque "
+                      f"cost for {', '.join(tg.names)}", DivergenceWarning, stacklevel=3)
+    return torch.where(bad, torch.full_like(costs, float("inf")), costs)
 
 
 @torch.no_grad()
@@ -181,7 +194,7 @@ def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
     n = tg.q.shape[-1]
     b0, w0 = FieldBasis.empty(n, kind, blocks), MotionWeights.zeros(0, tg.duration, tg.names)
     centres = candidate_centres(tg, tg.tau, candidates, generator)
-    costs = score_candidates(b0, w0, tg, centres, stiffnesses)        # C×S
+    costs = _finite(score_candidates(b0, w0, tg, centres, stiffnesses), tg)   # C×S
     best_k = costs.argmin(-1)
     order = costs.min(-1).values.argsort()[:top].tolist()
     eye = torch.eye(n, dtype=torch.float64)
@@ -192,7 +205,8 @@ def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
             K = torch.stack([float(stiffnesses[best_k[i]]) * eye, float(stiffnesses[best_k[j]]) * eye])
             basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
             weights = MotionWeights.zeros(2, tg.duration, tg.names)
-            pairs.append((float(solve_weights(basis, weights, tg).sum()), len(pairs), basis, weights))
+            cost = float(solve_weights(basis, weights, tg).sum())
+            pairs.append((cost if math.isfinite(cost) else math.inf, len(pairs), basis, weights))
     pairs.sort(key=lambda p: p[:2])
     return [(b, w) for _, _, b, w in pairs[:keep]]
 
@@ -218,8 +232,13 @@ def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates
         fits = []
         for nb, nw in starts:
             em(nb, nw, tg, steps=em_steps, phases=phases, tol=em_tol)
-            fits.append((float(solve_weights(nb, nw, tg).sum()), len(fits), nb, nw))
-        _, _, nb, nw = min(fits, key=lambda f: f[:2])
+            cost = float(solve_weights(nb, nw, tg).sum())
+            fits.append((cost if math.isfinite(cost) else math.inf, len(fits), nb, nw))
+        best, _, nb, nw = min(fits, key=lambda f: f[:2])
+        if not math.isfinite(best):          # every start diverged: keep what we have
+            warnings.warn(f"search: field {basis.M + 1} rejected: non-finite torque cost for "
+                          f"{', '.join(tg.names)}", DivergenceWarning, stacklevel=2)
+            break
         new_costs = solve_weights(nb, nw, tg)
         if basis.M and float(new_costs.sum()) > (1 - min_gain) * float(costs.sum()):
             break

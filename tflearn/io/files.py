@@ -11,10 +11,12 @@ from pathlib import Path
 
 @contextlib.contextmanager
 def replacing(path):
-    """``with replacing(path) as tmp:`` write to the file ``tmp``; on success it replaces
-    ``path`` atomically, on an exception it is removed and ``path`` is untouched."""
+    """``with replacing(path) as tmp:`` write to the file ``tmp`` (hidden, in the same
+    folder, ending in ``.tmp`` + path's suffix so that writers that go by the extension
+    still work); on success it replaces ``path`` atomically, on an exception it is
+    removed and ``path`` is untouched."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
     try:
