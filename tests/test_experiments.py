@@ -194,3 +194,30 @@ def test_report_from_quick_results(tmp_path):
     assert text.count("Not run yet") == 3
     for ref in ("results/fields.png", "results/profiles.png", "results/basin/success_vs_r.png"):
         assert f"]({ref})" in text and (out.parent / ref).exists()
+
+
+def test_goal_lines_read_as_goal_measured_verdict():
+    """Each goal reads "goal: X; measured: Y — met / not met", with no inequality that
+    contradicts its verdict (docs/results.md)."""
+    from tflearn.experiments import basin, keyframes, shared
+    from tflearn.experiments.report import goal_line
+    result = {"summary": {"r90": {"come_here": {"local": 3.0}, "tuck": {"local": 0.0}},
+                          "rates": {"come_here": {"local": {"r": [1.0, 3.0, 4.0], "rate": [1, 1, 0.5]},
+                                                  "pipeline": {"r": [1.0], "rate": [1.0]}},
+                                    "tuck": {"local": {"r": [1.4, 2.0], "rate": [0.5, 0.0]}}}}}
+    lines = [goal_line(*g) for g in basin.goals(result)]
+    assert lines == [
+        "- goal: come_here: the local solver succeeds at least 90% of the time up to r ≥ 5.2 "
+        "(twice the thesis' 2.6); measured: at least 90% up to r = 3 — **not met**",
+        "- goal: come_here: the full pipeline reproduces the gesture every time, at every r; "
+        "measured: lowest success rate 100% — met",
+        "- goal: tuck: the local solver succeeds at least 90% of the time up to r ≥ 7.6 "
+        "(twice the thesis' 3.8); measured: below 90% already at r = 1.4 — **not met**"]
+    line, = (goal_line(*g) for g in shared.goals(
+        {"summary": {"rates": {"a+b": {"local": {"rate": [1.0, 0.5]}}}}}))
+    assert line == ("- goal: local: every motion reproduced every time, at every r; "
+                    "measured: lowest success rate 50% — **not met**")
+    line, = (goal_line(*g) for g in keyframes.goals(
+        {"rows": [{"method": "pipeline", "rmse": [0.01, 0.02]}]}))
+    assert line == ("- goal: pipeline: every motion with joint RMSE ≤ 0.05 rad; measured: 2 of 2 "
+                    "motions within it, the worst at 0.020 rad — met")

@@ -6,6 +6,7 @@ The public API (imported lazily, so that ``import tflearn.config`` stays light):
 
 * bodies — :class:`Body`, :class:`Link`, :func:`arm`, :func:`chain`, :func:`body_from_config`;
 * motions — :class:`Motion`, :func:`load_motion`, :func:`save_motion`, :func:`load_motions`;
+  recordings of joint angles: :func:`read_csv` (a CSV file), :func:`from_euler` (arrays);
 * the model — :class:`FieldBasis` (shared fields), :class:`MotionWeights` (per-motion
   weights), :class:`FieldProgram` (their torque program);
 * simulation — :class:`SimOptions`, :class:`Trajectory`, :class:`SimulationFailed`
@@ -24,7 +25,7 @@ _API = {
     "Body": "body", "Link": "body", "arm": "body", "chain": "body",
     "body_from_config": ("body", "from_config"),
     "Motion": "motion", "load_motion": ("motion", "load"), "save_motion": ("motion", "save"),
-    "load_motions": "data",
+    "load_motions": "data", "read_csv": "motion", "from_euler": "motion",
     "FieldBasis": "fields", "MotionWeights": "fields", "FieldProgram": "fields",
     "SimOptions": "simulate", "Trajectory": "simulate",
     "SimulationFailed": "simulate",

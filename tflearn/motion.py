@@ -12,6 +12,11 @@ Files are ``.npz`` archives holding float arrays ``t`` (T), ``q`` (T×nv) and op
 with a :class:`MotionFileWarning` unless ``strict``). Files are read without pickle
 support (``allow_pickle=False``) and written atomically.
 
+Recordings of joint angles (motion capture, animation tools) come in through
+:func:`from_euler` (arrays: per ball joint three Euler angles in a stated scipy order,
+per hinge one angle) or :func:`read_csv` (a CSV with a header row, :func:`columns`);
+ball joints become principal rotation vectors and velocities are left to the spline.
+
 Torques (thesis appendix A). The samples are joined by a quintic interpolating spline
 (C⁴, exact derivatives) and inverse dynamics is applied to it. The thesis splines unit
 quaternions with a C¹ Hermite scheme (so its ω̇ jumps at the knots); here ball joints
@@ -289,6 +294,212 @@ def load_dir(path, body: Optional[Body] = None, strict: bool = False) -> list[Mo
     for err in errors:
         warnings.warn(f"{err}; skipped", MotionFileWarning, stacklevel=2)
     return sorted(motions, key=lambda m: m.name)
+
+
+# ----------------------------------------------------------------------------------------
+# Recordings: Euler angles and CSV files
+# ----------------------------------------------------------------------------------------
+
+#: CSV column stems of the arm's joints (by link name); other bodies use their link names.
+JOINT_COLUMNS = {"upper_arm": "shoulder", "forearm": "elbow", "hand": "wrist"}
+
+
+def _joint_names(body: Body) -> list:
+    """(link, column stem) of each moving joint."""
+    return [(link, JOINT_COLUMNS.get(link.name, link.name) if body.name == "arm" else link.name)
+            for link in body.links if link.joint in ("ball", "hinge")]
+
+
+def columns(body: Optional[Body] = None, order: Optional[str] = None) -> list[str]:
+    """The CSV columns of a body's recording: ``t``, then per joint in link order
+    ``NAME_x, NAME_y, NAME_z`` (a ball joint: its angles about x, y and z) or ``NAME`` (a
+    hinge), where NAME is the joint's name (the arm: ``shoulder``, ``elbow``, ``wrist``;
+    another body: its link's name). For the arm: t, shoulder_x, shoulder_y, shoulder_z,
+    elbow, wrist_x, wrist_y, wrist_z. With an Euler ``order`` a ball joint's three columns
+    come in that sequence (``"ZYX"``: NAME_z, NAME_y, NAME_x), the layout of
+    :func:`from_euler`'s angles."""
+    body = arm() if body is None else body
+    axes = "xyz" if order is None else _check_order(order, tait_bryan=True).lower()
+    out = ["t"]
+    for link, name in _joint_names(body):
+        out += [f"{name}_{ax}" for ax in axes] if link.joint == "ball" else [name]
+    return out
+
+
+def _check_order(order: str, tait_bryan: bool = False) -> str:
+    """``order`` if it is an Euler sequence scipy accepts (``tait_bryan``: three different
+    axes, as a CSV's NAME_x, NAME_y, NAME_z columns need); else ValueError."""
+    ok = (isinstance(order, str) and len(order) == 3 and
+          (set(order) <= set("XYZ") or set(order) <= set("xyz")) and
+          order[0] != order[1] and order[1] != order[2])
+    if not ok or (tait_bryan and len(set(order)) != 3):
+        what = "three different axes" if tait_bryan else "three axes, none twice in a row,"
+        raise ValueError(f"Euler order must be {what} from 'XYZ' (intrinsic) or 'xyz' "
+                         f"(extrinsic); got {order!r}")
+    return order
+
+
+def euler_to_rotvec(angles, order: str = "XYZ", degrees: bool = True) -> np.ndarray:
+    """Principal rotation vectors (...×3, ‖v‖ ≤ π) of Euler angles (...×3), the k-th angle
+    about axis ``order[k]``: upper case intrinsic (about the turning frame's axes,
+    R = R_1 R_2 R_3), lower case extrinsic (about the fixed axes, R = R_3 R_2 R_1),
+    as :meth:`scipy.spatial.transform.Rotation.from_euler`."""
+    from scipy.spatial.transform import Rotation
+    angles = np.asarray(angles, dtype=np.float64)
+    shape = angles.shape
+    rv = Rotation.from_euler(_check_order(order), angles.reshape(-1, 3), degrees=degrees).as_rotvec()
+    return wrap_rotvec(torch.from_numpy(rv)).numpy().reshape(shape)
+
+
+def from_euler(name: str, t, angles, order: str = "XYZ", degrees: bool = True,
+               body: Optional[Body] = None) -> Motion:
+    """A motion from recorded joint angles.
+
+    Args:
+        name: the motion's name.
+        t: sample times (T), seconds, strictly increasing.
+        angles: T×n, per joint in link order: a ball joint's three Euler angles, the k-th
+            about axis ``order[k]``; a hinge's angle (the arm: shoulder 3, elbow 1, wrist 3).
+        order: the Euler sequence, as scipy's
+            :meth:`~scipy.spatial.transform.Rotation.from_euler`: ``"XYZ"`` (upper case)
+            is intrinsic — about x, then the new y, then the newer z, R = Rx·Ry·Rz;
+            ``"xyz"`` (lower case) is extrinsic — about the fixed x, y, then z,
+            R = Rz·Ry·Rx. No axis twice in a row (proper Euler orders such as ``"ZXZ"``
+            are accepted too).
+        degrees: angles in degrees (default) or radians.
+        body: the body (default: the arm).
+
+    Each ball joint's rotation (relative to its zero orientation R₀, the child frame in
+    the parent frame) becomes its principal rotation vector (‖v‖ ≤ π: angles past 180°
+    wrap); a hinge's angle is converted to radians and kept as it is. Velocities are left
+    to the spline (``qd`` is None). Raises :class:`MotionError` (bad times or shapes) and
+    ValueError (a bad order).
+    """
+    body = arm() if body is None else body
+    _check_order(order)
+    a = _as_array_or_raise(name, "angles", angles)
+    n = sum(3 if link.joint == "ball" else link.dof for link in body.links)
+    if a.ndim != 2 or a.shape[1] != n:
+        raise MotionError(f"motion {name!r}", f"angles have shape {a.shape}, expected "
+                          f"(T, {n}) for the {body.name} body")
+    q = np.empty_like(a)
+    for i, link in enumerate(body.links):
+        sl = body.slice(i)
+        if link.joint == "ball":
+            q[:, sl] = euler_to_rotvec(a[:, sl], order, degrees)
+        elif link.joint == "hinge":
+            q[:, sl] = np.deg2rad(a[:, sl]) if degrees else a[:, sl]
+    return Motion(name, t, q, None, body)
+
+
+def _as_array_or_raise(name: str, what: str, x) -> np.ndarray:
+    try:
+        arr = _as_array(what, x)
+        _check_finite(what, arr)
+    except _Problem as err:
+        raise MotionError(f"motion {name!r}", str(err)) from None
+    return arr
+
+
+def _csv_rows(path: Path):
+    """(line number, fields) of a CSV file's non-blank, non-comment (#) lines."""
+    import csv
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise _Problem("no such file") from None
+    except IsADirectoryError:
+        raise _Problem("not a regular file") from None
+    except OSError as err:
+        raise _Problem(f"cannot read ({err.strerror})") from None
+    except UnicodeDecodeError as err:
+        raise _Problem(f"not a text file (not UTF-8 at byte {err.start})") from None
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if line.strip() and not line.lstrip().startswith("#"):
+            yield lineno, [x.strip() for x in next(csv.reader([line]))]
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+def read_csv(path, order: str = "XYZ", degrees: bool = True, body: Optional[Body] = None) -> Motion:
+    """A motion from a CSV recording of joint angles (see :func:`columns`, :func:`from_euler`).
+
+    The file: a header row naming the columns — for the arm ``t, shoulder_x, shoulder_y,
+    shoulder_z, elbow, wrist_x, wrist_y, wrist_z``, in any order (case and spaces
+    ignored) — then one row per sample: t in seconds, each ball joint's Euler angles
+    (``NAME_x`` the angle about x, applied in the sequence ``order``, upper case
+    intrinsic, lower case extrinsic, as scipy), each hinge's angle, in degrees (or
+    radians: ``degrees=False``). Blank lines and lines starting with ``#`` are skipped.
+    The motion is named after the file stem.
+
+    Raises :class:`MotionFileError` naming the file, the line (and column) and the
+    problem: no header row, missing or unknown columns, a row with the wrong number of
+    values, a value that is not a finite number, times not strictly increasing, fewer
+    than 4 samples.
+    """
+    path = Path(path)
+    body = arm() if body is None else body
+    names = columns(body, order)        # in the sequence from_euler takes
+    try:
+        rows = _csv_rows(path)
+        first = next(rows, None)
+        if first is None:
+            raise _Problem(f"empty: expected a header row ({', '.join(columns(body))}) and samples")
+        lineno, header = first
+        if all(_is_number(x) for x in header if x):
+            raise _Problem(f"line {lineno}: missing header row (the first row must name the "
+                           f"columns: {', '.join(columns(body))}; found numbers)")
+        key = [h.lower().replace(" ", "") for h in header]
+        missing = [n for n in names if n not in key]
+        unknown = [h for h, k in zip(header, key) if k not in names]
+        dup = sorted({h for h in key if key.count(h) > 1})
+        if missing or unknown or dup:
+            bits = ([f"missing column(s) {', '.join(map(repr, missing))}"] if missing else []) + \
+                   ([f"unknown column(s) {', '.join(map(repr, unknown))}"] if unknown else []) + \
+                   ([f"repeated column(s) {', '.join(map(repr, dup))}"] if dup else [])
+            raise _Problem(f"line {lineno}: header: {'; '.join(bits)} "
+                           f"(expected {', '.join(columns(body))})")
+        perm = [key.index(n) for n in names]
+        data, lines = [], []
+        for lineno, fields in rows:
+            if len(fields) != len(header):
+                raise _Problem(f"line {lineno}: {len(fields)} values, expected {len(header)} "
+                               f"({', '.join(header)})")
+            row = []
+            for c, text in enumerate(fields):
+                try:
+                    x = float(text)
+                except ValueError:
+                    x = None
+                if x is None or not math.isfinite(x):
+                    what = "is not a number" if x is None else "is not finite"
+                    raise _Problem(f"line {lineno}, column {c + 1} ({header[c]!r}): "
+                                   f"{text!r} {what}")
+                row.append(x)
+            data.append([row[i] for i in perm])
+            lines.append(lineno)
+        if not data:
+            raise _Problem("no samples after the header row")
+        arr = np.array(data, dtype=np.float64)
+        t = arr[:, 0]
+        bad = np.flatnonzero(np.diff(t) <= 0)
+        if bad.size:
+            i = int(bad[0]) + 1
+            raise _Problem(f"line {lines[i]}: times 't' are not strictly increasing "
+                           f"(t = {t[i]!r} after t = {t[i - 1]!r} on line {lines[i - 1]})")
+        try:
+            motion = from_euler(path.stem, t, arr[:, 1:], order, degrees, body)
+        except MotionError as err:
+            raise _Problem(err.problem) from None
+    except _Problem as err:
+        raise MotionFileError(str(path), str(err)) from None
+    return motion
 
 
 # ----------------------------------------------------------------------------------------

@@ -6,7 +6,8 @@
 :data:`EXPERIMENTS` maps each name to its module — :mod:`.basin` (§4.1), :mod:`.shared`
 (§4.2), :mod:`.keyframes` (§4.3), :mod:`.filtering` (§4.5.4) — each providing
 ``run(cfg)`` → {"rows", "summary"}, ``figures(cfg, result)`` → paths, ``summary(result)``
-(markdown), ``goals(result)`` → [(text, met)] and ``thesis()`` (the thesis' outcome).
+(markdown), ``goals(result)`` → [(goal, measured, met)] (the report's "goal: …; measured: … —
+(not) met" lines) and ``thesis()`` (the thesis' outcome).
 Configs: :mod:`.config`; shared services (guesses, methods, the case runner): :mod:`.common`;
 the report: :mod:`.report`, its words in text.yaml.
 """

@@ -104,6 +104,6 @@ def summary(result: dict) -> str:
                                          "hand-path deviation from chord: input", "filtered"], rows)
 
 
-def goals(result: dict) -> list:
+def goals(result: dict) -> list:  # [(goal, measured, met)]
     """No goal is set for filtering (the thesis did not try it)."""
     return []

@@ -106,11 +106,11 @@ def summary(result: dict) -> str:
 
 
 def goals(result: dict) -> list:
-    """(text, met): per method, every motion with joint RMSE ≤ 0.05 rad."""
+    """(goal, measured, met): per method, every motion with joint RMSE ≤ 0.05 rad."""
     out = []
     for method in dict.fromkeys(x["method"] for x in result["rows"]):
         rmse = [r for x in result["rows"] if x["method"] == method for r in x["rmse"]]
-        out.append((f"{method}: every motion with joint RMSE ≤ {GOAL_RMSE:g} rad (worst "
-                    f"{max(rmse):.3f} rad; {sum(r <= GOAL_RMSE for r in rmse)}/{len(rmse)} motions)",
-                    max(rmse) <= GOAL_RMSE))
+        out.append((f"{method}: every motion with joint RMSE ≤ {GOAL_RMSE:g} rad",
+                    f"{sum(r <= GOAL_RMSE for r in rmse)} of {len(rmse)} motions within it, "
+                    f"the worst at {max(rmse):.3f} rad", max(rmse) <= GOAL_RMSE))
     return out

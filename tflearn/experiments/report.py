@@ -20,9 +20,13 @@ def outcome(experiment, result: dict) -> str:
     parts = [experiment.summary(result), common.cost_table(result["summary"]["costs"])]
     goals = experiment.goals(result)
     if goals:
-        parts.append("Goals:\n\n" + "\n".join(f"- {'met' if ok else '**not met**'}: {text}"
-                                               for text, ok in goals))
+        parts.append("Goals:\n\n" + "\n".join(goal_line(*g) for g in goals))
     return "\n\n".join(parts)
+
+
+def goal_line(goal: str, measured: str, met: bool) -> str:
+    """One goal as a markdown item: "goal: …; measured: … — met" (or **not met**)."""
+    return f"- goal: {goal}; measured: {measured} — {'met' if met else '**not met**'}"
 
 
 def _model_section(fig_root: Path) -> list:

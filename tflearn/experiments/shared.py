@@ -52,7 +52,7 @@ def summary(result: dict) -> str:
 
 
 def goals(result: dict) -> list:
-    """(text, met): every method reproducing every motion at every r."""
-    return [(f"{m}: every motion reproduced at every r (lowest {common.pct(min(v['rate']))})",
-             min(v["rate"]) == 1.0)
+    """(goal, measured, met): every method reproducing every motion at every r."""
+    return [(f"{m}: every motion reproduced every time, at every r",
+             f"lowest success rate {common.pct(min(v['rate']))}", min(v["rate"]) == 1.0)
             for ms in result["summary"]["rates"].values() for m, v in ms.items()]
