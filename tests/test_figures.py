@@ -184,6 +184,154 @@ def test_learning_curves():
     plots.plt.close(fig)
 
 
+# ------------------------------------------------------------------ motion figures
+
+ARM_NAMES = ["shoulder rotation vector x", "shoulder rotation vector y",
+             "shoulder rotation vector z", "elbow angle", "wrist rotation vector x",
+             "wrist rotation vector y", "wrist rotation vector z"]
+
+
+@pytest.fixture(scope="module")
+def motion_paths():
+    """come_here as the target and a "simulated" copy off by 0.02 sin 3t in three
+    coordinates, with a coordinate (wrist y) that the target holds at 0 and the copy
+    only by 1e-8 noise."""
+    body = tb.arm()
+    (m, _), = gestures.generate(body, gestures=[gestures.GESTURES["come_here"]])
+    q = m.q.clone()
+    sim = q + 0.02 * torch.sin(3 * m.t)[:, None] * torch.tensor([1, 0, 0, 1, 0, 0, 1.0], dtype=DT)
+    sim[:, 5] = q[:, 5] + 1e-8 * torch.randn(len(m.t), dtype=DT, generator=torch.Generator().manual_seed(0))
+    return body, m.t, {"target": q, "simulated": sim}
+
+
+def _span(ax) -> float:
+    lo, hi = ax.get_ylim()
+    return hi - lo
+
+
+def test_coordinate_names_from_the_body():
+    assert plots.coordinate_names(tb.arm()) == ARM_NAMES
+    assert plots.coordinate_names(None, 7) == ARM_NAMES
+    assert plots.coordinate_names(tb.chain(2)) == ["link0 angle", "link1 angle"]
+    assert plots.coordinate_names(tb.chain(1, joint="ball")) == [
+        f"link0 rotation vector {a}" for a in "xyz"]
+    assert plots.coordinate_names(None, 2) == ["q[0]", "q[1]"]
+
+
+def test_trajectories_axes_units_and_spans(motion_paths):
+    """Every panel: t (s) and the coordinate's name with rad; no empty axis (7 panels,
+    a row per joint); each y axis spans the target's range and at least MIN_SPAN, so
+    the wrist y noise (1e-8) stays flat; the target is drawn dashed above the
+    simulated line."""
+    body, t, paths = motion_paths
+    fig = plots.trajectories(t, paths, title="come_here", body=body)
+    assert len(fig.axes) == 7
+    q = paths["target"].numpy()
+    for k, ax in enumerate(fig.axes):
+        assert ax.get_xlabel() == "t (s)"
+        assert ax.get_ylabel() == f"{ARM_NAMES[k]} (rad)"
+        assert len(ax.get_lines()) == 2
+        assert _span(ax) >= max(np.ptp(q[:, k]), plots.MIN_SPAN)
+        lo, hi = ax.get_ylim()
+        assert lo <= q[:, k].min() and q[:, k].max() <= hi
+        target, sim = ax.get_lines()
+        assert target.get_linestyle() == "--" and target.get_zorder() > sim.get_zorder()
+        assert target.get_linewidth() < sim.get_linewidth()
+    # the elbow (a hinge) spans its whole row, the ball joints' components share theirs
+    widths = [ax.get_position().width for ax in fig.axes]
+    assert widths[3] > 2.5 * widths[0]
+    plots.plt.close(fig)
+
+
+def test_joint_errors_span_the_targets_range(motion_paths):
+    body, t, paths = motion_paths
+    fig = plots.joint_errors(body, t, paths, title="errors")
+    assert len(fig.axes) == 7
+    q = paths["target"].numpy()
+    for k, ax in enumerate(fig.axes):
+        assert ax.get_xlabel() == "t (s)" and ax.get_ylabel() == f"{ARM_NAMES[k]} error (rad)"
+        assert _span(ax) >= max(np.ptp(q[:, k]), plots.MIN_SPAN)
+        lo, hi = ax.get_ylim()
+        assert lo < 0 < hi and abs(lo + hi) < 1e-9 * (hi - lo)       # centred on 0
+    plots.plt.close(fig)
+
+
+def test_motion_sheet_layout_labels_and_spans(motion_paths):
+    """A panel per joint and the 3-D hand path: no empty or switched-off axes; joint
+    axes in s and rad with the joint's quantity, the components named in the legend;
+    3-D axes in m; the target's hand path dashed and drawn above the simulated one."""
+    body, t, paths = motion_paths
+    fig = plots.motion_sheet(body, t, paths, title="come_here: rmse 0.0100 rad, tip 1.00 cm")
+    assert len(fig.axes) == 4
+    for ax in fig.axes:
+        assert ax.get_visible() and ax.get_lines()
+    assert all(ax.axison for ax in fig.axes[:3])            # none switched off
+    q = paths["target"].numpy()
+    expect = [("shoulder rotation vector (rad)", slice(0, 3), ["x", "y", "z"]),
+              ("elbow angle (rad)", slice(3, 4), []),
+              ("wrist rotation vector (rad)", slice(4, 7), ["x", "y", "z"])]
+    for ax, (ylabel, s, comps) in zip(fig.axes[:3], expect):
+        assert ax.get_xlabel() == "t (s)" and ax.get_ylabel() == ylabel
+        legend = [x.get_text() for x in ax.get_legend().get_texts()]
+        assert legend == comps + ["target", "simulated"]
+        assert _span(ax) >= max(np.ptp(q[:, s]), plots.MIN_SPAN)
+    ax3 = fig.axes[3]
+    assert (ax3.get_xlabel(), ax3.get_ylabel(), ax3.get_zlabel()) == ("x (m)", "y (m)", "z (m)")
+    assert not ax3.computed_zorder
+    lines = {line.get_label(): line for line in ax3.get_lines()}
+    target, sim = lines["target hand path"], lines["simulated hand path"]
+    assert target.get_linestyle() == "--" and target.get_zorder() > sim.get_zorder()
+    assert [x.get_text() for x in ax3.get_legend().get_texts()] == [
+        "target hand path", "simulated hand path", "arm at start (faint) and end"]
+    plots.plt.close(fig)
+
+
+def test_motion_sheet_other_bodies():
+    """Names come from the body: a two-hinge chain gets "link0 angle", "link1 angle"."""
+    body = tb.chain(2)
+    t = torch.linspace(0, 1, 21, dtype=DT)
+    q = torch.stack([torch.sin(t), 0 * t], -1)
+    fig = plots.motion_sheet(body, t, {"target": q}, title="chain")
+    assert [ax.get_ylabel() for ax in fig.axes[:2]] == ["link0 angle (rad)", "link1 angle (rad)"]
+    assert _span(fig.axes[1]) >= plots.MIN_SPAN
+    assert len(fig.axes) == 3 and all(ax.get_lines() for ax in fig.axes)
+    plots.plt.close(fig)
+    fig = plots.trajectories(t, {"q": q})          # no body, nv ≠ 7: q[k]
+    assert [ax.get_ylabel() for ax in fig.axes] == ["q[0] (rad)", "q[1] (rad)"]
+    plots.plt.close(fig)
+
+
+def test_hand_paths_and_strip_axes_in_metres(motion_paths):
+    body, _, paths = motion_paths
+    for fig in (plots.hand_paths(body, paths, title="h"), plots.stick_strip(body, paths, frames=3)):
+        for ax in fig.axes:
+            assert (ax.get_xlabel(), ax.get_ylabel(), ax.get_zlabel()) == ("x (m)", "y (m)", "z (m)")
+        plots.plt.close(fig)
+
+
+def test_field_figure_axis_names():
+    fig = plots.field_figure(tb.arm(), *plots.gallery_fields()[0][1:], title="f")
+    assert fig.axes[0].get_xlabel() == "shoulder rotation vector x (rad)"
+    assert fig.axes[0].get_ylabel() == "elbow angle (rad)"
+    plots.plt.close(fig)
+
+
+def test_summarize_has_a_units_block():
+    """metrics.json's keys stay as they are; their units are in "units"."""
+    from tflearn import metrics
+    from tflearn.fit.targets import prepare
+    (m, _), = gestures.generate(tb.arm(), gestures=[gestures.GESTURES["come_here"]])
+    tg = prepare(tb.arm(), [m])
+    s = metrics.Scores([0.01], [0.005], [0.02], tg.q.clone(), [None])
+    doc = metrics.summarize(s, [True], tg, 3, 1.5)
+    assert doc["units"] == {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
+                            "wall_time_s": "s", "torque_resolution": "fraction"}
+    assert set(doc["motions"]["come_here"]) == {"rmse", "tip", "torque_rel_rms", "success"}
+    assert set(doc["overall"]) == {"rmse", "tip", "torque_rel_rms", "success", "M", "wall_time_s"}
+    doc["units"]["tip"] = "cm"
+    assert metrics.UNITS["tip"] == "m"         # a copy per document
+
+
 # ------------------------------------------------------------------ render
 
 @pytest.fixture(scope="module")
@@ -215,6 +363,7 @@ def test_render_writes_gif(tiny_run, tmp_path):
     assert out == tmp_path / "a.gif"
     with Image.open(out) as im:
         assert im.format == "GIF" and im.n_frames == math.floor(g.duration * 10 + 1e-9) + 1
+        assert im.size[0] >= render.GIF_MIN_WIDTH >= 900 and im.size[1] >= 450
     assert len(messages) == 1
     if render.video_support() is None:
         assert list((run / "tensorboard").glob("events.*"))
@@ -241,6 +390,25 @@ def test_render_cli(tiny_run, capsys):
         render.render(run, g.name, fps=0)
     with pytest.raises(SystemExit):
         cli.main(["render", str(run), "--motion", g.name, "--fps", "0"])
+
+
+def test_gif_frames_are_large_and_evaluation_has_units(tiny_run, tmp_path):
+    """_write_gif's frames: ≥ GIF_MIN_WIDTH px wide, fonts ≥ 10 pt; evaluation.json
+    carries the same units block as metrics.json."""
+    assert render.GIF_MIN_WIDTH >= 900 and render.GIF_FONT - 1 >= 10
+    body = tb.arm()
+    q = torch.zeros(11, 7, dtype=DT)
+    q[:, 3] = -torch.linspace(0, 1, 11, dtype=DT)
+    P = plots.joint_positions(body, q)
+    t = np.linspace(0, 1, 11)
+    for paths in ({"target": P}, {"target": P, "reproduced": P}):
+        frames = render._write_gif(paths, t, render.frame_samples(t, 2), 2, tmp_path / "x.gif",
+                                   "x: rmse 0.0000 rad, tip error 0.00 cm", keep=True)
+        assert len(frames) == 3 and frames[0].shape[1] >= 900 and frames[0].shape[0] >= 450
+    from tflearn import evaluate, metrics
+    doc = evaluate.evaluate_run(tiny_run["run"], out=tmp_path / "evaluation.json")
+    assert doc["units"] == metrics.UNITS
+    assert set(doc["overall"]) == {"rmse", "tip", "success", "M"}
 
 
 def test_frame_samples():

@@ -17,7 +17,7 @@ from .fit.targets import Targets, prepare
 from .fit.torque import solve_weights
 from .io import basis as basis_io
 from .io.files import write_text
-from .metrics import score, summarize
+from .metrics import UNITS, score, summarize
 from .motion import Motion
 from .motion import save as save_motion
 from .simulate import SimOptions, simulate
@@ -86,7 +86,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
     overall = {"rmse": math.sqrt(sum(r["rmse"] ** 2 * counts[k] for k, r in results.items()) / n),
                "tip": max(r["tip"] for r in results.values()),
                "success": all(r["success"] for r in results.values()), "M": lb.basis.M}
-    doc = {"motions": results, "overall": overall}
+    doc = {"motions": results, "overall": overall, "units": dict(UNITS)}
     write_text(out or run / "evaluation.json", json.dumps(doc, indent=1))
     return doc
 

@@ -87,10 +87,17 @@ def score(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
     return Scores(rmse, tip, torque, q_sim, failure)
 
 
+#: The units of metrics.json's and evaluation.json's numbers, the documents' "units" block
+#: (the keys stay unit-free; people read tip errors in cm, as 100 × tip).
+UNITS = {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
+         "wall_time_s": "s", "torque_resolution": "fraction"}
+
+
 def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float) -> dict:
     """metrics.json's content: per motion and overall joint RMSE (rad), maximum tip error
-    (m), relative RMS torque error, success, and the failure of a failed simulation.
-    The overall RMSE is over all samples of all motions."""
+    (m), relative RMS torque error, success, and the failure of a failed simulation, and
+    the units of these numbers (:data:`UNITS`). The overall RMSE is over all samples of
+    all motions."""
     per = {}
     for j, name in enumerate(tg.names):
         per[name] = {"rmse": scores.rmse[j], "tip": scores.tip[j],
@@ -102,4 +109,5 @@ def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float) -> dic
     return {"motions": per,
             "overall": {"rmse": overall_rmse, "tip": max(scores.tip),
                         "torque_rel_rms": max(scores.torque), "success": all(ok),
-                        "M": M, "wall_time_s": wall}}
+                        "M": M, "wall_time_s": wall},
+            "units": dict(UNITS)}

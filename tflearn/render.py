@@ -93,32 +93,43 @@ def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
     return out
 
 
+#: The smallest width (px) of an animation frame, and its fonts' smallest size (pt).
+GIF_MIN_WIDTH = 900
+GIF_FONT = 11
+
+
 def _write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Path,
                title: str, keep: bool) -> list:
     """Draw one frame per entry of ``samples`` and write them to ``out`` with
-    PillowWriter; ``paths``: label → joint positions (T×(L+1)×3), one 3-D panel each.
+    PillowWriter; ``paths``: label → joint positions (T×(L+1)×3), one 3-D panel each
+    (axes x, y, z in m), the title above them with the time in s. Frames are at least
+    :data:`GIF_MIN_WIDTH` px wide (560 px per panel), fonts at least :data:`GIF_FONT` pt.
     Returns the frames as H×W×3 uint8 arrays when ``keep``, else []."""
     import matplotlib.pyplot as plt
     from matplotlib.animation import PillowWriter
 
-    fig = plt.figure(figsize=(4.2 * len(paths), 4.4), dpi=80)
+    dpi = 100
+    width = max(GIF_MIN_WIDTH / dpi, 5.6 * len(paths))
+    fig = plt.figure(figsize=(width, 5.8), dpi=dpi)
     allpts = np.concatenate(list(paths.values()), 0)
     artists = []
     for n, ((label, P), color) in enumerate(zip(paths.items(), ["C0", "C1"])):
         ax = fig.add_subplot(1, len(paths), n + 1, projection="3d")
+        ax.computed_zorder = False               # the target's path stays on top of the trail
         if n:
             first = next(iter(paths.values()))
-            ax.plot(first[:, -1, 0], first[:, -1, 1], first[:, -1, 2], ":", color="0.6", lw=0.8,
-                    label="target hand path")
-        arm, = ax.plot([], [], [], "o-", color=color, ms=4, lw=2, label=f"{label} arm")
-        trail, = ax.plot([], [], [], color=color, lw=1, label="hand trail")
-        plots._equal_3d(ax, allpts)
+            ax.plot(first[:, -1, 0], first[:, -1, 1], first[:, -1, 2], "--", color="0.3", lw=1.2,
+                    label="target hand path", zorder=4)
+        arm, = ax.plot([], [], [], "o-", color=color, ms=6, lw=3, label=f"{label} arm")
+        trail, = ax.plot([], [], [], color=color, lw=1.6, label=f"{label} hand trail")
+        plots._equal_3d(ax, allpts, fontsize=GIF_FONT)
         ax.view_init(elev=15, azim=-30)
-        ax.set_title(label, fontsize=10)
-        ax.tick_params(labelsize=6)
-        ax.legend(fontsize=6, loc="upper left")
+        ax.set_title(label, fontsize=GIF_FONT + 2)
+        ax.tick_params(labelsize=GIF_FONT - 1)
+        ax.legend(fontsize=GIF_FONT - 1, loc="upper left")
         artists.append((P, arm, trail))
-    head = fig.suptitle("")
+    head = fig.suptitle("", fontsize=GIF_FONT + 3)
+    fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.86, wspace=0.12)
     frames = []
     writer = PillowWriter(fps=fps)
     with writer.saving(fig, str(out), dpi=fig.dpi):
