@@ -22,6 +22,7 @@ from .errors import InputError
 from .evaluate import run_config, weights_for
 from .fit.targets import prepare
 from .io import basis as basis_io
+from .io.files import replacing
 from .metrics import score
 
 
@@ -132,7 +133,7 @@ def _write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: P
     fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.86, wspace=0.12)
     frames = []
     writer = PillowWriter(fps=fps)
-    with writer.saving(fig, str(out), dpi=fig.dpi):
+    with replacing(out) as tmp, writer.saving(fig, str(tmp), dpi=fig.dpi):
         for k in samples:
             for P, arm, trail in artists:
                 arm.set_data_3d(P[k, :, 0], P[k, :, 1], P[k, :, 2])
