@@ -90,15 +90,15 @@ class RunLog:
 
     # ---- lifetime
     def open(self, step: int = 0) -> None:
-        """Open the writer; ``step``: the step a resumed run continues from (events at
-        later steps, written after the last checkpoint, are purged)."""
+        """Open the writer; ``step``: the last step of a resumed run's checkpoint (events
+        at later steps, written after that checkpoint, are purged)."""
         if self.progress and self._showwarning is None:     # warnings above the bar, not through it
             self._showwarning = warnings.showwarning
             warnings.showwarning = self._warning
         if self.tensorboard and self.writer is None:
             from torch.utils.tensorboard import SummaryWriter
             self.writer = SummaryWriter(str(self.out / "tensorboard"),
-                                        purge_step=step if step > 0 else None)
+                                        purge_step=step + 1 if step > 0 else None)
 
     def _warning(self, message, category, filename, lineno, file=None, line=None):
         from tqdm import tqdm
@@ -106,7 +106,7 @@ class RunLog:
                    file=sys.stderr)
 
     def close(self) -> None:
-        self.end_stage()
+        self.end_stage(finished=False)
         if self._showwarning is not None:
             warnings.showwarning = self._showwarning
             self._showwarning = None
@@ -164,11 +164,11 @@ class RunLog:
                                      refresh=True)
             self._drawn = now
 
-    def end_stage(self) -> None:
-        """Close the current bar; a stage that ended before its total (reduce stops
+    def end_stage(self, finished: bool = True) -> None:
+        """Close the current bar; a stage ``finished`` before its total (reduce stops
         at M = 1, path matching when nothing is left to do) shows what it did."""
         if self.bar is not None:
-            if self.bar.total is not None and self.bar.n < self.bar.total:
+            if finished and self.bar.total is not None and self.bar.n < self.bar.total:
                 self.bar.total = self.bar.n
             self.bar.refresh()
             self.bar.close()
