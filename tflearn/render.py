@@ -5,16 +5,20 @@ does (the run's basis.json and config.yaml, the motion from the config's ``data`
 stored weights, the config's solver settings) and draws both arms side by side in 3-D as
 stick figures (:func:`tflearn.plots.joint_positions`) with their hand trails. Frame k
 shows the sample nearest to t = k/fps, for k = 0 … ⌊λ·fps⌋ (λ the motion's duration).
+
+In TensorBoard (RUN/tensorboard, the run's own events) the frames are images, through
+the writer's image API (no video encoder needed): ``render/MOTION/frames`` one image
+per frame at steps 0 … F−1 (scrub with the step slider; TensorBoard keeps all of them
+with ``--samples_per_plugin images=F``), and ``render/MOTION/strip`` a contact sheet of
+up to :data:`STRIP_FRAMES` evenly spaced frames.
 """
 from __future__ import annotations
 
-import importlib
 import math
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-import torch
 
 from . import plots
 from .data import load_motions
@@ -25,16 +29,19 @@ from .io import basis as basis_io
 from .io.files import replacing
 from .metrics import score
 
+STRIP_FRAMES = 8          # frames in the TensorBoard contact sheet (4 per row)
 
-def video_support() -> str | None:
-    """None when ``SummaryWriter.add_video`` can encode a video, else why not: torch's
-    encoder needs moviepy's ``moviepy.editor`` (moviepy < 2), which tflearn does not
-    depend on."""
-    try:
-        importlib.import_module("moviepy.editor")
-    except ImportError as err:
-        return f"SummaryWriter.add_video needs moviepy < 2 (moviepy.editor): {err}"
-    return None
+
+def contact_sheet(frames: list, count: int = STRIP_FRAMES, columns: int = 4) -> np.ndarray:
+    """Up to ``count`` evenly spaced frames (H×W×3 uint8 each) in a grid of ``columns``
+    (the last row padded white): H·rows × W·columns × 3 uint8."""
+    pick = np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int))
+    tiles = [frames[i] for i in pick]
+    columns = min(columns, len(tiles))
+    rows = -(-len(tiles) // columns)
+    tiles += [np.full_like(tiles[0], 255)] * (rows * columns - len(tiles))
+    return np.concatenate([np.concatenate(tiles[r * columns:(r + 1) * columns], 1)
+                           for r in range(rows)], 0)
 
 
 def frame_samples(t, fps: float) -> np.ndarray:
@@ -50,9 +57,8 @@ def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
     """Animate motion ``motion`` of the run folder ``run``: target and reproduced arm.
 
     Writes a GIF (default RUN/figures/MOTION.gif) and, with ``tensorboard``, the same
-    frames as a video ``render/MOTION`` in RUN/tensorboard when the writer can encode
-    one (:func:`video_support`); ``log`` receives a line saying what was logged or
-    why not. Returns the GIF's path.
+    frames as images in RUN/tensorboard (see the module); ``log`` receives a line
+    saying what was logged. Returns the GIF's path.
 
     Raises :class:`~tflearn.errors.InputError` for a motion name the basis does not hold
     (the message lists the names it holds) or one missing from the run's data, and for
@@ -76,27 +82,30 @@ def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
              "reproduced": plots.joint_positions(lb.body, s.q_sim[0, :T])}
     out = Path(out) if out is not None else run / "figures" / f"{motion}.gif"
     out.parent.mkdir(parents=True, exist_ok=True)
-    reason = video_support() if tensorboard else None
     frames = _write_gif(paths, t, frame_samples(t, fps), fps, out,
                         f"{motion}: rmse {s.rmse[0]:.4f} rad, tip error {100 * s.tip[0]:.2f} cm",
-                        keep=tensorboard and reason is None)
-    if not tensorboard:
-        return out
-    if reason is not None:
-        log(f"tensorboard: video not logged ({reason})")
-        return out
-    from torch.utils.tensorboard import SummaryWriter
-    writer = SummaryWriter(str(run / "tensorboard"))
-    video = torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2)[None]    # 1×F×3×H×W uint8
-    writer.add_video(f"render/{motion}", video, fps=fps)
-    writer.close()
-    log(f"tensorboard: logged video render/{motion} to {run / 'tensorboard'}")
+                        keep=tensorboard)
+    if tensorboard:
+        log_frames(run / "tensorboard", motion, frames)
+        log(f"tensorboard: logged {len(frames)} frames as images render/{motion}/frames "
+            f"(steps 0-{len(frames) - 1}; see them all with tensorboard --samples_per_plugin "
+            f"images={len(frames)}) and render/{motion}/strip to {run / 'tensorboard'}")
     return out
 
 
 #: The smallest width (px) of an animation frame, and its fonts' smallest size (pt).
 GIF_MIN_WIDTH = 900
 GIF_FONT = 11
+
+
+def log_frames(logdir, motion: str, frames: list) -> None:
+    """Log animation frames (H×W×3 uint8) to the TensorBoard run ``logdir`` as images:
+    ``render/MOTION/frames`` at steps 0 … F−1 and the contact sheet ``render/MOTION/strip``."""
+    from torch.utils.tensorboard import SummaryWriter
+    with SummaryWriter(str(logdir)) as writer:
+        for k, frame in enumerate(frames):
+            writer.add_image(f"render/{motion}/frames", frame, k, dataformats="HWC")
+        writer.add_image(f"render/{motion}/strip", contact_sheet(frames), 0, dataformats="HWC")
 
 
 def _write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Path,

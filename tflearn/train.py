@@ -20,6 +20,8 @@ result:
                 (safeguarded Adam on the simulated path loss; one unit per step);
 5. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard.
 
+What the run shows and logs meanwhile (progress bars, TensorBoard) is :mod:`tflearn.log`.
+
 With ``solver.method: slsqp`` the single stage ``slsqp`` replaces 1–4: the thesis'
 baseline (:func:`tflearn.fit.slsqp.fit_slsqp`, torque matching only) with
 ``model.fields`` diagonal-stiffness fields from a seeded random guess — centres at
@@ -49,6 +51,7 @@ from .fit import search, slsqp, torque
 from .fit.targets import Targets, prepare
 from .io import basis as basis_io
 from .io.files import replacing, write_text
+from .log import RunLog
 from .metrics import Scores, score, summarize
 
 CHECKPOINT_FORMAT = "tflearn-checkpoint/2"
@@ -120,7 +123,8 @@ def _reference(scores: Scores, ok: list) -> dict:
 # ------------------------------------------------------------------------------ the run
 
 class Run:
-    """One training run: owns the config, the data, the logger and the checkpoint."""
+    """One training run: owns the config, the data, the log (:class:`~tflearn.log.RunLog`)
+    and the checkpoint."""
 
     def __init__(self, cfg: Config, stop_after: int | None = None, progress: bool | None = None):
         self.cfg = cfg
@@ -134,8 +138,7 @@ class Run:
         self.checkpoints = 0
         self.progress = cfg.log.progress if progress is None else progress
         self.ckpt_path = self.out / "checkpoint.pt"
-        self.writer = None
-        self.bar = None
+        self.log = RunLog(self.out, tensorboard=False, progress=False)
         self.stages = {"each": self._each, "pool": self._pool, "reduce": self._reduce,
                        "path": self._path, "slsqp": self._slsqp}
         self.sequence = SEQUENCES[cfg.solver.method]
@@ -147,48 +150,6 @@ class Run:
                     "with diagonal stiffness and fixed phases: it needs model.fields ≥ 1, "
                     f"model.stiffness=diag and model.phases=fixed (got {m.fields}, "
                     f"{m.stiffness!r}, {m.phases!r})")
-
-    # ---- logging
-    def _open_logs(self):
-        if self.cfg.log.tensorboard:
-            from torch.utils.tensorboard import SummaryWriter
-            self.writer = SummaryWriter(str(self.out / "tensorboard"))
-        if self.progress:
-            from tqdm import tqdm
-            self.bar = tqdm(total=None, unit="unit", dynamic_ncols=True)
-
-    def scalar(self, tag, value, step):
-        if self.writer:
-            self.writer.add_scalar(tag, float(value), step)
-
-    def status(self, stage, **values):
-        if self.bar is not None:
-            self.bar.set_description(stage)
-            self.bar.set_postfix({k: f"{v:.3g}" for k, v in values.items()})
-            self.bar.update(1)
-
-    def log_model(self, basis, weights, step):
-        if not self.writer or basis.M == 0:
-            return
-        self.writer.add_histogram("weights/a", weights.a.detach(), step)
-        self.writer.add_histogram("weights/b", weights.b.detach(), step)
-        self.writer.add_histogram("stiffness/eigenvalues",
-                                  torch.linalg.eigvalsh(basis.K().detach()).flatten(), step)
-        self.scalar("model/M", basis.M, step)
-
-    def log_scores(self, scores: Scores, tg: Targets, step, figures: bool = False):
-        for j, name in enumerate(tg.names):
-            self.scalar(f"rmse/{name}", scores.rmse[j], step)
-            self.scalar(f"tip/{name}", scores.tip[j], step)
-            self.scalar(f"torque_error/{name}", scores.torque[j], step)
-        if figures and self.writer:
-            from . import plots
-            for j, name in enumerate(tg.names):
-                k = int(tg.mask[j].sum())
-                fig = plots.motion_sheet(self.body, tg.t[j, :k],
-                                         {"target": tg.q[j, :k], "simulated": scores.q_sim[j, :k]},
-                                         title=name)
-                self.writer.add_figure(f"paths/{name}", fig, step)
 
     # ---- checkpoints
     def save(self, state: RunState):
@@ -229,18 +190,15 @@ class Run:
         if state is None:
             gen = torch.Generator().manual_seed(self.cfg.seed)
             state = RunState(config=self.cfg.model_dump(), stage=self.sequence[0], rng=gen.get_state())
-        elif self.progress:
-            print(f"resuming {self.out} at stage {state.stage} ({state.cursor})")
-        self._open_logs()
-        try:
+        self.log = RunLog(self.out, tensorboard=self.cfg.log.tensorboard, progress=self.progress,
+                          body=self.body, sequence=self.sequence)
+        if state.step or state.stage != self.sequence[0]:
+            self.log.message(f"resuming {self.out} at stage {state.stage} ({state.cursor})")
+        with self.log:
+            self.log.open(state.step)
             while state.stage != "done":
                 self.stages[state.stage](state, tg)
             return self.finish(state, tg)
-        finally:
-            if self.writer:
-                self.writer.close()
-            if self.bar is not None:
-                self.bar.close()
 
     def _gen(self, state: RunState) -> torch.Generator:
         gen = torch.Generator()
@@ -251,53 +209,80 @@ class Run:
         state.stage = self.sequence[self.sequence.index(state.stage) + 1]
         state.cursor = 0
 
-    def _check(self, basis, weights, tg: Targets, state: RunState, figures=False):
+    def _check(self, basis, weights, tg: Targets):
         scores = score(self.body, basis, weights, tg, self.options)
-        self.log_scores(scores, tg, state.step, figures)
         return scores, scores.succeeded(self.cfg.success.rmse, self.cfg.success.tip)
 
-    def _em(self, basis, weights, tg, state: RunState):
+    def _tick(self, state: RunState) -> int:
+        """The step of a new log entry (steps only grow, across a resumed run too)."""
+        state.step += 1
+        return state.step
+
+    def _em(self, basis, weights, tg, state: RunState, tag: str | None = None):
+        """EM refinement; ``tag``: log the summed torque cost at every step under it."""
         c = self.cfg.solver.em
 
         def cb(step, costs):
-            state.step += 1
-            self.scalar("torque/cost_total", costs.sum(), state.step)
+            self._tick(state)
+            cost = float(costs.sum())
+            if tag:
+                self.log.scalar(tag, cost, state.step)
+            self.log.busy(em_step=step + 1, cost=cost)
         return torque.em(basis, weights, tg, steps=c.steps, tol=c.tol,
                          phases=self.cfg.model.phases == "variable", callback=cb)
 
     def _each(self, state: RunState, tg: Targets):
         c, m = self.cfg.solver, self.cfg.model
         j = state.cursor
+        self.log.stage("each", tg.N, j)
         if j >= tg.N:
+            self.log.end_stage()
             return self._advance(state)
         gen = self._gen(state)
         one = tg.select([j])
+        self.log.busy(motion=tg.names[j])
+        checked = {}
+
+        def reproduced(b, w):
+            checked["last"] = (b, *self._check(b, w, one))
+            return all(checked["last"][2])
         b, w, costs = search.grow(one, m.stiffness, self.body.blocks, c.each.max_fields, c.each.tol,
                                   c.init.candidates, c.init.stiffness_grid, gen, c.em.steps,
                                   phases=m.phases == "variable", em_tol=c.em.tol,
-                                  reproduced=lambda b, w: all(self._check(b, w, one, state)[1]))
+                                  reproduced=reproduced)
         state.fits.append((b.eta.detach().clone(), b.K().detach().clone()))
         state.rng = gen.get_state()
-        state.step += 1
-        self.scalar(f"each/torque_cost/{tg.names[j]}", costs[0], state.step)
-        self.scalar(f"each/fields/{tg.names[j]}", b.M, state.step)
-        self.status("each", motion=j, M=b.M, cost=float(costs[0]))
+        step = self._tick(state)
+        last = checked.get("last")
+        if self.log.writer is not None:
+            scores = last[1] if last is not None and last[0] is b else self._check(b, w, one)[0]
+            self.log.scalar("torque_cost/each", costs[0], step)
+            self.log.scores(scores, one, step, figures=True, overview=False)
+            self.log.fields(sum(K.shape[0] for _, K in state.fits), step,
+                            torch.cat([K for _, K in state.fits]), w)
+        self.log.status(motion=tg.names[j], M=b.M, cost=float(costs[0]),
+                        reproduced=bool(last is not None and last[0] is b and all(last[2])))
         state.cursor = j + 1
         self.save(state)
 
     def _pool(self, state: RunState, tg: Targets):
         merge = self.cfg.solver.merge
+        self.log.stage("pool", 1)
         basis, weights = search.pool(tg, state.fits, self.cfg.model.stiffness, self.body.blocks)
         basis, weights, merged = search.merge_close(basis, weights, merge.distance, merge.stiffness)
         if merged or self.cfg.model.phases == "variable":   # pooled phases start at default
-            self._em(basis, weights, tg, state)
+            self._em(basis, weights, tg, state, tag="torque_cost/pool")
         cost = float(torque.solve_weights(basis, weights, tg).sum())
-        scores, ok = self._check(basis, weights, tg, state, figures=True)
-        self.log_model(basis, weights, state.step)
+        scores, ok = self._check(basis, weights, tg)
+        step = self._tick(state)
+        self.log.scalar("torque_cost/pool", cost, step)
+        self.log.scores(scores, tg, step, figures=True)
+        self.log.model(basis, weights, step)
         state.model = model_state(basis, weights)
         state.history["pool"] = {"M": basis.M, "merged": merged, "torque_cost": cost, "success": ok}
         state.reference = _reference(scores, ok)
-        self.status("pool", M=basis.M, cost=cost, ok=sum(ok))
+        self.log.status(M=basis.M, merged=len(merged), cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
+        self.log.end_stage()
         self._advance(state)
         self.save(state)
 
@@ -312,24 +297,40 @@ class Run:
             state.order = [int(i) for i in torch.argsort(shares)]
             state.ids = list(range(basis.M))
         k = state.cursor
-        if basis.M <= max(fixed, 1) or k >= len(state.order):
+        floor = max(fixed, 1)
+
+        def total(M):                        # fields to try: at most one per field, until M = floor
+            return min(len(state.order), k + max(M - floor, 0))
+        self.log.stage("reduce", total(basis.M), k)
+        if basis.M <= floor or k >= len(state.order):
+            self.log.end_stage()
             return self._advance(state)
         victim = state.order[k]
         state.cursor = k + 1
         pos = state.ids.index(victim)
         keep = [i for i in range(basis.M) if i != pos]
         nb, nw = basis.select(keep), weights.select_fields(keep)
-        self._em(nb, nw, tg, state)
+        self.log.busy(M=basis.M, trying=victim)
+        cost = self._em(nb, nw, tg, state)[-1]
         accept = True
         if not fixed:
-            scores, ok = self._check(nb, nw, tg, state)
+            scores, ok = self._check(nb, nw, tg)
             accept = no_worse(state.reference, scores, ok)
+        step = self._tick(state)
+        self.log.scalar("torque_cost/reduce", cost, step)
+        self.log.scalar("reduce/removed", float(accept), step)
         if accept:
             state.model = model_state(nb, nw)
             state.ids = [state.ids[i] for i in keep]
+            self.log.model(nb, nw, step)
             if not fixed:
                 state.reference = _reference(scores, ok)
-        self.status("reduce", M=len(state.ids), removed=float(accept))
+                self.log.scores(scores, tg, step)
+            else:
+                self.log.scalar("0_overview/torque_cost", cost, step)
+        k += 1
+        self.log.status(total=total(len(state.ids)), M=len(state.ids), field=victim,
+                        removed=bool(accept), cost=cost)
         state.history.setdefault("reduce", []).append(
             {"field": victim, "removed": bool(accept), "M_after": len(state.ids)})
         self.save(state)
@@ -337,29 +338,39 @@ class Run:
     def _path(self, state: RunState, tg: Targets):
         p = self.cfg.solver.path
         basis, weights = model_from_state(state.model)
-        if state.cursor == 0:
-            _, ok = self._check(basis, weights, tg, state)
+        self.log.stage("path", p.steps, state.cursor)
+        if state.cursor == 0:                # the model after reduce: logged with its figures
+            scores, ok = self._check(basis, weights, tg)
+            self.log.scores(scores, tg, self._tick(state), figures=True)
             state.path = {"needed": not all(ok), "lr": p.lr, "optimizer": None, "best": None}
+            if not state.path["needed"]:
+                self.log.status(advance=0, total=0, skipped="every motion reproduced")
         if not state.path["needed"] or state.cursor >= p.steps:
+            self.log.end_stage()
             return self._advance(state)
+        self.log.busy(step=state.cursor + 1)
         res = path_fit.path_step(self.body, basis, weights, tg, lr=state.path["lr"],
                                  best=state.path["best"], optimizer_state=state.path["optimizer"],
                                  velocity_weight=p.velocity_weight,
                                  phases=self.cfg.model.phases == "variable", options=self.options)
         if res.best is None:                 # the simulation fails at the starting point
             state.history["path"] = res.failure
-            self.status("path", failed=1.0)
+            self.log.status(advance=0, failed="the simulation fails at the start")
+            self.log.end_stage()
             return self._advance(state)
         state.path.update(lr=res.lr, best=res.best, optimizer=res.optimizer)
         state.model = model_state(basis, weights)
-        state.step += 1
-        self.scalar("path/loss", res.loss, state.step)
-        self.status("path", loss=res.loss, lr=res.lr)
+        step = self._tick(state)
+        self.log.scalar("path/loss", res.loss, step)
+        self.log.scalar("path/lr", res.lr, step)
+        self.log.model(basis, weights, step)
+        self.log.status(loss=res.loss, lr=res.lr)
         state.cursor += 1
         self.save(state)
 
     def _slsqp(self, state: RunState, tg: Targets):
         gen = self._gen(state)
+        self.log.stage("slsqp", self.cfg.solver.slsqp.max_iter)
         M, n = self.cfg.model.fields, tg.q.shape[-1]
         flat = tg.q[tg.mask]
         eta = flat[torch.randint(len(flat), (M,), generator=gen)]
@@ -368,10 +379,11 @@ class Run:
         torque.solve_weights(basis, weights, tg)
 
         def cb(nit, cost):
-            state.step += 1
-            self.scalar("torque/cost_total", cost, state.step)
-            self.status("slsqp", iteration=nit, cost=cost)
+            self.log.scalar("torque_cost/slsqp", cost, self._tick(state))
+            self.log.status(cost=cost)
         res = slsqp.fit_slsqp(basis, weights, tg, max_iter=self.cfg.solver.slsqp.max_iter, callback=cb)
+        self.log.end_stage()
+        self.log.model(res["basis"], res["weights"], self._tick(state))
         state.model = model_state(res["basis"], res["weights"])
         state.history["slsqp"] = {k: res[k] for k in ("initial_cost", "cost", "nit", "nfev",
                                                        "message", "wall_time")}
@@ -387,7 +399,10 @@ class Run:
 
     def finish(self, state: RunState, tg: Targets) -> dict:
         basis, weights = self.final_model(state)
-        scores, ok = self._check(basis, weights, tg, state, figures=True)
+        scores, ok = self._check(basis, weights, tg)
+        step = self._tick(state)
+        self.log.scores(scores, tg, step, figures=True)
+        self.log.model(basis, weights, step)
         lb = basis_io.LearnedBasis(self.body, basis, weights, tg.q0, tg.qd0, tg.rate)
         metrics = summarize(scores, ok, tg, basis.M, state.elapsed + time.time() - self._t0)
         for name, eps in zip(tg.names, self.resolution):
@@ -397,13 +412,9 @@ class Run:
         config_mod.dump(self.cfg, self.out / "config.yaml")
         write_text(self.out / "metrics.json", json.dumps(metrics, indent=1))
         basis_io.save(lb, self.out / "basis.json")
-        if self.writer:
-            hp = {"seed": self.cfg.seed, "stiffness": self.cfg.model.stiffness,
-                  "phases": self.cfg.model.phases, "data": str(self.cfg.data)}
-            self.writer.add_hparams(hp, {"hparam/M": basis.M,
-                                         "hparam/rmse": metrics["overall"]["rmse"],
-                                         "hparam/tip": metrics["overall"]["tip"],
-                                         "hparam/success": float(all(ok))})
+        self.log.hparams({"seed": self.cfg.seed, "method": self.cfg.solver.method,
+                          "stiffness": self.cfg.model.stiffness, "phases": self.cfg.model.phases,
+                          "fields": self.cfg.model.fields, "data": str(self.cfg.data)}, metrics)
         state.stage = "done"
         with replacing(self.ckpt_path) as tmp:
             torch.save(state.to_dict(), tmp)

@@ -1,0 +1,276 @@
+"""What a training run shows while it works and writes for TensorBoard: :class:`RunLog`,
+and :func:`summary_table`, the table of results printed at the end.
+
+The progress display is one tqdm bar per stage, on stderr: the stage, how far it is
+out of how many units (``each``: motions; ``reduce``: fields to try; ``path``:
+``solver.path.steps``; ``slsqp``: ``solver.slsqp.max_iter``), elapsed time and ETA, and
+the quantities that matter at that stage. ``log.progress: false`` turns it off.
+
+TensorBoard (``log.tensorboard``, OUT/tensorboard, one run) — the tag layout:
+
+* ``0_overview/``  the current shared model, logged at every change: ``M`` (fields;
+  during ``each`` the fields found so far), and once the model is simulated,
+  ``rmse_rad`` (over all samples of all motions), ``worst_tip_cm`` and ``torque_cost``
+  (Σ_j C_j, the summed relative torque cost);
+* ``model/M``      the same M (kept for scripts reading it);
+* ``torque_cost/STAGE``  one curve per stage: ``each`` (the cost of each motion's own
+  fit), ``pool`` (EM steps after pooling), ``reduce`` (each trial's cost after EM),
+  ``slsqp`` (iterations); ``path/loss`` and ``path/lr`` per path-matching step;
+  ``reduce/removed`` (1 when the field tried went);
+* ``motion/NAME/`` ``rmse_rad``, ``tip_cm``, ``torque_error_pct`` of motion NAME under
+  the current model (its own fit during ``each``);
+* histograms ``weights/a``, ``weights/b``, ``stiffness/eigenvalues`` at every model
+  change; figures ``paths/NAME`` (target and simulated path) at the stage ends;
+* hyper-parameters (seed, model, data) with the final ``0_overview`` metrics in the
+  same run (TensorBoard's HPARAMS tab).
+
+Steps are :attr:`tflearn.train.RunState.step`, saved in the checkpoint, so that a
+resumed run continues its curves; events written after the last checkpoint of an
+interrupted run are purged on resuming.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+from .metrics import Scores
+
+BAR_FORMAT = ("{desc}: {percentage:3.0f}%|{bar:24}| {n_fmt}/{total_fmt} {unit} "
+              "[{elapsed}<{remaining}{postfix}]")
+
+# stage → (what the bar says, unit of work)
+STAGES = {"each": ("each motion alone", "motions"),
+          "pool": ("pool and merge", "stage"),
+          "reduce": ("reduce: try dropping fields", "fields"),
+          "path": ("path matching", "steps"),
+          "slsqp": ("slsqp", "iterations")}
+
+
+def _fmt(value) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.3g}"
+    return str(value)
+
+
+def overall_rmse(scores: Scores, tg) -> float:
+    """The joint RMSE over all samples of all motions (as metrics.json's overall rmse)."""
+    counts = tg.mask.sum(-1).tolist()
+    return math.sqrt(sum(r * r * c for r, c in zip(scores.rmse, counts)) / sum(counts))
+
+
+class RunLog:
+    """The progress display and the TensorBoard writer of one training run.
+
+    ``out``: the run folder (events go to OUT/tensorboard); ``tensorboard``, ``progress``:
+    ``log.tensorboard``, ``log.progress``; ``body``: for the path figures;
+    ``sequence``: the run's stages (for the "[i/n]" of the bar)."""
+
+    def __init__(self, out, tensorboard: bool, progress: bool, body=None,
+                 sequence=("each", "pool", "reduce", "path", "done")):
+        self.out = Path(out)
+        self.tensorboard = tensorboard
+        self.progress = progress
+        self.body = body
+        self.stages = [s for s in sequence if s != "done"]
+        self.writer = None
+        self.bar = None
+        self._stage = None
+        self._drawn = 0.0
+        self._showwarning = None
+
+    # ---- lifetime
+    def open(self, step: int = 0) -> None:
+        """Open the writer; ``step``: the last step of a resumed run's checkpoint (events
+        at later steps, written after that checkpoint, are purged)."""
+        if self.progress and self._showwarning is None:     # warnings above the bar, not through it
+            self._showwarning = warnings.showwarning
+            warnings.showwarning = self._warning
+        if self.tensorboard and self.writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+            self.writer = SummaryWriter(str(self.out / "tensorboard"),
+                                        purge_step=step + 1 if step > 0 else None)
+
+    def _warning(self, message, category, filename, lineno, file=None, line=None):
+        from tqdm import tqdm
+        tqdm.write(warnings.formatwarning(message, category, filename, lineno, line).rstrip(),
+                   file=sys.stderr)
+
+    def close(self) -> None:
+        self.end_stage(finished=False)
+        if self._showwarning is not None:
+            warnings.showwarning = self._showwarning
+            self._showwarning = None
+        if self.writer is not None:
+            self.writer.close()
+            self.writer = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def message(self, text: str) -> None:
+        """A line for the user (only with progress), without breaking the bar."""
+        if self.progress:
+            from tqdm import tqdm
+            tqdm.write(text, file=sys.stderr)
+
+    # ---- progress
+    def stage(self, name: str, total: Optional[int], done: int = 0) -> None:
+        """Start the bar of stage ``name`` (unless it is already showing): ``total``
+        units, ``done`` of them already done (a resumed run)."""
+        if not self.progress or self._stage == name:
+            return
+        self.end_stage()
+        from tqdm import tqdm
+        label, unit = STAGES.get(name, (name, "units"))
+        i = self.stages.index(name) + 1 if name in self.stages else 0
+        desc = f"[{i}/{len(self.stages)}] {label}" if i else label
+        self.bar = tqdm(total=total, initial=done, desc=desc, unit=unit, bar_format=BAR_FORMAT,
+                        dynamic_ncols=True, file=sys.stderr, leave=True)
+        self._stage = name
+
+    def status(self, advance: int = 1, total: Optional[int] = None, **values) -> None:
+        """Advance the bar by ``advance`` units and show ``values`` (name=value)."""
+        if self.bar is None:
+            return
+        if total is not None and total != self.bar.total:
+            self.bar.total = total
+        self.bar.set_postfix_str(", ".join(f"{k}={_fmt(v)}" for k, v in values.items()),
+                                 refresh=False)
+        self.bar.update(advance)
+        if not advance:
+            self.bar.refresh()
+
+    def busy(self, **values) -> None:
+        """Show ``values`` while a unit is under way (EM steps, the motion being fitted),
+        redrawing at most twice a second."""
+        if self.bar is None:
+            return
+        now = time.monotonic()
+        if now - self._drawn >= 0.5:
+            self.bar.set_postfix_str(", ".join(f"{k}={_fmt(v)}" for k, v in values.items()),
+                                     refresh=True)
+            self._drawn = now
+
+    def end_stage(self, finished: bool = True) -> None:
+        """Close the current bar; a stage ``finished`` before its total (reduce stops
+        at M = 1, path matching when nothing is left to do) shows what it did."""
+        if self.bar is not None:
+            if finished and self.bar.total is not None and self.bar.n < self.bar.total:
+                self.bar.total = self.bar.n
+            self.bar.refresh()
+            self.bar.close()
+        self.bar = None
+        self._stage = None
+
+    # ---- TensorBoard
+    def scalar(self, tag: str, value, step: int) -> None:
+        if self.writer is not None:
+            self.writer.add_scalar(tag, float(value), step)
+
+    def fields(self, M: int, step: int, K: Optional[torch.Tensor] = None, weights=None) -> None:
+        """A model change: M, and histograms of the stiffness eigenvalues (of K,
+        M×n×n) and of the weights (a MotionWeights)."""
+        if self.writer is None:
+            return
+        self.scalar("0_overview/M", M, step)
+        self.scalar("model/M", M, step)
+        if K is not None and len(K):
+            self.writer.add_histogram("stiffness/eigenvalues",
+                                      torch.linalg.eigvalsh(K.detach()).flatten(), step)
+        if weights is not None and weights.a.numel():
+            self.writer.add_histogram("weights/a", weights.a.detach().flatten(), step)
+            self.writer.add_histogram("weights/b", weights.b.detach().flatten(), step)
+
+    def model(self, basis, weights, step: int) -> None:
+        """A change of the shared model (basis, weights)."""
+        self.fields(basis.M, step, basis.K() if basis.M else None, weights)
+
+    def scores(self, scores: Scores, tg, step: int, figures: bool = False,
+               overview: bool = True) -> None:
+        """Per-motion scores (``motion/NAME/...``), with ``overview`` the headline
+        ``0_overview/`` scalars of the whole model, with ``figures`` the paths."""
+        if self.writer is None:
+            return
+        for j, name in enumerate(tg.names):
+            self.scalar(f"motion/{name}/rmse_rad", scores.rmse[j], step)
+            self.scalar(f"motion/{name}/tip_cm", 100 * scores.tip[j], step)
+            self.scalar(f"motion/{name}/torque_error_pct", 100 * scores.torque[j], step)
+        if overview:
+            self.scalar("0_overview/rmse_rad", overall_rmse(scores, tg), step)
+            self.scalar("0_overview/worst_tip_cm", 100 * max(scores.tip), step)
+            self.scalar("0_overview/torque_cost", sum(t * t for t in scores.torque), step)
+        if figures:
+            from . import plots
+            for j, name in enumerate(tg.names):
+                k = int(tg.mask[j].sum())
+                fig = plots.motion_sheet(self.body, tg.t[j, :k],
+                                         {"target": tg.q[j, :k], "simulated": scores.q_sim[j, :k]},
+                                         title=name)
+                self.writer.add_figure(f"paths/{name}", fig, step)
+
+    def hparams(self, hp: dict, metrics: dict) -> None:
+        """Hyper-parameters ``hp`` with the final metrics (metrics.json's dict) in the
+        same run: the HPARAMS tab reads the ``0_overview/`` scalars written here."""
+        if self.writer is None:
+            return
+        from torch.utils.tensorboard.summary import hparams
+        overall = metrics["overall"]
+        final = {"0_overview/M": overall["M"], "0_overview/rmse_rad": overall["rmse"],
+                 "0_overview/worst_tip_cm": 100 * overall["tip"],
+                 "0_overview/torque_cost": sum(m["torque_rel_rms"] ** 2
+                                               for m in metrics["motions"].values())}
+        exp, ssi, sei = hparams(hp, final)
+        for summary in (exp, ssi, sei):
+            self.writer.file_writer.add_summary(summary)
+        self.writer.flush()
+
+
+# ------------------------------------------------------------------ the summary
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    h, rest = divmod(seconds, 3600)
+    m, s = divmod(rest, 60)
+    return f"{h}h{m:02d}m{s:02d}s" if h else f"{m}m{s:02d}s" if m else f"{s}s"
+
+
+def summary_table(metrics: dict, out=None) -> str:
+    """The results of a run as a table (metrics.json's dict): per motion joint RMSE
+    (rad), maximum tip error (cm), relative RMS torque error (%) and whether it was
+    reproduced; then M, the overall figures, the wall time and, given ``out`` (the run
+    folder), where the artefacts were written. No trailing newline."""
+    rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "reproduced")]
+    for name, m in metrics["motions"].items():
+        ok = "yes" if m["success"] else ("no: simulation failed" if m.get("failure") else "no")
+        rows.append((name, f"{m['rmse']:.4f}", f"{100 * m['tip']:.2f}",
+                     f"{100 * m['torque_rel_rms']:.2f}", ok))
+    o = metrics["overall"]
+    n_ok = sum(bool(m["success"]) for m in metrics["motions"].values())
+    rows.append(("overall", f"{o['rmse']:.4f}", f"{100 * o['tip']:.2f}",
+                 f"{100 * o['torque_rel_rms']:.2f}", f"{n_ok}/{len(metrics['motions'])}"))
+    width = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+
+    def line(r):
+        return "  ".join([r[0].ljust(width[0])] + [c.rjust(w) for c, w in zip(r[1:4], width[1:4])]
+                         + [r[4]]).rstrip()
+    rule = "-" * len(line(rows[0]))
+    lines = [line(rows[0]), rule, *map(line, rows[1:-1]), rule, line(rows[-1]), ""]
+    verdict = "every motion reproduced" if o["success"] else "not all motions reproduced"
+    lines.append(f"M = {o['M']} fields, {verdict}, wall time {_duration(o['wall_time_s'])}")
+    if out is not None:
+        lines.append(f"artefacts in {out}: basis.json, metrics.json, config.yaml, figures/"
+                     + (", tensorboard/" if (Path(out) / "tensorboard").is_dir() else ""))
+    return "\n".join(lines)
