@@ -79,14 +79,11 @@ def _train(args) -> int:
     import torch
 
     from . import train
+    from .log import summary_table
     torch.set_num_threads(args.threads)
     metrics = train.run(cfg, restart=args.restart)
-    overall = metrics["overall"]
-    print("\n".join(_motion_lines(metrics["motions"])))
-    print(f"M = {overall['M']}, overall rmse {overall['rmse']:.4f} rad, max tip error "
-          f"{100 * overall['tip']:.2f} cm, {overall['wall_time_s']:.0f} s")
-    print(f"wrote basis.json, metrics.json, config.yaml, checkpoint.pt and figures/ to {cfg.out}")
-    return 0 if overall["success"] else 1
+    print(summary_table(metrics, cfg.out))
+    return 0 if metrics["overall"]["success"] else 1
 
 
 def _evaluate(args) -> int:
@@ -192,7 +189,7 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="output .gif (default RUN/figures/MOTION.gif)")
     p.add_argument("--fps", type=_positive_int, default=25, help="frames per second (default 25)")
     p.add_argument("--no-tensorboard", action="store_true",
-                   help="do not log the animation to RUN/tensorboard")
+                   help="do not log the animation's frames (images) to RUN/tensorboard")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_render)
 
