@@ -221,3 +221,19 @@ def test_goal_lines_read_as_goal_measured_verdict():
         {"rows": [{"method": "pipeline", "rmse": [0.01, 0.02]}]}))
     assert line == ("- goal: pipeline: every motion with joint RMSE ≤ 0.05 rad; measured: 2 of 2 "
                     "motions within it, the worst at 0.020 rad — met")
+
+
+def test_config_names_the_gesture_library_and_needs_no_torch():
+    """The experiment config checks gesture names against the library without importing
+    torch (so a bad config is refused at once)."""
+    import subprocess
+    import sys
+
+    from tflearn import gestures
+    from tflearn.experiments import config as exp_config
+    assert exp_config.GESTURES == tuple(gestures.GESTURES)
+    code = ("import sys; from tflearn.experiments import load_config; "
+            "load_config('configs/experiments/basin.yaml'); print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=ROOT)
+    assert out.stdout.strip() == "False"

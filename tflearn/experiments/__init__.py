@@ -13,25 +13,31 @@ the report: :mod:`.report`, its words in text.yaml.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import time
 from pathlib import Path
 
 from ..config import dump
 from ..io.files import write_text
-from . import basin, common, filtering, keyframes, shared
-from . import report as report_mod
-from .config import ExperimentConfig, load_config
-
-EXPERIMENTS = {"basin": basin, "shared": shared, "keyframes": keyframes, "filtering": filtering}
+from .config import NAMES, ExperimentConfig, load_config
 
 __all__ = ["EXPERIMENTS", "ExperimentConfig", "load_config", "run", "report", "text_summary"]
+
+
+def __getattr__(name):
+    """``EXPERIMENTS``, the registry name → module, imported on first use (so that a
+    config is checked before torch is imported)."""
+    if name == "EXPERIMENTS":
+        return {n: importlib.import_module(f"{__name__}.{n}") for n in NAMES}
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def run(cfg: ExperimentConfig) -> dict:
     """Run an experiment end to end: OUT/config.yaml, OUT/results.json, OUT/figures/*.png,
     OUT/tensorboard; returns results.json's content."""
-    experiment, out = EXPERIMENTS[cfg.experiment], Path(cfg.out)
+    from . import common
+    experiment, out = __getattr__("EXPERIMENTS")[cfg.experiment], Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     dump(cfg, out / "config.yaml")
     t0 = time.perf_counter()
@@ -47,9 +53,11 @@ def run(cfg: ExperimentConfig) -> dict:
 
 def text_summary(result: dict) -> str:
     """Markdown tables of an experiment's outcome and cost, and its goals."""
-    return report_mod.outcome(EXPERIMENTS[result["experiment"]], result)
+    from . import report as report_mod
+    return report_mod.outcome(__getattr__("EXPERIMENTS")[result["experiment"]], result)
 
 
 def report(runs="runs/experiments", out="docs/results.md") -> Path:
     """docs/results.md from the experiments' results under ``runs`` (:mod:`.report`)."""
-    return report_mod.report(EXPERIMENTS, runs, out)
+    from . import report as report_mod
+    return report_mod.report(__getattr__("EXPERIMENTS"), runs, out)

@@ -25,10 +25,11 @@ from ..config import (
     read,
     validate,
 )
-from ..gestures import GESTURES
-from ..simulate import SimOptions
 
 NAMES = ("basin", "shared", "keyframes", "filtering")
+#: The gesture library's names (``tflearn.gestures.GESTURES``, checked by a test), here so
+#: that a config is validated without importing torch.
+GESTURES = ("come_here", "stiff_elbow_lift", "tuck", "planar_line", "backwards_reach")
 METHODS = ("slsqp", "local", "pipeline")
 _QUIET = {"log": {"tensorboard": False, "progress": False}}
 
@@ -61,8 +62,9 @@ class SimulationSection(Section):
     atol: float = Field(1e-8, ge=0)
     max_evals: int = Field(15000, ge=1)
 
-    def options(self) -> SimOptions:
+    def options(self):
         """These settings as :class:`tflearn.simulate.SimOptions`."""
+        from ..simulate import SimOptions
         return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
                           max_evals=self.max_evals)
 
