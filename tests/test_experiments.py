@@ -200,7 +200,7 @@ def test_goal_lines_read_as_goal_measured_verdict():
     """Each goal reads "goal: X; measured: Y — met / not met", with no inequality that
     contradicts its verdict (docs/results.md)."""
     from tflearn.experiments import basin, keyframes, shared
-    from tflearn.experiments.report import goal_line
+    from tflearn.experiments.reporting import goal_line
     result = {"summary": {"r90": {"come_here": {"local": 3.0}, "tuck": {"local": 0.0}},
                           "rates": {"come_here": {"local": {"r": [1.0, 3.0, 4.0], "rate": [1, 1, 0.5]},
                                                   "pipeline": {"r": [1.0], "rate": [1.0]}},

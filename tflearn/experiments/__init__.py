@@ -9,7 +9,7 @@
 (markdown), ``goals(result)`` → [(goal, measured, met)] (the report's "goal: …; measured: … —
 (not) met" lines) and ``thesis()`` (the thesis' outcome).
 Configs: :mod:`.config`; shared services (guesses, methods, the case runner): :mod:`.common`;
-the report: :mod:`.report`, its words in text.yaml.
+the report: :mod:`.reporting`, its words in text.yaml.
 """
 from __future__ import annotations
 
@@ -25,18 +25,23 @@ from .config import NAMES, ExperimentConfig, load_config
 __all__ = ["EXPERIMENTS", "ExperimentConfig", "load_config", "run", "report", "text_summary"]
 
 
+def _module(name: str):
+    """A submodule, imported on first use."""
+    return importlib.import_module(f"{__name__}.{name}")
+
+
 def __getattr__(name):
     """``EXPERIMENTS``, the registry name → module, imported on first use (so that a
     config is checked before torch is imported)."""
     if name == "EXPERIMENTS":
-        return {n: importlib.import_module(f"{__name__}.{n}") for n in NAMES}
+        return {n: _module(n) for n in NAMES}
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def run(cfg: ExperimentConfig) -> dict:
     """Run an experiment end to end: OUT/config.yaml, OUT/results.json, OUT/figures/*.png,
     OUT/tensorboard; returns results.json's content."""
-    from . import common
+    common = _module("common")
     experiment, out = __getattr__("EXPERIMENTS")[cfg.experiment], Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     dump(cfg, out / "config.yaml")
@@ -53,11 +58,9 @@ def run(cfg: ExperimentConfig) -> dict:
 
 def text_summary(result: dict) -> str:
     """Markdown tables of an experiment's outcome and cost, and its goals."""
-    from . import report as report_mod
-    return report_mod.outcome(__getattr__("EXPERIMENTS")[result["experiment"]], result)
+    return _module("reporting").outcome(__getattr__("EXPERIMENTS")[result["experiment"]], result)
 
 
 def report(runs="runs/experiments", out="docs/results.md") -> Path:
-    """docs/results.md from the experiments' results under ``runs`` (:mod:`.report`)."""
-    from . import report as report_mod
-    return report_mod.report(__getattr__("EXPERIMENTS"), runs, out)
+    """docs/results.md from the experiments' results under ``runs`` (:mod:`.reporting`)."""
+    return _module("reporting").report(__getattr__("EXPERIMENTS"), runs, out)
