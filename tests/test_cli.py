@@ -82,7 +82,8 @@ def test_simulate_errors(tmp_path, capsys):
     assert cli.main(["simulate", str(tmp_path / "tuck.json"), "--motion", "wave",
                      "--out", str(tmp_path / "x.npz")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("tflearn: no motion named 'wave'") and len(err.strip().splitlines()) == 1
+    assert err.startswith(f"tflearn: {tmp_path / 'tuck.json'}: no motion named 'wave'")
+    assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "x.npz").exists()
     (tmp_path / "bad.json").write_text("{}")
     assert cli.main(["simulate", str(tmp_path / "bad.json"), "--motion", "tuck",

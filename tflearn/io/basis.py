@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -61,7 +62,8 @@ class BasisFileError(InputError):
 class LearnedBasis:
     """Everything a basis.json holds, as tflearn objects.
 
-    body; basis (M fields); weights (N motions); q0, qd0 (N×nv); rate (N)."""
+    body; basis (M fields); weights (N motions); q0, qd0 (N×nv); rate (N); source: the
+    file it was read from, if any (named in errors)."""
 
     body: Body
     basis: FieldBasis
@@ -69,6 +71,7 @@ class LearnedBasis:
     q0: torch.Tensor
     qd0: torch.Tensor
     rate: torch.Tensor
+    source: Optional[str] = None
 
     @property
     def names(self) -> list:
@@ -78,7 +81,7 @@ class LearnedBasis:
         try:
             return self.names.index(name)
         except ValueError:
-            raise UnknownMotionError(f"no motion named {name!r} in the basis "
+            raise UnknownMotionError(f"{self.source or 'basis'}: no motion named {name!r} "
                                      f"(it has {', '.join(self.names)})") from None
 
 
@@ -251,4 +254,6 @@ def load(path, kind: str = "full") -> LearnedBasis:
         raise BasisFileError(f"{path}: cannot read ({err.strerror or err})") from None
     except (ValueError, RecursionError) as err:     # JSONDecodeError, UnicodeDecodeError
         raise BasisFileError(f"{path}: not JSON ({err})") from None
-    return from_dict(doc, kind=kind, where=str(path))
+    lb = from_dict(doc, kind=kind, where=str(path))
+    lb.source = str(path)
+    return lb
