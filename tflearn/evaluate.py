@@ -3,7 +3,6 @@ a frozen basis, and play one motion's program from a ``basis.json``."""
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import torch
@@ -17,7 +16,7 @@ from .fit.targets import Targets, prepare
 from .fit.torque import solve_weights
 from .io import basis as basis_io
 from .io.files import write_text
-from .metrics import UNITS, score, summarize
+from .metrics import UNITS, pooled_rmse, score, summarize
 from .motion import Motion
 from .motion import save as save_motion
 from .simulate import SimOptions, simulate
@@ -82,8 +81,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
             results[name] = row
             counts[name] = int(tg.mask[j].sum())
     # Over all samples of all motions, as in metrics.json.
-    n = sum(counts.values())
-    overall = {"rmse": math.sqrt(sum(r["rmse"] ** 2 * counts[k] for k, r in results.items()) / n),
+    overall = {"rmse": pooled_rmse([r["rmse"] for r in results.values()], list(counts.values())),
                "tip": max(r["tip"] for r in results.values()),
                "success": all(r["success"] for r in results.values()), "M": lb.basis.M}
     doc = {"motions": results, "overall": overall, "units": dict(UNITS)}

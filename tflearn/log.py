@@ -30,7 +30,6 @@ interrupted run are purged on resuming.
 """
 from __future__ import annotations
 
-import math
 import sys
 import time
 import warnings
@@ -39,7 +38,7 @@ from typing import Optional
 
 import torch
 
-from .metrics import Scores
+from .metrics import Scores, pooled_rmse
 
 BAR_FORMAT = ("{desc}: {percentage:3.0f}%|{bar:24}| {n_fmt}/{total_fmt} {unit} "
               "[{elapsed}<{remaining}{postfix}]")
@@ -60,12 +59,6 @@ def _fmt(value) -> str:
     if isinstance(value, float):
         return f"{value:.3g}"
     return str(value)
-
-
-def overall_rmse(scores: Scores, tg) -> float:
-    """The joint RMSE over all samples of all motions (as metrics.json's overall rmse)."""
-    counts = tg.mask.sum(-1).tolist()
-    return math.sqrt(sum(r * r * c for r, c in zip(scores.rmse, counts)) / sum(counts))
 
 
 class RunLog:
@@ -209,7 +202,7 @@ class RunLog:
             self.scalar(f"motion/{name}/tip_cm", 100 * scores.tip[j], step)
             self.scalar(f"motion/{name}/torque_error_pct", 100 * scores.torque[j], step)
         if overview:
-            self.scalar("0_overview/rmse_rad", overall_rmse(scores, tg), step)
+            self.scalar("0_overview/rmse_rad", pooled_rmse(scores.rmse, tg.mask.sum(-1).tolist()), step)
             self.scalar("0_overview/worst_tip_cm", 100 * max(scores.tip), step)
             self.scalar("0_overview/torque_cost", sum(t * t for t in scores.torque), step)
         if figures:

@@ -93,6 +93,12 @@ UNITS = {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torqu
          "wall_time_s": "s", "torque_resolution": "fraction"}
 
 
+def pooled_rmse(rmse: list, counts: list) -> float:
+    """The joint RMSE over all samples of all motions, sqrt(Σ_j T_j rmse_j² / Σ_j T_j),
+    from each motion's RMSE and its number of samples T_j (metrics.json's overall rmse)."""
+    return math.sqrt(sum(r * r * c for r, c in zip(rmse, counts)) / sum(counts))
+
+
 def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float) -> dict:
     """metrics.json's content: per motion and overall joint RMSE (rad), maximum tip error
     (m), relative RMS torque error, success, and the failure of a failed simulation, and
@@ -104,10 +110,8 @@ def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float) -> dic
                      "torque_rel_rms": scores.torque[j], "success": ok[j]}
         if scores.failure[j]:
             per[name]["failure"] = scores.failure[j]
-    counts = tg.mask.sum(-1).tolist()
-    overall_rmse = math.sqrt(sum(r * r * c for r, c in zip(scores.rmse, counts)) / sum(counts))
     return {"motions": per,
-            "overall": {"rmse": overall_rmse, "tip": max(scores.tip),
+            "overall": {"rmse": pooled_rmse(scores.rmse, tg.mask.sum(-1).tolist()), "tip": max(scores.tip),
                         "torque_rel_rms": max(scores.torque), "success": all(ok),
                         "M": M, "wall_time_s": wall},
             "units": dict(UNITS)}

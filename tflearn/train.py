@@ -129,10 +129,7 @@ class Run:
     def __init__(self, cfg: Config, stop_after: int | None = None, progress: bool | None = None):
         self.cfg = cfg
         self.out = Path(cfg.out)
-        try:
-            self.body = from_config(cfg.body)
-        except ValueError as err:
-            raise ConfigError(f"config key 'body': {err}") from None
+        self.body = from_config(cfg.body)          # checked when the config was validated
         self.options = cfg.solver.path.options()
         self.stop_after = stop_after
         self.checkpoints = 0
