@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
+import roma
 import torch
 from torch.autograd import gradcheck
 
@@ -277,3 +278,74 @@ def test_gradient_at_zero_rotation_is_the_small_angle_limit(grad_body):
     for k in range(3):
         w = R0[:, k]  # a child-frame unit rate about axis k, seen in the world
         assert torch.allclose(J[:, k], torch.linalg.cross(w, tip), atol=1e-12, rtol=0)
+
+
+def _pin_joint_of(body, link: int) -> int:
+    """Pinocchio joint id carrying a link (a fixed link rides on its parent's joint)."""
+    ids, jid = [], 0
+    for l in body.links:
+        if l.joint != "fixed":
+            jid += 1
+            ids.append(jid)
+        else:
+            ids.append(ids[l.parent] if l.parent >= 0 else 0)
+    return ids[link]
+
+
+@pytest.mark.parametrize("name", BODY_NAMES)
+def test_point_jacobian_transpose_is_pinocchio_external_force(name, rng):
+    """τ = Jᵀ(f, m) for a wrench at a point equals what Pinocchio's RNEA subtracts for that
+    external force (given on the carrying joint, in its local frame)."""
+    body = make_body(name, GRAVITY)
+    model = to_pin(body)
+    data = model.createData()
+    q = random_coords(body, rng, 8)
+    link = len(body.links) - 1
+    point = rng.normal(size=3) * 0.1
+    J = D.point_jacobian(body, _t(q), link, point).numpy()
+    x = D.forward_kinematics_rot(body, D.joint_rotations(body, _t(q)), _t(q))
+    Rw, pos = x[0][link].numpy(), x[1][..., link, :].numpy()
+    err = 0.0
+    for k in range(len(q)):
+        f, m = rng.normal(size=3), rng.normal(size=3)
+        p = pos[k] + Rw[k] @ point
+        qp, zero = q_to_pin(body, q[k]), np.zeros(body.nv)
+        pin.forwardKinematics(model, data, qp)
+        jid = _pin_joint_of(body, link)
+        oMi = data.oMi[jid]
+        fext = [pin.Force.Zero() for _ in range(model.njoints)]
+        Rt = oMi.rotation.T
+        fext[jid] = pin.Force(Rt @ f, Rt @ (m + np.cross(p - oMi.translation, f)))
+        ref = (pin.rnea(model, data, qp, zero, zero)
+               - pin.rnea(model, data, qp, zero, zero, pin.StdVec_Force(fext)))
+        err = max(err, max_rel_err(J[k].T @ np.concatenate([f, m]), ref))
+    assert err < TOL
+
+
+def test_point_jacobian_maps_velocity_to_point_velocity(rng):
+    """J v is the time derivative of the point's world position (central differences along
+    q(t) with each ball joint turning as R exp([v t]×))."""
+    body = make_body("arm_offsets")
+    q = _t(random_coords(body, rng, 6)[1:])
+    v = _t(rng.normal(size=q.shape))
+    point = (0.02, -0.03, -0.1)
+    h = 1e-6
+
+    def moved(s):
+        parts = []
+        for i, link in enumerate(body.links):
+            sl = body.slice(i)
+            if link.joint == "ball":
+                R = rotvec_to_rotmat(q[..., sl]) @ rotvec_to_rotmat(s * v[..., sl])
+                parts.append(roma.rotmat_to_rotvec(R))
+            else:
+                parts.append(q[..., sl] + s * v[..., sl])
+        return torch.cat(parts, -1)
+
+    def point_at(qq):
+        Rw, x = D.forward_kinematics_rot(body, D.joint_rotations(body, qq), qq)
+        return x[..., 1, :] + (Rw[1] @ _t(point).expand(x.shape[:-2] + (3,)).unsqueeze(-1)).squeeze(-1)
+
+    fd = (point_at(moved(h)) - point_at(moved(-h))) / (2 * h)
+    J = D.point_jacobian(body, q, 1, point)
+    assert torch.allclose((J[..., :3, :] @ v.unsqueeze(-1)).squeeze(-1), fd, atol=1e-7)

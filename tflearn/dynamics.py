@@ -13,6 +13,8 @@ Spatial quantities are kept as (angular, linear) pairs of 3-vectors in each link
 * :func:`bias_forces` — h(q, v) = τ(q, v, 0) (Coriolis, centrifugal, gravity),
 * :func:`forward_dynamics` — a = M⁻¹(τ − h) by a Cholesky solve,
 * :func:`forward_kinematics` — world rotations and joint positions, hand tip last,
+* :func:`point_jacobian` — the world-aligned Jacobian of a point on a link (for
+  external forces: τ = Jᵀ (f, m)),
 * :func:`kinetic_energy`, :func:`potential_energy`.
 
 The ``*_rot`` variants take the joints' own rotations (a list with one ...×3×3 matrix per
@@ -219,6 +221,45 @@ def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):
     return Rw, torch.stack(xw + [tip], dim=-2)
 
 
+def _ancestors(body: Body, link: int) -> list[int]:
+    """Link indices from ``link`` up to the root (``link`` first)."""
+    chain = []
+    while link >= 0:
+        chain.append(link)
+        link = body.links[link].parent
+    return chain
+
+
+def point_jacobian_rot(body: Body, rots: list, q: torch.Tensor, link: int,
+                       point) -> torch.Tensor:
+    """J(q) (...×6×nv) of a point fixed in a link, axes world-aligned, rows (linear, angular)
+    — Pinocchio's LOCAL_WORLD_ALIGNED frame Jacobian at that point.
+
+    A unit rate of joint j's coordinate d (j the link or an ancestor; S_d = e_d for a ball
+    joint, the axis for a hinge) turns the subtree with world angular velocity
+    ω = R_j S_d (R_j the world rotation of link j's frame) about the joint origin x_j, so
+        J_ang[:, d] = R_j S_d,     J_lin[:, d] = ω × (p − x_j),
+    and zero columns for joints that do not carry the link. A force f and moment m applied
+    at the point act on the joints as τ = Jᵀ (f, m) (the dual of ẋ = J v).
+    """
+    C = _constants(body, q.dtype, q.device)
+    link = link % len(body.links)
+    Rw, x = forward_kinematics_rot(body, rots, q)
+    pt = torch.as_tensor(point, dtype=q.dtype, device=q.device).expand(x.shape[:-2] + (3,))
+    p = x[..., link, :] + _mv(Rw[link], pt)
+    J = torch.zeros(x.shape[:-2] + (6, body.nv), dtype=q.dtype, device=q.device)
+    for j in _ancestors(body, link):
+        joint = body.links[j].joint
+        if joint == "fixed":
+            continue
+        axes = Rw[j] if joint == "ball" else _mv(Rw[j], C["axis"][j]).unsqueeze(-1)
+        arm = (p - x[..., j, :]).unsqueeze(-1).expand(axes.shape)
+        cols = body.slice(j)
+        J[..., 3:, cols] = axes
+        J[..., :3, cols] = torch.cross(axes, arm, dim=-2)
+    return J
+
+
 def kinetic_energy_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """T = ½ vᵀ M(q) v (...), with M v from one RNEA pass (zero velocity, acceleration v,
     no gravity) instead of a second copy of the velocity recursion."""
@@ -267,6 +308,12 @@ def forward_kinematics(body: Body, q):
 def tip_position(body: Body, q):
     """End-effector (hand tip) position ...×3."""
     return forward_kinematics(body, q)[..., -1, :]
+
+
+def point_jacobian(body: Body, q, link: int, point):
+    """World-aligned Jacobian (...×6×nv, rows linear then angular) of ``point`` (3,) in the
+    frame of link ``link``; see :func:`point_jacobian_rot`."""
+    return point_jacobian_rot(body, joint_rotations(body, q), q, link, point)
 
 
 def kinetic_energy(body: Body, q, v):
