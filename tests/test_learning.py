@@ -591,3 +591,36 @@ def test_independent_resimulation(run_dir, tmp_path):
         print(f"{name}: vs tflearn simulate max |Δν| {np.abs(e).max():.2e}, max |Δv| {dv:.2e}")
         assert np.abs(e).max() <= 1e-5
         assert dv <= 1e-5 * max(1.0, np.abs(v).max())
+
+
+def test_pool_keeps_each_motions_learned_timing(come_here):
+    """Pooling carries each per-motion fit's activation timing onto its own fields: a
+    motion whose step starts at 0.8 s and lasts 1.7 s is fitted by the pooled basis to
+    the spline's error with its learned timing (relative torque cost 5.7e-11), and far
+    worse when pooling resets the timing to the default phases (measured 4.1e-3)."""
+    m, lb, _ = come_here
+    from tflearn.fields import FieldProgram
+    from tflearn.fit import search
+    from tflearn.simulate import simulate
+
+    late = lb.weights.select_motions([0])
+    with torch.no_grad():
+        late.step_onset.fill_(0.8)
+        late.step_duration.fill_(1.7)
+    zero = torch.zeros(1, 7, dtype=DT)
+    with torch.no_grad():
+        tr = simulate(lb.body, FieldProgram(lb.basis, late), zero, zero, m.t,
+                      SimOptions(method="dopri8", rtol=1e-10, atol=1e-10,
+                                 solver_options={"step_t": m.t[1:]}))
+    moved = motion_mod.Motion("late", m.t, tr.q[0], tr.v[0])
+    tg = targets.prepare(lb.body, [m, moved])
+    fit = (lb.basis.eta.detach(), lb.basis.K().detach())
+    learned = [(*fit, lb.weights.timing(0)), (*fit, late.timing(0))]
+    default = [(*fit, lb.weights.timing(0)), (*fit, lb.weights.timing(0))]
+    kept = search.pool(tg, learned, "scalar", [3, 1, 3])
+    reset = search.pool(tg, default, "scalar", [3, 1, 3])
+    assert torch.equal(kept[1].step_onset.detach()[1], torch.tensor([0.0, 0.8], dtype=DT))
+    cost_kept = torque.solve_weights(*kept, tg)
+    cost_reset = torque.solve_weights(*reset, tg)
+    assert float(cost_kept.max()) <= 1e-6
+    assert float(cost_reset[1]) >= 1e3 * float(cost_kept[1])

@@ -218,7 +218,8 @@ class MotionWeights(nn.Module):
         self.names = list(names) if names is not None else [f"motion{j}" for j in range(len(duration))]
         self.project_()
 
-    PER_FIELD = ("a_raw", "b_raw", "step_onset", "step_duration", "pulse_onset", "pulse_duration")
+    TIMING = ("step_onset", "step_duration", "pulse_onset", "pulse_duration")
+    PER_FIELD = ("a_raw", "b_raw", *TIMING)
 
     @classmethod
     def zeros(cls, M: int, duration: torch.Tensor,
@@ -254,6 +255,11 @@ class MotionWeights(nn.Module):
         idx = torch.as_tensor(list(idx), dtype=torch.long)
         return self._with({k: v[idx] for k, v in self._arrays().items()},
                           duration=self.duration[idx], names=[self.names[i] for i in idx.tolist()])
+
+    def timing(self, j: int) -> dict:
+        """Motion j's activation timing, {name: (M,) tensor} over :attr:`TIMING` (detached
+        copies)."""
+        return {k: getattr(self, k).detach()[j].clone() for k in self.TIMING}
 
     @property
     def a(self) -> torch.Tensor:

@@ -54,7 +54,7 @@ from .io.files import replacing, write_text
 from .log import RunLog
 from .metrics import Scores, score, summarize
 
-CHECKPOINT_FORMAT = "tflearn-checkpoint/2"
+CHECKPOINT_FORMAT = "tflearn-checkpoint/3"
 SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "done"),
              "slsqp": ("slsqp", "done")}
 
@@ -81,7 +81,7 @@ class RunState:
     cursor: int = 0
     step: int = 0
     elapsed: float = 0.0
-    fits: list = field(default_factory=list)          # [(η (M_j×n), K (M_j×n×n))]
+    fits: list = field(default_factory=list)          # [(η, K, timing)]: search.pool
     model: Optional[dict] = None
     history: dict = field(default_factory=dict)
     reference: Optional[dict] = None                   # {"rmse", "tip", "ok"} per motion
@@ -247,7 +247,7 @@ class Run:
                                   c.init.candidates, c.init.stiffness_grid, gen, c.em.steps,
                                   phases=m.phases == "variable", em_tol=c.em.tol,
                                   reproduced=reproduced)
-        state.fits.append((b.eta.detach().clone(), b.K().detach().clone()))
+        state.fits.append((b.eta.detach().clone(), b.K().detach().clone(), w.timing(0)))
         state.rng = gen.get_state()
         step = self._tick(state)
         last = checked.get("last")
@@ -255,8 +255,8 @@ class Run:
             scores = last[1] if last is not None and last[0] is b else self._check(b, w, one)[0]
             self.log.scalar("torque_cost/each", costs[0], step)
             self.log.scores(scores, one, step, figures=True, overview=False)
-            self.log.fields(sum(K.shape[0] for _, K in state.fits), step,
-                            torch.cat([K for _, K in state.fits]), w)
+            self.log.fields(sum(fit[1].shape[0] for fit in state.fits), step,
+                            torch.cat([fit[1] for fit in state.fits]), w)
         self.log.status(motion=tg.names[j], M=b.M, cost=float(costs[0]),
                         reproduced=bool(last is not None and last[0] is b and all(last[2])))
         state.cursor = j + 1
@@ -267,7 +267,7 @@ class Run:
         self.log.stage("pool", 1)
         basis, weights = search.pool(tg, state.fits, self.cfg.model.stiffness, self.body.blocks)
         basis, weights, merged = search.merge_close(basis, weights, merge.distance, merge.stiffness)
-        if merged or self.cfg.model.phases == "variable":   # pooled phases start at default
+        if merged or self.cfg.model.phases == "variable":   # other motions' phases: default
             self._em(basis, weights, tg, state, tag="torque_cost/pool")
         cost = float(torque.solve_weights(basis, weights, tg).sum())
         scores, ok = self._check(basis, weights, tg)

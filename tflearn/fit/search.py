@@ -249,12 +249,22 @@ def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates
 
 
 def pool(tg: Targets, fits: list, kind: str, blocks):
-    """One basis holding the fields of several per-motion fits [(eta M_j×n, K M_j×n×n)],
-    with every motion's weights solved over all of them."""
+    """One basis holding the fields of the per-motion fits [(η M_j×n, K M_j×n×n, timing)],
+    fit j being motion j's, with every motion's weights solved over all of them.
+
+    Motion j keeps the activation timing it learned on its own fields (``timing``, from
+    :meth:`MotionWeights.timing`); on the other motions' fields it starts at the default
+    phases (step from t = 0, pulse over the whole motion)."""
     from .torque import solve_weights
-    eta = torch.cat([e for e, _ in fits])
-    K = torch.cat([k for _, k in fits])
+    eta = torch.cat([fit[0] for fit in fits])
+    K = torch.cat([fit[1] for fit in fits])
     basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
     weights = MotionWeights.zeros(basis.M, tg.duration, tg.names)
+    start = 0
+    with torch.no_grad():
+        for j, (e, _, timing) in enumerate(fits):
+            for key, row in timing.items():
+                getattr(weights, key)[j, start:start + len(e)] = row
+            start += len(e)
     solve_weights(basis, weights, tg)
     return basis, weights
