@@ -185,3 +185,23 @@ def max_rel_err(x, ref) -> float:
 def wrap_angle(theta):
     """Wrap to (−π, π]."""
     return math.pi - np.mod(math.pi - np.asarray(theta), 2 * math.pi)
+
+
+# ----------------------------------------------------------------------------- mocap data
+
+def mocap_folder():
+    """The shared motion-capture clips: $TFLEARN_MOCAP, else ../shared/data/mocap beside
+    the repository (never copied into it)."""
+    import os
+    from pathlib import Path
+    env = os.environ.get("TFLEARN_MOCAP")
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
+
+
+@pytest.fixture(scope="session")
+def mocap():
+    """The mocap folder; skips the test when it is absent."""
+    path = mocap_folder()
+    if not any(path.glob("*.bvh")):
+        pytest.skip(f"motion-capture clips not found in {path} (set TFLEARN_MOCAP to their folder)")
+    return path
