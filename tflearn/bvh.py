@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -69,6 +70,7 @@ class Skeleton:
         scale: metres per file unit used for the lengths.
         rotations: local rotations R_j (F×J×3×3).
         positions: local translations p_j, metres (F×J×3).
+        source: the file it was read from (named by errors about it).
     """
 
     name: str
@@ -82,6 +84,7 @@ class Skeleton:
     scale: float
     rotations: np.ndarray
     positions: np.ndarray
+    source: str = ""
 
     @property
     def frames(self) -> int:
@@ -292,7 +295,7 @@ def read(path, scale: Optional[float] = None) -> Skeleton:
                     channels=tuple(h["channels"]),
                     end_sites={j: np.asarray(o, dtype=float) * scale for j, o in h["end_sites"].items()},
                     frame_time=h["frame_time"], values=values, scale=float(scale),
-                    rotations=R, positions=p)
+                    rotations=R, positions=p, source=str(path))
 
 
 # ----------------------------------------------------------------------------------------
@@ -302,12 +305,16 @@ def read(path, scale: Optional[float] = None) -> Skeleton:
 def channel_values(skel: Skeleton, rotations: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """Channel numbers (F×C, file units, degrees) that give local ``rotations`` (F×J×3×3)
     and ``positions`` (F×J×3, metres) in each joint's own channel order (components
-    without a position channel are the OFFSET and are not written)."""
+    without a position channel are the OFFSET and are not written). At gimbal lock
+    (middle angle ±90°) scipy sets the third angle to zero; the angles still give the
+    rotation exactly."""
     cols = []
     for j, chans in enumerate(skel.channels):
         order = "".join(ROTATION[c] for c in chans if c in ROTATION)
-        eul = (Rotation.from_matrix(rotations[:, j]).as_euler(order, degrees=True)
-               if order else None)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "Gimbal lock", UserWarning)
+            eul = (Rotation.from_matrix(rotations[:, j]).as_euler(order, degrees=True)
+                   if order else None)
         k = 0
         for c in chans:
             if c in POSITION:
