@@ -17,9 +17,12 @@ not resolve its torques, and resampled:
 
 Files written to ``out``: ``NAME.npz`` (the Motion format of :mod:`tflearn.motion`),
 ``torso/NAME.npz`` (arrays t, R (T×3×3), x (T×3): the base frame — chest orientation at
-the shoulder — in a z-up world, metres, at the clip's native frames), ``body.yaml`` (a
+the shoulder — in a z-up world, metres, at the clip's native frames, low-passed with
+the arm's filter), ``body.yaml`` (a
 train config's ``body:`` section: the arm preset with the clips' mean bone lengths and
-the shared shoulder zero orientation) and ``report.json``.
+the shared shoulder zero orientation) and ``report.json`` (with, per clip, how far and
+fast the torso moved and how much its motion changes the arm's inverse-dynamics torques:
+:func:`torso_torque_share`).
 """
 from __future__ import annotations
 
@@ -30,17 +33,20 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import roma
 import torch
 import yaml
 from scipy.signal import butter, filtfilt
 
-from . import bvh
+from . import bvh, dynamics
 from . import motion as motion_mod
 from . import retarget as rt
 from .body import Body
-from .configspace import unwrap_rotvec, wrap_rotvec
+from .configspace import align_quaternions, unwrap_rotvec, wrap_rotvec
 from .errors import InputError
 from .io.files import write_text
+from .simulate import base_terms
+from .torso import BaseMotion
 
 GRAVITY = (0.0, 0.0, -9.81)
 
@@ -97,6 +103,19 @@ def smooth(m: motion_mod.Motion, cutoffs) -> tuple:
     return sm, report
 
 
+def torso_torque_share(body: Body, m: motion_mod.Motion, base: BaseMotion) -> float:
+    """‖τ_moving − τ_fixed‖ / ‖τ_fixed‖ over the motion's samples: how much the torso's
+    motion changes the arm's inverse-dynamics torques (spline ν, ω, ω̇ of the motion;
+    RNEA with and without the base terms of :mod:`tflearn.torso`)."""
+    q, v, a, rots = motion_mod.MotionSpline(body, m)(m.t)
+    fixed = dynamics.rnea_rot(body, rots, q, v, a)
+    terms = [base_terms(body, base, float(t)) for t in m.t]
+    g = torch.stack([x[0] for x in terms])
+    b = tuple(torch.stack([x[1][k] for x in terms]) for k in range(3))
+    moving = dynamics.rnea_rot(body, rots, q, v, a, gravity=g, base=b)
+    return float((moving - fixed).norm() / fixed.norm().clamp_min(1e-12))
+
+
 def _body_doc(frames: list, zero: np.ndarray, gravity: bool) -> dict:
     lengths = np.mean([f.lengths for f in frames], axis=0)
     return {"preset": "arm", "lengths": [round(float(x), 6) for x in lengths],
@@ -127,7 +146,8 @@ def import_clips(paths, out, options: ImportOptions = ImportOptions()) -> dict:
         sm, filt = smooth(m, options.cutoffs)
         final = motion_mod.resample(sm, options.rate)
         motion_mod.save(final, out / f"{m.name}.npz")
-        _save_torso(r.frames, out / "torso" / f"{m.name}.npz")
+        base = _save_torso(r.frames, out / "torso" / f"{m.name}.npz", filt["cutoff_hz"])
+        r.report["torso"]["torque_share"] = torso_torque_share(body, final, base)
         clips.append({**r.report, "filter": filt, "rate_hz": options.rate,
                       "file": f"{m.name}.npz"})
     side = ("mirrored " if options.mirror else "") + options.side
@@ -148,14 +168,24 @@ def _with_fps(skel: bvh.Skeleton, fps: float) -> bvh.Skeleton:
     return replace(skel, frame_time=1.0 / fps)
 
 
-def _save_torso(frames: rt.ArmFrames, path: Path) -> None:
-    """The base frame in the z-up model world (BVH world rotated by Pᵀ)."""
+def _save_torso(frames: rt.ArmFrames, path: Path, cutoff: Optional[float]) -> BaseMotion:
+    """Write the base frame in the z-up model world (BVH world rotated by Pᵀ), low-passed
+    like the arm (``cutoff`` Hz; positions and sign-aligned quaternions, renormalised);
+    return it."""
     from .io.files import replacing
-    t = np.arange(frames.skeleton.frames) * frames.skeleton.frame_time
+    fps = 1.0 / frames.skeleton.frame_time
+    t = np.arange(frames.skeleton.frames) / fps
     R = rt.P.T @ frames.base_R
     x = frames.base_x @ rt.P                          # (Pᵀ x) for row vectors
+    if cutoff is not None:
+        b, a = butter(2, cutoff / (fps / 2.0))
+        quat = align_quaternions(roma.rotmat_to_unitquat(torch.from_numpy(R))).numpy()
+        quat = np.ascontiguousarray(filtfilt(b, a, quat, axis=0))
+        R = roma.unitquat_to_rotmat(roma.quat_normalize(torch.from_numpy(quat))).numpy()
+        x = np.ascontiguousarray(filtfilt(b, a, x, axis=0))
     with replacing(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, t=t, R=R, x=x)
+    return BaseMotion(t, R, x)
 
 
 def report_lines(report: dict) -> list:
@@ -172,7 +202,8 @@ def report_lines(report: dict) -> list:
             f"{c['shoulder_angle_max_deg']:.0f}°; elbow/wrist within {1000 * pe['elbow_max']:.2f}/"
             f"{1000 * pe['wrist_max']:.2f} mm; torque resolution {100 * f['resolution_native']:.2f}% → "
             f"{100 * f['resolution_smoothed']:.2f}% ({filt}); torso moved {100 * tor['travel_m']:.0f} cm, "
-            f"≤ {tor['speed_max_m_s']:.2f} m/s, turned ≤ {tor['rotation_max_deg']:.0f}°")
+            f"≤ {tor['speed_max_m_s']:.2f} m/s, turned ≤ {tor['rotation_max_deg']:.0f}°, changing the "
+            f"arm's torques by {100 * tor['torque_share']:.0f}%")
     return lines
 
 
