@@ -174,3 +174,15 @@ def test_round_trips(imported, tmp_path):
         np.testing.assert_allclose(rt.coordinates(fr, zero)[0], q, atol=1e-6)
     # the rest of the skeleton is as recorded
     assert bvh.read(tmp_path / "full.bvh").values[:, :30] == pytest.approx(r.frames.skeleton.values[:, :30])
+
+
+def test_mocap_config_loads():
+    """configs/mocap.yaml is a valid train config whose body is the performer's arm."""
+    from pathlib import Path
+
+    from tflearn import config
+    from tflearn.body import from_config
+    cfg = config.load(Path(__file__).resolve().parents[1] / "configs" / "mocap.yaml")
+    body = from_config(cfg.body)
+    assert [link.length for link in body.links] == pytest.approx([0.247045, 0.220879, 0.152216])
+    assert cfg.success.rmse == 0.05 and cfg.success.tip == 0.03

@@ -127,12 +127,18 @@ def import_clips(paths, out, options: ImportOptions = ImportOptions()) -> dict:
     """Import BVH files and folders into ``out`` (see the module doc). Returns the report
     (also written as report.json): per clip the retargeting report (:func:`tflearn.
     retarget.retarget`), the filter, the torso's motion and the file written."""
-    from .body import from_config
     frames = rt.read_clips(paths, options.side, options.mirror, options.strict)
     if options.fps is not None:
         frames = [rt.arm_frames(_with_fps(f.skeleton, options.fps), options.side, None, options.mirror)
                   for f in frames]
-    names = [f.skeleton.name for f in frames]
+    return import_frames(frames, out, options)
+
+
+def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -> dict:
+    """:func:`import_clips` of clips already read (:class:`tflearn.retarget.ArmFrames`,
+    of any sides and mirrors: one shoulder chart and one body for all)."""
+    from .body import from_config
+    names = [f.skeleton.name + ("_mirrored" if f.mirror else "") for f in frames]
     if len(set(names)) != len(names):
         raise InputError(f"{out}: two clips have the same name ({sorted(names)})")
     zero = rt.shoulder_zero(frames)
@@ -150,12 +156,12 @@ def import_clips(paths, out, options: ImportOptions = ImportOptions()) -> dict:
         r.report["torso"]["torque_share"] = torso_torque_share(body, final, base)
         clips.append({**r.report, "filter": filt, "rate_hz": options.rate,
                       "file": f"{m.name}.npz"})
-    side = ("mirrored " if options.mirror else "") + options.side
+    side = ", ".join(sorted({("mirrored " if f.mirror else "") + f.side for f in frames}))
     write_text(out / "body.yaml",
-               f"# The performer's {side} arm from {len(frames)} BVH clip(s): mean bone lengths (m),\n"
+               f"# The performer's arm ({side}) from {len(frames)} BVH clip(s): mean bone lengths (m),\n"
                f"# the shoulder zero orientation shared by the clips (a rotation vector).\n"
                + yaml.safe_dump({"body": doc}, default_flow_style=None, sort_keys=False))
-    report = {"side": options.side, "mirror": options.mirror, "gravity": options.gravity,
+    report = {"sides": side, "gravity": options.gravity,
               "shoulder_zero": [float(x) for x in zero], "body": doc, "clips": clips}
     write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
     return report
