@@ -4,7 +4,7 @@ the windows, and print per window the joint RMSE, the maximum hand-tip error, M 
 wall time.
 
     PYTHONPATH=. python bench/mocap_basis.py [--mocap DIR] [--out runs/mocap_bench]
-        [--window 1.0] [--clips N] [--import-only] [key=value ...]   (train config overrides)
+        [--window 1.0] [--clips TEXT...] [--import-only] [key=value ...]   (config overrides)
 
 ``--import-only`` prints the retargeting report of the import as a markdown table and
 stops (the table in docs/mocap.md).
@@ -77,14 +77,16 @@ def main(argv=None) -> int:
     p.add_argument("--mocap", type=Path, default=Path(default))
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "mocap_bench")
     p.add_argument("--window", type=float, default=1.0, help="window length, seconds")
-    p.add_argument("--clips", type=int, default=0, help="use the first N clips (0: all)")
+    p.add_argument("--clips", nargs="*", default=None,
+                   help="use only the clips whose names contain one of these strings (default: all)")
     p.add_argument("--rate", type=float, default=60.0, help="window sampling rate, Hz")
     p.add_argument("--import-only", action="store_true", help="print the import table and stop")
     p.add_argument("overrides", nargs="*")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     files = sorted(args.mocap.glob("*.bvh"))
-    files = files[:args.clips] if args.clips else files
+    if args.clips:
+        files = [f for f in files if any(c in f.stem for c in args.clips)]
     frames = []
     for f in files:
         skel = bvh.read(f)
