@@ -186,3 +186,23 @@ def test_mocap_config_loads():
     body = from_config(cfg.body)
     assert [link.length for link in body.links] == pytest.approx([0.247045, 0.220879, 0.152216])
     assert cfg.success.rmse == 0.05 and cfg.success.tip == 0.03
+
+
+def test_configured_map(tmp_path):
+    """A map given as a mapping (a YAML file's) reads a skeleton with other joint
+    names like the built-in one; bad maps are refused naming the file."""
+    text = _pose_file(tmp_path, [[0, 90, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, -35, 0, 0, 0, 0, -60, 0, 0, 0]] * 2
+                      ).read_text()
+    for a, b in (("Chest", "Torso"), ("UpperArm_R", "Arm"), ("LowerArm_R", "Elbow"), ("Hand_R", "Wrist")):
+        text = text.replace(a, b)
+    path = tmp_path / "other.bvh"
+    path.write_text(text)
+    doc = {"chest": "Torso", "shoulder": "Arm", "elbow": "Elbow", "wrist": "Wrist",
+           "up": [1, 0, 0], "left": [0, 0, 1], "hinge": [0, 1, 0]}
+    amap = rt.map_from_dict(doc, "map.yaml")
+    q = rt.coordinates(rt.arm_frames(bvh.read(path), "right", amap), np.zeros(3))[0]
+    assert q[0, 3] == pytest.approx(math.radians(-60), abs=1e-12)
+    with pytest.raises(bvh.BVHError, match="map.yaml: arm map: up must be 3 numbers"):
+        rt.map_from_dict({**doc, "up": [1, 0]}, "map.yaml")
+    with pytest.raises(bvh.BVHError, match="map.yaml: an arm map needs the keys"):
+        rt.map_from_dict({**doc, "elbo": "x"}, "map.yaml")

@@ -157,8 +157,13 @@ def _report(args) -> int:
 
 def _bvh_import(args) -> int:
     from . import mocap
+    amap = None
+    if args.map is not None:
+        from .config import read
+        from .retarget import map_from_dict
+        amap = map_from_dict(read(args.map), str(args.map))
     opts = mocap.ImportOptions(side=args.arm, mirror=args.mirror, rate=args.rate, fps=args.fps,
-                               gravity=args.gravity, strict=args.strict)
+                               gravity=args.gravity, strict=args.strict, amap=amap)
     if not args.out.exists():
         print(f"created {args.out}")
     report = mocap.import_clips(args.clips, args.out, opts)
@@ -213,6 +218,8 @@ def _bvh_args(sub) -> None:
     p.add_argument("--fps", type=float, default=None, help="the clips' true frame rate (default: header)")
     p.add_argument("--gravity", action="store_true", help="give the body gravity (default: none)")
     p.add_argument("--strict", action="store_true", help="stop at a bad file instead of skipping it")
+    p.add_argument("--map", type=Path, default=None,
+                   help="YAML arm map for another skeleton: chest, shoulder, elbow, wrist, up, left, hinge")
     p.set_defaults(func=_bvh_import)
     p = bvh.add_parser("export", help="write a model's motion (or an .npz motion) as BVH")
     p.add_argument("source", type=Path, metavar="MODEL|MOTION.npz",

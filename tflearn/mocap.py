@@ -59,7 +59,8 @@ class ImportOptions:
     rate: output samples per second; fps: the clips' true frame rate when the header's
     is wrong (None: the header's); gravity: the body has gravity (else the thesis'
     gravity-free world); strict: stop at the first bad file (else skip it with a
-    warning); cutoffs: low-pass cutoffs (Hz) tried, highest first.
+    warning); cutoffs: low-pass cutoffs (Hz) tried, highest first; amap: the arm map
+    for a skeleton without a built-in one (:class:`tflearn.retarget.ArmMap`).
     """
 
     side: str = "right"
@@ -69,6 +70,7 @@ class ImportOptions:
     gravity: bool = False
     strict: bool = False
     cutoffs: tuple = (12.0, 10.0, 8.0, 6.0, 5.0, 4.0, 3.0, 2.0)
+    amap: Optional[rt.ArmMap] = None
 
 
 def _filtered(q: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
@@ -127,10 +129,10 @@ def import_clips(paths, out, options: ImportOptions = ImportOptions()) -> dict:
     """Import BVH files and folders into ``out`` (see the module doc). Returns the report
     (also written as report.json): per clip the retargeting report (:func:`tflearn.
     retarget.retarget`), the filter, the torso's motion and the file written."""
-    frames = rt.read_clips(paths, options.side, options.mirror, options.strict)
+    frames = rt.read_clips(paths, options.side, options.mirror, options.strict, options.amap)
     if options.fps is not None:
-        frames = [rt.arm_frames(_with_fps(f.skeleton, options.fps), options.side, None, options.mirror)
-                  for f in frames]
+        frames = [rt.arm_frames(_with_fps(f.skeleton, options.fps), options.side, options.amap,
+                                options.mirror) for f in frames]
     return import_frames(frames, out, options)
 
 

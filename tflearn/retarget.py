@@ -94,9 +94,34 @@ def _cmu(s: str) -> ArmMap:
                   up=(0.0, 1.0, 0.0), left=(1.0, 0.0, 0.0), hinge=None)
 
 
+#: The arm as tflearn writes it alone (:func:`arm_skeleton`): links' names, bones along −z.
+ARM_ONLY = ArmMap("chest", "upper_arm", "forearm", "hand", up=(0.0, 0.0, 1.0),
+                  left=(1.0, 0.0, 0.0), hinge=(1.0, 0.0, 0.0))
 #: Built-in maps: skeleton → side → map (the CMU and Bandai skeletons of the data README).
 MAPS = {"bandai": {"right": _bandai("R"), "left": _bandai("L")},
-        "cmu": {"right": _cmu("Right"), "left": _cmu("Left")}}
+        "cmu": {"right": _cmu("Right"), "left": _cmu("Left")},
+        "tflearn": {"right": ARM_ONLY, "left": ARM_ONLY}}
+
+
+def map_from_dict(doc, where: str) -> ArmMap:
+    """An :class:`ArmMap` from a mapping {chest, shoulder, elbow, wrist: joint names,
+    up, left: 3-vectors, hinge: a 3-vector or null} (a YAML map file); BVHError naming
+    ``where`` for a missing or unknown key or a bad value."""
+    keys = ("chest", "shoulder", "elbow", "wrist", "up", "left", "hinge")
+    if not isinstance(doc, dict) or set(doc) - set(keys) or set(keys[:6]) - set(doc):
+        raise BVHError(where, f"an arm map needs the keys {', '.join(keys)} (hinge may be null)")
+
+    def vec(key):
+        x = doc[key]
+        if not (isinstance(x, list) and len(x) == 3 and all(isinstance(c, (int, float)) for c in x)):
+            raise BVHError(where, f"arm map: {key} must be 3 numbers, got {x!r}")
+        return tuple(map(float, x))
+
+    for key in keys[:4]:
+        if not isinstance(doc[key], str):
+            raise BVHError(where, f"arm map: {key} must be a joint name, got {doc[key]!r}")
+    return ArmMap(*(doc[k] for k in keys[:4]), up=vec("up"), left=vec("left"),
+                  hinge=None if doc.get("hinge") is None else vec("hinge"))
 
 
 def find_map(skel: Skeleton, side: str) -> ArmMap:
@@ -120,9 +145,9 @@ def _unit(x, what: str, where: str) -> np.ndarray:
     return x / n
 
 
-def _frame(z_down: np.ndarray, x_axis: np.ndarray) -> np.ndarray:
-    """Columns [x⊥, z × x⊥, z] with z = −bone direction and x⊥ ⟂ z."""
-    z = -z_down
+def _frame(bone: np.ndarray, x_axis: np.ndarray) -> np.ndarray:
+    """Columns [x⊥, z × x⊥, z] with z = −bone (a unit direction) and x⊥ ⟂ z."""
+    z = -bone
     x = x_axis - (x_axis @ z) * z
     x = x / np.linalg.norm(x)
     return np.stack([x, np.cross(z, x), z], axis=1)
@@ -347,10 +372,6 @@ def retarget_all(frames: list, zero: Optional[np.ndarray] = None) -> list:
 
 #: The BVH world of exported arms: X = the model's x (left), Y = z (up), Z = −y (front).
 P = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-#: The arm written alone: joints named after the arm's links, bones along −z.
-ARM_ONLY = ArmMap("chest", "upper_arm", "forearm", "hand", up=(0.0, 0.0, 1.0),
-                  left=(1.0, 0.0, 0.0), hinge=(1.0, 0.0, 0.0))
-MAPS["tflearn"] = {"right": ARM_ONLY, "left": ARM_ONLY}
 
 
 def _model_frames(body: Body, q: np.ndarray, mirror: bool):
