@@ -71,8 +71,9 @@ def import_table(report: dict) -> str:
     return "\n".join(rows)
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def arguments(description: str) -> argparse.ArgumentParser:
+    """The options shared with bench/mocap_dmp.py."""
+    p = argparse.ArgumentParser(description=description)
     default = os.environ.get("TFLEARN_MOCAP") or str(ROOT.parent / "shared" / "data" / "mocap")
     p.add_argument("--mocap", type=Path, default=Path(default))
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "mocap_bench")
@@ -80,10 +81,12 @@ def main(argv=None) -> int:
     p.add_argument("--clips", nargs="*", default=None,
                    help="use only the clips whose names contain one of these strings (default: all)")
     p.add_argument("--rate", type=float, default=60.0, help="window sampling rate, Hz")
-    p.add_argument("--import-only", action="store_true", help="print the import table and stop")
-    p.add_argument("overrides", nargs="*")
-    args = p.parse_args(argv)
-    torch.set_num_threads(1)
+    return p
+
+
+def prepare_windows(args) -> tuple:
+    """Import the clips (ARMS, FPS) into OUT/imported and cut each one's busiest window
+    into OUT/windows; returns (report, body, windows folder)."""
     files = sorted(args.mocap.glob("*.bvh"))
     if args.clips:
         files = [f for f in files if any(c in f.stem for c in args.clips)]
@@ -97,8 +100,7 @@ def main(argv=None) -> int:
     imported = args.out / "imported"
     t0 = time.time()
     report = mocap.import_frames(frames, imported, mocap.ImportOptions(rate=args.rate))
-    body_doc = report["body"]
-    body = from_config(body_doc)
+    body = from_config(report["body"])
     windows = args.out / "windows"
     windows.mkdir(parents=True, exist_ok=True)
     for c in report["clips"]:
@@ -108,6 +110,17 @@ def main(argv=None) -> int:
         motion_mod.save(w, windows / c["file"])
         c["window_s"] = [float(m.t[i]), float(m.t[j - 1])]
     print(f"imported {len(frames)} clips in {time.time() - t0:.1f} s")
+    return report, body, windows
+
+
+def main(argv=None) -> int:
+    p = arguments(__doc__.split("\n\n")[0])
+    p.add_argument("--import-only", action="store_true", help="print the import table and stop")
+    p.add_argument("overrides", nargs="*")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    report, _, windows = prepare_windows(args)
+    body_doc = report["body"]
     if args.import_only:
         print(import_table(report))
         return 0
