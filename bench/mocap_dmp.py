@@ -75,14 +75,19 @@ def dmp_row(body, m, n_weights: int) -> dict:
 def tflearn_row(run: Path, name: str, m) -> dict:
     from tflearn.fields import FieldProgram
     from tflearn.io import basis as basis_io
-    from tflearn.simulate import SimOptions, simulate
+    from tflearn.simulate import SimOptions, SimulationFailed, simulate
     lb = basis_io.load(run / "basis.json")
     j = lb.index(name)
     prog = FieldProgram(lb.basis, lb.weights, index=[j])
-    opts = SimOptions(rtol=1e-7, atol=1e-9, max_evals=None)
-    with torch.no_grad():
-        paths = [simulate(lb.body, prog, lb.q0[j:j + 1] + s, lb.qd0[j:j + 1], m.t, opts).q[0].numpy()
-                 for s in (0.0, SHIFT)]
+    opts = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000)      # the training's options
+    try:
+        with torch.no_grad():
+            paths = [simulate(lb.body, prog, lb.q0[j:j + 1] + s, lb.qd0[j:j + 1], m.t, opts).q[0].numpy()
+                     for s in (0.0, SHIFT)]
+    except SimulationFailed as err:
+        nan = float("nan")
+        return {"params": f"{2 * lb.basis.M} + shared ({err.reason})", "rmse": nan, "tip": nan,
+                "shift_rms": nan, "shift_end": nan}
     rmse, tip = scores(lb.body, m.q.numpy(), paths[0])
     dev = np.linalg.norm(paths[1] - paths[0], axis=1)
     return {"params": f"{2 * lb.basis.M} + shared", "rmse": rmse, "tip": tip,
