@@ -20,7 +20,8 @@ Why not a BVH package: bvhio 1.5.4 (which reads the good files exactly) loops fo
 on a file truncated at a line end, raises a bare IndexError on a short frame line,
 ignores surplus values and holds angles in float32; a clear error naming the file,
 line and problem needs the whole grammar checked anyway. The reader below checks it
-and leaves the rotation maths to scipy; the tests compare it with bvhio on every clip.
+and leaves the rotation maths to scipy; a test compares it with bvhio (4e-7 on all 14
+shared clips, docs/mocap.md).
 Bad files raise :class:`BVHError` (an :class:`~tflearn.errors.InputError`) naming the
 file, the line or joint, and the problem.
 """
