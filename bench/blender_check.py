@@ -1,0 +1,91 @@
+"""A real BVH client: Blender (PyPI ``bpy``, headless) imports an arm exported by tflearn;
+its frame count and the arm bones' world positions must match tflearn's forward
+kinematics.
+
+Two steps, two Pythons (bpy is a ~400 MB wheel with its own pins; keep it out of the
+project's environment):
+
+    PYTHONPATH=. python bench/blender_check.py prepare DIR [--clip NAME]   # tflearn's venv
+    python3.11 -m venv /tmp/bpy && /tmp/bpy/bin/pip install bpy==4.2.0
+    /tmp/bpy/bin/python bench/blender_check.py check DIR                   # bpy's venv
+
+``prepare`` imports one clip's right arm, exports it alone as DIR/arm.bvh and writes
+DIR/expected.json (frame count, frame time, and per frame the shoulder, elbow, wrist and
+hand-tip positions from :func:`tflearn.dynamics.forward_kinematics`, metres, model
+world). ``check`` imports DIR/arm.bvh with Blender's BVH importer (global scale 0.01:
+centimetres → metres; its default axis conversion, BVH Y up → Blender Z up, turns the
+export's world back into the model's) and compares the bones' heads (and the hand's
+tail) frame by frame over the imported action's keyframes; it prints the frame count
+and the largest difference and exits 1 unless the counts agree and the positions are
+within 1e-4 m.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BONES = ("upper_arm", "forearm", "hand")
+
+
+def prepare(out: Path, clip: str) -> None:
+    sys.path.insert(0, str(ROOT))
+    import torch
+
+    from tflearn import bvh, dynamics
+    from tflearn import retarget as rt
+    folder = Path(os.environ.get("TFLEARN_MOCAP") or ROOT.parent / "shared" / "data" / "mocap")
+    frames = rt.arm_frames(bvh.read(folder / f"{clip}.bvh"), "right")
+    r = rt.retarget_all([frames])[0]
+    t, q = r.motion.t.numpy(), r.motion.q.numpy()
+    out.mkdir(parents=True, exist_ok=True)
+    bvh.write(rt.arm_skeleton(r.body, t, q), out / "arm.bvh")
+    x = dynamics.forward_kinematics(r.body, torch.from_numpy(q)).numpy()
+    (out / "expected.json").write_text(json.dumps(
+        {"clip": clip, "frames": len(t), "frame_time": float(t[1] - t[0]),
+         "positions": x.tolist()}))
+    print(f"wrote {out / 'arm.bvh'} and {out / 'expected.json'} ({len(t)} frames)")
+
+
+def check(out: Path) -> int:
+    import bpy
+    import numpy as np
+    expected = json.loads((out / "expected.json").read_text())
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    bpy.ops.import_anim.bvh(filepath=str(out / "arm.bvh"), global_scale=0.01, frame_start=0,
+                            use_fps_scale=False, update_scene_fps=True, update_scene_duration=True,
+                            rotate_mode="NATIVE")
+    obj = next(o for o in bpy.context.scene.objects if o.type == "ARMATURE")
+    scene = bpy.context.scene
+    start, end = obj.animation_data.action.frame_range          # the keyframes imported
+    n = int(round(end - start)) + 1
+    worst = 0.0
+    want = np.asarray(expected["positions"])
+    for f in range(expected["frames"]):
+        scene.frame_set(int(start) + f)
+        got = [obj.matrix_world @ obj.pose.bones[b].head for b in BONES]
+        got.append(obj.matrix_world @ obj.pose.bones["hand"].tail)
+        worst = max(worst, float(np.abs(np.array([list(v) for v in got]) - want[f]).max()))
+    print(f"Blender {bpy.app.version_string}: {n} frames (expected {expected['frames']}), "
+          f"fps {scene.render.fps / scene.render.fps_base:.3f} (expected {1 / expected['frame_time']:.3f}); "
+          f"largest bone position difference {worst:.2e} m")
+    return 0 if n == expected["frames"] and worst <= 1e-4 else 1
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("step", choices=("prepare", "check"))
+    p.add_argument("dir", type=Path)
+    p.add_argument("--clip", default="dataset-2_wave-right-hand_normal_001")
+    args = p.parse_args(argv)
+    if args.step == "prepare":
+        prepare(args.dir, args.clip)
+        return 0
+    return check(args.dir)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
