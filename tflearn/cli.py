@@ -26,6 +26,7 @@ commands:
   render      animate one motion: target and reproduction side by side (GIF)
   experiment  run one of the thesis' chapter 4 experiments
   report      write docs/results.md from the experiments' results
+  modes       natural vibration modes of a body (frequencies, shapes, animations)
 
 MODEL is a run folder (written by train) or its basis.json.
 """
@@ -153,6 +154,25 @@ def _report(args) -> int:
     return 0
 
 
+def _modes(args) -> int:
+    from . import config
+    from .modal_config import ModesConfig
+    cfg = config.load(args.config, args.overrides, schema=ModesConfig)
+    import torch
+
+    from . import modal
+    torch.set_num_threads(args.threads)
+    result = modal.run(cfg, out=args.out)
+    print(modal.table(result["modes"], cfg.table))
+    fol = result["following"]
+    if fol is not None:
+        print(f"PD controller follows the mode motion: rms {fol['rms_rad']:.4f} rad, "
+              f"max {fol['max_rad']:.4f} rad")
+    print(f"wrote {len(result['written'])} files to {result['out']} (modes.json, "
+          f"mode_II.npz/.png" + (", tensorboard/" if cfg.log.tensorboard else "") + ")")
+    return 0
+
+
 def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -205,6 +225,13 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
                    help="folder of experiment outputs (default runs/experiments)")
     p.add_argument("--out", type=Path, default=Path("docs/results.md"), help="report file")
     p.set_defaults(func=_report)
+
+    p = sub.add_parser("modes", help="natural vibration modes of a body (configs/modes/)")
+    p.add_argument("config", type=Path, help="YAML config (e.g. configs/modes/arm.yaml)")
+    p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. stiffness.uniform=5")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out)")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    p.set_defaults(func=_modes)
     return parser
 
 

@@ -1,0 +1,153 @@
+"""The ``tflearn modes CONFIG`` command: analyse, animate, draw and log a body's modes.
+
+Writes into ``out`` (the config's, or ``--out``):
+
+* ``modes.json`` — format ``tflearn-modes/1``: the body (:meth:`Body.to_dict`), the rest
+  pose, chart, floating flag, joint stiffness (nv×nv) and constraints used, and per mode
+  its index, frequency (Hz), rigid flag and shape (nx, M-orthonormal, in the chart);
+* ``mode_II.npz`` — each of the lowest ``animation.modes`` non-rigid modes alone,
+  θ₀ ⊕ α u sin(2π f t) with α scaling its largest joint excursion to
+  ``animation.amplitude`` (Motion format, :mod:`tflearn.motion`; the joints only);
+* ``mode_II.png`` — its stick figures at −α, 0 and +α;
+* ``motion.npz`` (and ``motion_pd.npz``, the PD-driven simulation, for a fixed base) when
+  ``motion.drives`` is given; ``following`` in modes.json says how closely it followed;
+* ``tensorboard/`` — ``modes/frequency_hz`` (step = mode index) and the shape figures.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import modal_motion as mm
+from . import modes as md
+from .body import from_config
+from .io.files import write_text
+from .modal_config import ModesConfig
+from .motion import Motion
+from .motion import save as save_motion
+
+FORMAT = "tflearn-modes/1"
+
+
+def analyse_config(cfg: ModesConfig) -> md.Modes:
+    """The modes a config describes."""
+    body = from_config(cfg.body)
+    s = cfg.stiffness
+    K = md.stiffness_matrix(body, s.uniform, s.scale, s.matrix)
+    constraints = [md.Constraint.from_config(c.model_dump(), f"constraints[{k}]")
+                   for k, c in enumerate(cfg.constraints)]
+    return md.analyse(body, md.rest_pose(body, cfg.pose), K, constraints,
+                      md.ModalOptions(chart=cfg.chart, floating=cfg.floating))
+
+
+def animated_modes(modes: md.Modes, count: int) -> list:
+    """Indices of the lowest ``count`` non-rigid modes."""
+    return [int(i) for i in np.nonzero(~modes.rigid)[0][:count]]
+
+
+def mode_motion(modes: md.Modes, i: int, amplitude: float, periods: float, samples: int):
+    """(Motion, α) of mode i alone: its largest joint excursion is ``amplitude`` rad."""
+    f = float(modes.frequencies[i])
+    alpha = amplitude / max(np.abs(modes.joint_shapes[:, i]).max(), 1e-300)
+    n = max(4, int(round(periods * samples)) + 1)
+    t = np.linspace(0.0, periods / f, n)
+    q = mm.kinematic(modes, [mm.ModeDrive(i, amplitude=alpha)], t)
+    return Motion(f"mode_{i:02d}", t, q, body=modes.body), alpha
+
+
+def base_pose(modes: md.Modes, alpha: float, i: int):
+    """(R, p) of a floating base displaced by α times mode i (R = exp([α u_ω]×),
+    p = α u_v), None for a fixed base."""
+    if not modes.options.floating:
+        return None
+    from .configspace import rotvec_to_rotmat
+    u = alpha * modes.shapes[:md.N_BASE, i]
+    return rotvec_to_rotmat(torch.as_tensor(u[3:])).numpy(), u[:3]
+
+
+def table(modes: md.Modes, rows: int) -> str:
+    """The lowest frequencies as a text table."""
+    lines = [f"{'mode':>4s}  {'f (Hz)':>10s}  {'ω (rad/s)':>10s}  kind"]
+    for i in range(min(rows, modes.frequencies.size)):
+        f = modes.frequencies[i]
+        kind = "rigid" if modes.rigid[i] else ""
+        lines.append(f"{i:4d}  {f:10.4f}  {2 * np.pi * f:10.4f}  {kind}")
+    return "\n".join(lines)
+
+
+def document(cfg: ModesConfig, modes: md.Modes, following=None) -> dict:
+    """The modes.json document."""
+    K = modes.K[md.N_BASE:, md.N_BASE:] if modes.options.floating else modes.K
+    return {"format": FORMAT, "body": modes.body.to_dict(), "pose": modes.q0.tolist(),
+            "chart": modes.options.chart, "floating": modes.options.floating,
+            "stiffness": K.tolist(),
+            "constraints": [c.model_dump() for c in cfg.constraints],
+            "coordinates": (["base v x", "base v y", "base v z", "base ω x", "base ω y",
+                             "base ω z"] if modes.options.floating else [])
+            + md.joint_names(modes.body),
+            "modes": [{"index": i, "frequency_hz": float(modes.frequencies[i]),
+                       "rigid": bool(modes.rigid[i]), "shape": modes.shapes[:, i].tolist()}
+                      for i in range(modes.frequencies.size)],
+            "following": following}
+
+
+def run(cfg: ModesConfig, out=None) -> dict:
+    """Analyse, write everything listed in the module into ``out`` (default cfg.out) and
+    return {"modes": Modes, "out": Path, "written": [paths], "following": dict | None}."""
+    from . import plots
+    out = Path(out if out is not None else cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    modes = analyse_config(cfg)
+    written, figures = [], {}
+    a = cfg.animation
+    for i in animated_modes(modes, a.modes):
+        motion, alpha = mode_motion(modes, i, a.amplitude, a.periods, a.samples)
+        save_motion(motion, out / f"{motion.name}.npz")
+        poses = {"rest": (modes.q0, None)}
+        for sign, label in ((-1, "−α"), (1, "+α")):
+            x = torch.as_tensor(sign * alpha * modes.joint_shapes[:, i])
+            poses[label] = (mm.retract(modes, x).numpy(), base_pose(modes, sign * alpha, i))
+        fig = plots.mode_shape(modes.body, poses, f"{modes.body.name}: mode {i}, "
+                               f"{modes.frequencies[i]:.3f} Hz (α = {alpha:.3g})")
+        figures[i] = fig
+        written += [out / f"{motion.name}.npz", out / f"{motion.name}.png"]
+    following = _combined_motion(cfg, modes, out, written)
+    write_text(out / "modes.json", json.dumps(document(cfg, modes, following), indent=1))
+    written.insert(0, out / "modes.json")
+    _log(cfg, modes, out, figures)
+    for i, fig in figures.items():
+        plots.save(fig, out / f"mode_{i:02d}.png")
+    return {"modes": modes, "out": out, "written": written, "following": following}
+
+
+def _combined_motion(cfg: ModesConfig, modes: md.Modes, out: Path, written: list):
+    """motion.npz (and the PD follow) of ``motion.drives``; the following summary."""
+    m = cfg.motion
+    if not m.drives:
+        return None
+    drives = [mm.ModeDrive(**d.model_dump()) for d in m.drives]
+    limits = mm.Limits.from_config(modes.body, m.limits, m.soft)
+    t = np.linspace(0.0, m.duration, max(4, int(round(m.duration * m.rate)) + 1))
+    q = mm.kinematic(modes, drives, t, limits)
+    save_motion(Motion("motion", t, q, body=modes.body), out / "motion.npz")
+    written.append(out / "motion.npz")
+    if not m.dynamic or modes.options.floating:
+        return None
+    fol = mm.follow(modes, drives, t, limits, m.damping)
+    save_motion(Motion("motion_pd", t, fol.trajectory.q, body=modes.body), out / "motion_pd.npz")
+    written.append(out / "motion_pd.npz")
+    return {"rms_rad": fol.rms, "max_rad": fol.max, "damping": m.damping}
+
+
+def _log(cfg: ModesConfig, modes: md.Modes, out: Path, figures: dict) -> None:
+    if not cfg.log.tensorboard:
+        return
+    from torch.utils.tensorboard import SummaryWriter
+    with SummaryWriter(str(out / "tensorboard")) as writer:
+        for i, f in enumerate(modes.frequencies):
+            writer.add_scalar("modes/frequency_hz", float(f), i)
+        for i, fig in figures.items():
+            writer.add_figure(f"modes/shape_{i:02d}", fig, 0, close=False)
