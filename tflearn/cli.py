@@ -161,8 +161,12 @@ def _modes(args) -> int:
     import torch
 
     from . import modal
+    from .modes import ModalError
     torch.set_num_threads(args.threads)
-    result = modal.run(cfg, out=args.out)
+    try:
+        result = modal.run(cfg, out=args.out)
+    except ModalError as err:
+        raise ModalError(f"{args.config}: {err}") from None
     print(modal.table(result["modes"], cfg.table))
     fol = result["following"]
     if fol is not None:

@@ -31,10 +31,10 @@ closure), optionally with the two frames' orientations held too (``weld``). Its 
 rows are G v = 0 with G built from :func:`tflearn.dynamics.point_jacobian` (linear rows
 J_a − J_b; angular rows too for a weld). A constraint may carry a spring ``stiffness`` k
 on the relative rotation of its two links (the closing joint's own spring): to first
-order that rotation is Ω v with Ω the angular rows of J_a − J_b, so K gains k ΩᵀΩ. The admissible directions are the null space N
-of G from its SVD (G = U S Vᵀ, N = the columns of V past the numerical rank), v = N ẋ,
-and the eigenproblem is projected: Nᵀ K N y = ω² Nᵀ M N y, u = N y (so G u = 0 and
-uᵀ M u = 1 exactly as before).
+order that rotation is Ω v with Ω the angular rows of J_a − J_b, so K gains k ΩᵀΩ.
+The admissible directions are the null space N of G from its SVD (G = U S Vᵀ, N = the
+columns of V past the numerical rank), v = N ẋ, and the eigenproblem is projected:
+Nᵀ K N y = ω² Nᵀ M N y, u = N y (so G u = 0 and uᵀ M u = 1 exactly as before).
 
 A floating base (``ModalOptions.floating``) prepends six coordinates, the linear and
 angular velocity of the root frame (world-aligned, at the world origin), to the joints'.
