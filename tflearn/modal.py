@@ -6,9 +6,11 @@ Writes into ``out`` (the config's, or ``--out``):
   pose, chart, floating flag, joint stiffness (nv×nv) and constraints used, and per mode
   its index, frequency (Hz), rigid flag and shape (nx, M-orthonormal, in the chart);
 * ``mode_II.npz`` — each of the lowest ``animation.modes`` non-rigid modes alone,
-  θ₀ ⊕ α u sin(2π f t) with α scaling its largest joint excursion to
-  ``animation.amplitude`` (Motion format, :mod:`tflearn.motion`; the joints only);
-* ``mode_II.png`` — its stick figures at −α, 0 and +α;
+  θ₀ ⊕ α û sin(2π f t) with û the shape scaled to a largest joint coordinate of 1
+  (:func:`tflearn.modal_motion.unit_shapes`) and α = ``animation.amplitude`` rad
+  (Motion format, :mod:`tflearn.motion`; the joints only, a floating base's motion is
+  in the pictures but not in the .npz);
+* ``mode_II.png`` — its stick figures at −α, 0 and +α (a floating base moved too);
 * ``motion.npz`` (and ``motion_pd.npz``, the PD-driven simulation, for a fixed base) when
   ``motion.drives`` is given; ``following`` in modes.json says how closely it followed;
 * ``tensorboard/`` — ``modes/frequency_hz`` (step = mode index) and the shape figures.
@@ -49,23 +51,21 @@ def animated_modes(modes: md.Modes, count: int) -> list:
 
 
 def mode_motion(modes: md.Modes, i: int, amplitude: float, periods: float, samples: int):
-    """(Motion, α) of mode i alone: its largest joint excursion is ``amplitude`` rad."""
+    """Mode i alone as a Motion: its largest joint excursion is ``amplitude`` rad."""
     f = float(modes.frequencies[i])
-    alpha = amplitude / max(np.abs(modes.joint_shapes[:, i]).max(), 1e-300)
     n = max(4, int(round(periods * samples)) + 1)
     t = np.linspace(0.0, periods / f, n)
-    q = mm.kinematic(modes, [mm.ModeDrive(i, amplitude=alpha)], t)
-    return Motion(f"mode_{i:02d}", t, q, body=modes.body), alpha
+    q = mm.kinematic(modes, [mm.ModeDrive(i, amplitude=amplitude)], t)
+    return Motion(f"mode_{i:02d}", t, q, body=modes.body)
 
 
-def base_pose(modes: md.Modes, alpha: float, i: int):
-    """(R, p) of a floating base displaced by α times mode i (R = exp([α u_ω]×),
-    p = α u_v), None for a fixed base."""
-    if not modes.options.floating:
+def base_pose(floating: bool, x: np.ndarray):
+    """(R, p) of a floating base displaced by x (its first six coordinates: R = exp([x_ω]×),
+    p = x_v), None for a fixed base."""
+    if not floating:
         return None
     from .configspace import rotvec_to_rotmat
-    u = alpha * modes.shapes[:md.N_BASE, i]
-    return rotvec_to_rotmat(torch.as_tensor(u[3:])).numpy(), u[:3]
+    return rotvec_to_rotmat(torch.as_tensor(x[3:md.N_BASE])).numpy(), x[:3]
 
 
 def table(modes: md.Modes, rows: int) -> str:
@@ -103,15 +103,17 @@ def run(cfg: ModesConfig, out=None) -> dict:
     modes = analyse_config(cfg)
     written, figures = [], {}
     a = cfg.animation
+    unit = mm.unit_shapes(modes)[0]
     for i in animated_modes(modes, a.modes):
-        motion, alpha = mode_motion(modes, i, a.amplitude, a.periods, a.samples)
+        motion = mode_motion(modes, i, a.amplitude, a.periods, a.samples)
         save_motion(motion, out / f"{motion.name}.npz")
         poses = {"rest": (modes.q0, None)}
         for sign, label in ((-1, "−α"), (1, "+α")):
-            x = torch.as_tensor(sign * alpha * modes.joint_shapes[:, i])
-            poses[label] = (mm.retract(modes, x).numpy(), base_pose(modes, sign * alpha, i))
+            x = sign * a.amplitude * unit[:, i]
+            poses[label] = (mm.retract(modes, torch.as_tensor(x[-modes.body.nv:])).numpy(),
+                            base_pose(modes.options.floating, x))
         fig = plots.mode_shape(modes.body, poses, f"{modes.body.name}: mode {i}, "
-                               f"{modes.frequencies[i]:.3f} Hz (α = {alpha:.3g})")
+                               f"{modes.frequencies[i]:.3f} Hz (α = {a.amplitude} rad)")
         figures[i] = fig
         written += [out / f"{motion.name}.npz", out / f"{motion.name}.png"]
     following = _combined_motion(cfg, modes, out, written)

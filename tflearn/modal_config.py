@@ -30,10 +30,10 @@ class ConstraintSection(Section):
 
 class DriveSection(Section):                      # one term of the mode-driven motion
     mode: int = Field(ge=0)                       # 0-based, lowest first, rigid modes included
-    amplitude: float = 0.0                        # α
+    amplitude: float = 0.0                        # α, rad of the shape's most-moving joint
     frequency: Optional[float] = Field(None, ge=0)  # f̃ (Hz); None: the mode's own
     phase: float = 0.0                            # γ (rad)
-    offset: float = 0.0                           # β
+    offset: float = 0.0                           # β, likewise
 
 
 class AnimationSection(Section):                  # each mode's own animation

@@ -3,7 +3,11 @@
 Kinematic (the paper's eq. 4 with the postural offsets of §4.3): in the modes' chart
 (:mod:`tflearn.modes`) the displacement from the rest pose is
 
-    x(t) = Σᵢ αᵢ uᵢ sin(2π f̃ᵢ t + γᵢ) + Σᵢ βᵢ uᵢ        (joint part of the shapes uᵢ)
+    x(t) = Σᵢ αᵢ ûᵢ sin(2π f̃ᵢ t + γᵢ) + Σᵢ βᵢ ûᵢ
+
+with ûᵢ the joint part of shape uᵢ scaled so that its largest coordinate is 1 (so α and
+β are in rad of the joint coordinate that moves most; the M-orthonormal scale of
+:mod:`tflearn.modes` depends on the body's size)
 
 and the pose is θ(t) = θ₀ ⊕ x(t): per ball joint R(θ₀) exp([x]×) in the tangent chart
 (ν₀ + x in the rotation-vector chart), per hinge θ₀ + x. Soft joint limits then act on
@@ -37,8 +41,8 @@ from .simulate import SimOptions, Trajectory, simulate
 @dataclass(frozen=True)
 class ModeDrive:
     """One mode's part of a motion: α sin(2π f̃ t + γ) + β times shape ``mode`` (0-based,
-    lowest first, rigid modes included, as in the paper's table 1). ``frequency`` None:
-    the mode's own frequency."""
+    lowest first, rigid modes included, as in the paper's table 1), scaled to a largest
+    joint coordinate of 1 (:func:`unit_shapes`). ``frequency`` None: the mode's own."""
 
     mode: int
     amplitude: float = 0.0
@@ -81,9 +85,18 @@ def drive_frequencies(modes: Modes, drives: Sequence[ModeDrive]) -> list:
             for d in drives]
 
 
+def unit_shapes(modes: Modes) -> np.ndarray:
+    """(shapes (nx × n), scale (n)): every shape divided by its largest joint coordinate
+    (absolute value), so that its joint part peaks at 1 rad; scale is that divisor."""
+    scale = np.abs(modes.joint_shapes).max(axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    return modes.shapes / scale, scale
+
+
 def displacement(modes: Modes, drives: Sequence[ModeDrive], t: torch.Tensor) -> torch.Tensor:
     """x(t) (...×nv) at times t (...) in the modes' chart (see the module)."""
-    U = torch.as_tensor(modes.joint_shapes, dtype=torch.float64)
+    U = unit_shapes(modes)[0]
+    U = torch.as_tensor(U[-modes.body.nv:], dtype=torch.float64)
     x = torch.zeros(t.shape + (U.shape[0],), dtype=torch.float64)
     for d, f in zip(drives, drive_frequencies(modes, drives)):
         w = d.amplitude * torch.sin(2 * math.pi * f * t + d.phase) + d.offset

@@ -375,3 +375,33 @@ def tangent_stiffness(modes: Modes) -> np.ndarray:
         return K
     Tinv = np.linalg.inv(chart_jacobian(modes.body, modes.q0))
     return Tinv.T @ K @ Tinv
+
+
+# ------------------------------------------------------------------------------ fields
+
+def field_modes(body: Body, eta, K) -> list:
+    """The modes of the body about each torque field's centre: near η a field
+    χ = −K(ν − η)·exp(…) is the spring −K(ν − η) in rotation vectors, so field i gives
+    :func:`analyse` (body, ηᵢ, Kᵢ) in the ``rotvec`` chart; eta (M×nv), K (M×nv×nv)."""
+    eta, K = np.asarray(eta, dtype=float), np.asarray(K, dtype=float)
+    return [analyse(body, eta[i], K[i], options=ModalOptions(chart="rotvec"))
+            for i in range(eta.shape[0])]
+
+
+def excitation(modes: Modes, q_from) -> np.ndarray:
+    """How a release from pose ``q_from`` (nv; fixed base) excites each mode: the shares
+    (n, summing to 1) of the spring energy ½ Σₖ ω²ₖ cₖ² of the displacement x = q_from ⊖ θ₀
+    (in the modes' chart: ν − ν₀ in rotvec, the child-frame difference in tangent),
+    cₖ = uₖᵀ M x (x = Σ cₖ uₖ, the shapes being M-orthonormal). Linear: the picture near
+    θ₀ of what the spring, released at ``q_from``, sets vibrating."""
+    q_from = torch.as_tensor(np.asarray(q_from, dtype=float))
+    q0 = torch.as_tensor(modes.q0)
+    if modes.options.chart == "rotvec":
+        x = (q_from - q0).numpy()
+    else:
+        from .configspace import difference
+        x = difference(modes.body, q0, q_from).numpy()
+    c = modes.shapes.T @ (modes.M @ x)
+    energy = np.clip(modes.eigenvalues, 0.0, None) * c * c
+    total = energy.sum()
+    return energy / total if total > 0 else energy
