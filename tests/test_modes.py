@@ -240,11 +240,12 @@ def test_bad_input_is_one_clear_error():
 
 def test_modes_command(tmp_path, capsys):
     """``tflearn modes`` on the linear creature writes modes.json (the analysis' numbers),
-    each animated mode as a Motion .npz and a .png, and prints the table."""
+    each animated mode as a Motion .npz and a .png, logs the frequencies and shape
+    figures to TensorBoard, and prints the table."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
     out = tmp_path / "lin"
     cfg = ROOT / "configs" / "modes" / "linear_creature.yaml"
-    assert cli.main(["modes", str(cfg), "animation.modes=2", "log.tensorboard=false",
-                     "--out", str(out)]) == 0
+    assert cli.main(["modes", str(cfg), "animation.modes=2", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     res = modal.analyse_config(creature("linear_creature"))
     assert f"{res.frequencies[6]:10.4f}" in printed and "rigid" in printed
@@ -259,6 +260,11 @@ def test_modes_command(tmp_path, capsys):
         assert m.q.shape[1] == 15 and np.abs(m.q.numpy()).max() == pytest.approx(0.2, rel=1e-3)
         assert (out / f"mode_{i:02d}.png").stat().st_size > 10_000
     assert (out / "motion.npz").exists() and not (out / "mode_08.npz").exists()
+    ea = EventAccumulator(str(out / "tensorboard"), size_guidance={"scalars": 0, "images": 0})
+    ea.Reload()
+    logged = [e.value for e in ea.Scalars("modes/frequency_hz")]
+    np.testing.assert_allclose(logged, res.frequencies, rtol=1e-6)
+    assert set(ea.Tags()["images"]) == {"modes/shape_06", "modes/shape_07"}
 
 
 def test_modes_command_bad_input(tmp_path, capsys):
