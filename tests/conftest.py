@@ -102,16 +102,19 @@ BODY_NAMES = ["arm", "arm_offsets", "chain3_ball", "chain4_hinge", "tree"]
 
 # ------------------------------------------------------------------------ pinocchio
 
-def to_pin(body: tb.Body):
+def to_pin(body: tb.Body, free_flyer: bool = False):
     """The Pinocchio model of a body. Moving link i is Pinocchio joint i + 1 when the body
     has no fixed joints; a fixed link's inertia is appended to the joint that carries it
-    (its parent's, placed by the fixed joint), and its children hang from that joint."""
+    (its parent's, placed by the fixed joint), and its children hang from that joint.
+    ``free_flyer``: the body's base is a massless free-flyer joint (joint 1, so moving
+    link i is joint i + 2; nq += 7, nv += 6)."""
     import pinocchio as pin
 
     model = pin.Model()
+    root = model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), "base") if free_flyer else 0
     frames = []                      # per link: (Pinocchio joint id, link frame in it)
     for link in body.links:
-        jid, above = (0, pin.SE3.Identity()) if link.parent < 0 else frames[link.parent]
+        jid, above = (root, pin.SE3.Identity()) if link.parent < 0 else frames[link.parent]
         place = above * pin.SE3(pin.exp3(np.array(link.offset, dtype=float)),
                                 np.array(link.origin, dtype=float))
         if link.joint == "fixed":
@@ -125,7 +128,7 @@ def to_pin(body: tb.Body):
             jid, pin.Inertia(link.mass, np.array(link.com, dtype=float),
                              np.array(link.inertia, dtype=float)), place)
     moving = [f[0] for f, l in zip(frames, body.links) if l.joint != "fixed"]
-    assert moving == list(range(1, len(moving) + 1))
+    assert moving == list(range(root + 1, root + len(moving) + 1))
     model.gravity.linear = np.array(body.gravity, dtype=float)
     return model
 
@@ -185,3 +188,23 @@ def max_rel_err(x, ref) -> float:
 def wrap_angle(theta):
     """Wrap to (−π, π]."""
     return math.pi - np.mod(math.pi - np.asarray(theta), 2 * math.pi)
+
+
+# ----------------------------------------------------------------------------- mocap data
+
+def mocap_folder():
+    """The shared motion-capture clips: $TFLEARN_MOCAP, else ../shared/data/mocap beside
+    the repository (never copied into it)."""
+    import os
+    from pathlib import Path
+    env = os.environ.get("TFLEARN_MOCAP")
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"
+
+
+@pytest.fixture(scope="session")
+def mocap():
+    """The mocap folder; skips the test when it is absent."""
+    path = mocap_folder()
+    if not any(path.glob("*.bvh")):
+        pytest.skip(f"motion-capture clips not found in {path} (set TFLEARN_MOCAP to their folder)")
+    return path

@@ -289,3 +289,40 @@ def test_simulate_takes_a_run_folder(run_dir, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert f"created {out.parent}" in printed and f"wrote {out}" in printed
     assert out.is_file()
+
+
+def test_bvh_import_and_export(mocap, tmp_path, capsys):
+    """``tflearn bvh import`` of two clips and a bad file: the good ones written as
+    motions of the body in body.yaml with a report, the bad one skipped with a warning
+    naming it; ``tflearn bvh export`` of an imported motion, alone and in the clip's
+    skeleton, reads back to the same coordinates (1e-6 rad)."""
+    from tflearn import bvh, config, motion, retarget
+    from tflearn.body import from_config
+    clips = [mocap / "dataset-2_raise-up-right-hand_normal_001.bvh", mocap / "dataset-1_guide_normal_001.bvh"]
+    bad = tmp_path / "bad.bvh"
+    bad.write_text(clips[0].read_text()[:5000])
+    out = tmp_path / "imp"
+    with pytest.warns(retarget.BVHWarning, match=f"{bad}: truncated"):
+        assert cli.main(["bvh", "import", *map(str, clips), str(bad), "--out", str(out), "--rate", "60"]) == 0
+    printed = capsys.readouterr().out
+    assert "dataset-1_guide_normal_001: 86 frames at 30 fps" in printed
+    assert f"wrote 2 motions, body.yaml and report.json to {out}" in printed
+    body = from_config(config.read(out / "body.yaml")["body"])
+    rep = json.loads((out / "report.json").read_text())
+    assert [c["clip"] for c in rep["clips"]] == [c.stem for c in clips]
+    assert body.links[0].offset == pytest.approx(rep["shoulder_zero"])
+    m = motion.load(out / f"{clips[0].stem}.npz", body)
+    assert m.rate == pytest.approx(60.0) and m.duration == pytest.approx(58 / 30, abs=1 / 60)
+    torso = np.load(out / "torso" / f"{clips[0].stem}.npz")
+    assert torso["R"].shape == (59, 3, 3) and torso["x"][0, 2] > 1.2      # shoulder height, z up
+    for skeleton in (None, clips[0]):
+        target = tmp_path / f"{'full' if skeleton else 'arm'}.bvh"
+        argv = ["bvh", "export", str(out / f"{clips[0].stem}.npz"), "--body", str(out / "body.yaml"),
+                "--out", str(target)] + (["--skeleton", str(skeleton)] if skeleton else [])
+        assert cli.main(argv) == 0
+        fr = retarget.arm_frames(bvh.read(target), "right")
+        q = retarget.coordinates(fr, np.asarray(rep["shoulder_zero"]))[0]
+        np.testing.assert_allclose(q, m.q.numpy(), atol=1e-6)
+    assert cli.main(["bvh", "import", str(bad), "--out", str(tmp_path / "none"), "--strict"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"tflearn: {bad}: truncated") and len(err.strip().splitlines()) == 1

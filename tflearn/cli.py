@@ -27,6 +27,8 @@ commands:
   experiment  run one of the thesis' chapter 4 experiments
   report      write docs/results.md from the experiments' results
   modes       natural vibration modes of a body (frequencies, shapes, animations)
+  bvh         motion capture: import BVH clips (arm motions, body.yaml, report) or
+              export a model's motion (or an .npz) as BVH
 
 MODEL is a run folder (written by train) or its basis.json.
 """
@@ -177,6 +179,77 @@ def _modes(args) -> int:
     return 0
 
 
+def _bvh_import(args) -> int:
+    from . import mocap
+    opts = mocap.ImportOptions(side=args.arm, mirror=args.mirror, rate=args.rate, fps=args.fps,
+                               gravity=args.gravity, strict=args.strict)
+    if not args.out.exists():
+        print(f"created {args.out}")
+    report = mocap.import_clips(args.clips, args.out, opts)
+    print("\n".join(mocap.report_lines(report)))
+    print(f"wrote {len(report['clips'])} motions, body.yaml and report.json to {args.out}")
+    return 0
+
+
+def _bvh_export(args) -> int:
+    import numpy as np
+
+    from . import mocap
+    from . import motion as motion_mod
+    from .errors import InputError
+    if args.source.suffix == ".npz":
+        from .body import arm, from_config
+        from .config import read
+        doc = read(args.body) if args.body else {"body": {}}
+        if not isinstance(doc.get("body"), dict):
+            raise InputError(f"{args.body}: no 'body:' section")
+        body = from_config(doc["body"]) if args.body else arm()
+        m = motion_mod.load(args.source, body)
+        t, q = m.t.numpy(), m.q.numpy()
+    else:
+        if args.motion is None:
+            raise InputError(f"{args.source}: --motion NAME is needed with a MODEL")
+        import tempfile
+
+        from . import evaluate
+        from .io import basis as basis_io
+        _, basis = _model_paths(args.source)
+        body = basis_io.load(basis).body
+        with tempfile.TemporaryDirectory() as tmp:
+            path = evaluate.simulate_basis_motion(basis, args.motion, Path(tmp) / "sim.npz")
+            data = np.load(path)
+            t, q = data["t"], data["q"]
+    _out_folder(args.out)
+    mocap.export(body, t, q, args.out, skeleton=args.skeleton, side=args.arm, mirror=args.mirror)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _bvh_args(sub) -> None:
+    bvh = sub.add_parser("bvh", help="motion capture: BVH import and export").add_subparsers(
+        dest="bvh_command", required=True, metavar="ACTION")
+    p = bvh.add_parser("import", help="retarget BVH clips onto the arm: NAME.npz, body.yaml, report.json")
+    p.add_argument("clips", nargs="+", type=Path, metavar="CLIP", help="BVH files or folders of them")
+    p.add_argument("--arm", choices=("right", "left"), default="right", help="the performer's arm")
+    p.add_argument("--mirror", action="store_true", help="reflect it to the other side")
+    p.add_argument("--out", type=Path, default=Path("runs/mocap"), help="output folder")
+    p.add_argument("--rate", type=float, default=120.0, help="output samples per second (default 120)")
+    p.add_argument("--fps", type=float, default=None, help="the clips' true frame rate (default: header)")
+    p.add_argument("--gravity", action="store_true", help="give the body gravity (default: none)")
+    p.add_argument("--strict", action="store_true", help="stop at a bad file instead of skipping it")
+    p.set_defaults(func=_bvh_import)
+    p = bvh.add_parser("export", help="write a model's motion (or an .npz motion) as BVH")
+    p.add_argument("source", type=Path, metavar="MODEL|MOTION.npz",
+                   help="a run folder or basis.json (with --motion), or a motion .npz")
+    p.add_argument("--motion", default=None, help="motion name in the model")
+    p.add_argument("--body", type=Path, default=None, help="body.yaml of an .npz motion (default: the arm)")
+    p.add_argument("--out", type=Path, required=True, help="output .bvh")
+    p.add_argument("--skeleton", type=Path, default=None, help="a BVH clip whose arm is replaced")
+    p.add_argument("--arm", choices=("right", "left"), default="right", help="the skeleton's arm")
+    p.add_argument("--mirror", action="store_true", help="the motion is that arm mirrored")
+    p.set_defaults(func=_bvh_export)
+
+
 def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -236,6 +309,7 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out)")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_modes)
+    _bvh_args(sub)
     return parser
 
 

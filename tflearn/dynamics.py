@@ -102,14 +102,19 @@ def _joint_motion(body: Body, i: int, x: torch.Tensor) -> torch.Tensor:
 
 
 def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.Tensor,
-             gravity=True) -> torch.Tensor:
+             gravity=True, base=None) -> torch.Tensor:
     """Recursive Newton–Euler inverse dynamics, τ = M(q)a + C(q,v)v + g(q).
 
     Forward pass (link i, parent p, E = R_iᵀ, r the joint origin in the parent):
         ω_i = E ω_p + S q̇,                  v_i = E(v_p + ω_p × r)
         ω̇_i = E ω̇_p + S q̈ + ω_i × S q̇,     v̇_i = E(v̇_p + ω̇_p × r) + v_i × S q̇
     with base acceleration (0, −g) (``gravity``: True for the body's g, False for none, or
-    a ...×3 tensor of per-batch gravity vectors). Link wrench (c the centre of mass, Ic its inertia):
+    a ...×3 tensor of per-batch gravity vectors). A moving base (``base`` = (ω_b, ω̇_b,
+    a_b), ...×3 each, in the base frame: its angular velocity, angular acceleration and
+    the classical acceleration of its origin) enters at the root as ω_p = ω_b, v_p = 0,
+    ω̇_p = ω̇_b, v̇_p = a_b − g: the torques are those seen in the inertial frame moving
+    with the base origin's velocity at that instant (Galilean invariance).
+    Link wrench (c the centre of mass, Ic its inertia):
         p = m(v + ω×c), L = Ic ω + c×p,  h = m(v̇ + ω̇×c),  n = Ic ω̇ + c×h
         f_i = (n + ω×L + v×p,  h + ω×p)
     Backward pass: τ_i = Sᵀ n_i; parent gets (Eᵀn + r×Eᵀf, Eᵀf).
@@ -127,8 +132,10 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
     for i, link in enumerate(body.links):
         E[i] = Rrel[i].transpose(-1, -2)
         r = C["origin"][i]
-        if link.parent < 0:
+        if link.parent < 0 and base is None:
             wp, vp, dwp, dvp = zero, zero, zero, zero - g
+        elif link.parent < 0:
+            wp, vp, dwp, dvp = base[0].expand_as(zero), zero, base[1].expand_as(zero), base[2] - g
         else:
             p = link.parent
             wp, vp, dwp, dvp = w[p], vl[p], dw[p], dv[p]
@@ -174,11 +181,12 @@ def mass_matrix_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
 
 
 def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor,
-                         tau: torch.Tensor) -> torch.Tensor:
+                         tau: torch.Tensor, gravity=None, base=None) -> torch.Tensor:
     """a = M(q)⁻¹ (τ − h(q, v)) by Cholesky factorisation (M is symmetric positive definite).
 
     One batched RNEA pass gives both: nv columns (v = 0, a = e_k, no gravity) for M and
-    one (v, a = 0, gravity) for h.
+    one (v, a = 0, gravity) for h. ``gravity`` (...×3, default the body's) and a moving
+    ``base`` (see :func:`rnea_rot`) enter h only.
     """
     nv = body.nv
     rots, q, v, tau = _broadcast(rots, q, v, tau)
@@ -186,15 +194,26 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
     acc = torch.cat([eye, torch.zeros_like(eye[:1])], dim=0)
     vel = torch.cat([torch.zeros(q.shape[:-1] + (nv, nv), dtype=q.dtype, device=q.device),
                      v.unsqueeze(-2)], dim=-2)
-    g = _constants(body, q.dtype, q.device)["gravity"]
-    grav = torch.cat([torch.zeros(nv, 3, dtype=q.dtype, device=q.device), g[None]], dim=0)
+    if gravity is None and base is None:
+        g = _constants(body, q.dtype, q.device)["gravity"]
+        grav = torch.cat([torch.zeros(nv, 3, dtype=q.dtype, device=q.device), g[None]], dim=0)
+    else:
+        g = _constants(body, q.dtype, q.device)["gravity"] if gravity is None else gravity
+        grav = _last_column(g, nv)
+        base = None if base is None else tuple(_last_column(x, nv) for x in base)
     out = rnea_rot(body, [None if R is None else R.unsqueeze(-3) for R in rots],
-                   q.unsqueeze(-2), vel, acc, gravity=grav)
+                   q.unsqueeze(-2), vel, acc, gravity=grav, base=base)
     M = out[..., :nv, :].transpose(-1, -2)
     M = 0.5 * (M + M.transpose(-1, -2))
     h = out[..., nv, :]
     Lc = torch.linalg.cholesky(M)
     return torch.cholesky_solve((tau - h).unsqueeze(-1), Lc).squeeze(-1)
+
+
+def _last_column(x: torch.Tensor, nv: int) -> torch.Tensor:
+    """...×3 → ...×(nv+1)×3: zero for the nv mass-matrix columns, x for the bias column."""
+    x = x.unsqueeze(-2)
+    return torch.cat([torch.zeros(x.shape[:-2] + (nv, 3), dtype=x.dtype, device=x.device), x], dim=-2)
 
 
 def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):
@@ -280,9 +299,9 @@ def potential_energy_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tenso
 
 # Public API on rotation-vector coordinates.
 
-def rnea(body: Body, q, v, a, gravity: bool = True):
-    """Inverse dynamics τ(q, v, a) (...×nv); see :func:`rnea_rot`."""
-    return rnea_rot(body, joint_rotations(body, q), q, v, a, gravity)
+def rnea(body: Body, q, v, a, gravity: bool = True, base=None):
+    """Inverse dynamics τ(q, v, a) (...×nv), optionally on a moving base; see :func:`rnea_rot`."""
+    return rnea_rot(body, joint_rotations(body, q), q, v, a, gravity, base)
 
 
 def mass_matrix(body: Body, q):
@@ -295,9 +314,10 @@ def bias_forces(body: Body, q, v):
     return rnea(body, q, v, torch.zeros_like(v))
 
 
-def forward_dynamics(body: Body, q, v, tau):
-    """Accelerations a = M⁻¹(τ − h) (...×nv); damping is not included here."""
-    return forward_dynamics_rot(body, joint_rotations(body, q), q, v, tau)
+def forward_dynamics(body: Body, q, v, tau, gravity=None, base=None):
+    """Accelerations a = M⁻¹(τ − h) (...×nv); damping is not included here. ``gravity``
+    and ``base``: see :func:`forward_dynamics_rot`."""
+    return forward_dynamics_rot(body, joint_rotations(body, q), q, v, tau, gravity, base)
 
 
 def forward_kinematics(body: Body, q):

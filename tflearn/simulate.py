@@ -70,6 +70,14 @@ class SimOptions:
     solver_options: Optional[dict] = None
 
 
+def base_terms(body: Body, base, t, dtype=torch.float64):
+    """(gravity g_b = Rᵀ g, (ω_b, ω̇_b, a_b)) of a moving base at time t, in the base frame,
+    for :func:`tflearn.dynamics.forward_dynamics_rot`; ``base(t)`` → (R, ω_b, ω̇_b, a_b)."""
+    R, w, dw, a = (x.to(dtype) for x in base(t))
+    g = R.T @ torch.as_tensor(body.gravity, dtype=dtype)
+    return g, (w, dw, a)
+
+
 class ArmODE(torch.nn.Module):
     """Right-hand side dy/dt for :func:`simulate` (an nn.Module so the adjoint can see
     the program's parameters). With ``track_work`` the state carries one more entry,
@@ -77,9 +85,9 @@ class ArmODE(torch.nn.Module):
     :class:`SimulationFailed` on evaluation max_evals + 1, and for a non-finite state."""
 
     def __init__(self, body: Body, program: TorqueProgram, track_work: bool = False,
-                 max_evals: Optional[int] = None):
+                 max_evals: Optional[int] = None, base=None):
         super().__init__()
-        self.body, self.program, self.track_work = body, program, track_work
+        self.body, self.program, self.track_work, self.base = body, program, track_work, base
         self.max_evals, self.evals = max_evals, 0
         if isinstance(program, torch.nn.Module):
             self.program_module = program
@@ -97,8 +105,10 @@ class ArmODE(torch.nn.Module):
         tau = self.program(t, coords, v)
         tau = tau.expand(v.shape) if tau.shape != v.shape else tau
         total = tau - body.damping * v if body.damping else tau
+        moving = {} if self.base is None else dict(zip(("gravity", "base"),
+                                                       base_terms(body, self.base, t, v.dtype)))
         try:
-            a = dynamics.forward_dynamics_rot(body, rots, coords, v, total)
+            a = dynamics.forward_dynamics_rot(body, rots, coords, v, total, **moving)
         except torch.linalg.LinAlgError:
             raise SimulationFailed("singular", f"the mass matrix cannot be factorised at "
                                                f"t = {float(t.detach()):.4g} s") from None
@@ -133,7 +143,7 @@ def zero_program(t, q, v):
 
 def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Tensor,
              t: torch.Tensor, options: SimOptions = SimOptions(), *,
-             track_work: bool = False) -> Trajectory:
+             track_work: bool = False, base=None) -> Trajectory:
     """Integrate the body from (q0, v0) at t[0] under ``program(t, ν, v) → τ``.
 
     Args:
@@ -141,6 +151,9 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         t: increasing sample times (T).
         options: :class:`SimOptions` (solver, tolerances, budget, adjoint).
         track_work: also integrate the work done by the program's torques.
+        base: a moving base, :class:`tflearn.torso.BaseMotion` (or any callable
+            t → (R, ω_b, ω̇_b, a_b)); the body's gravity is then a world vector, seen
+            from the base as Rᵀ g. None: the base is fixed (inertial).
     Returns:
         :class:`Trajectory` with ν and v sampled at t (time on dimension -2).
     Raises:
@@ -151,7 +164,7 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         raise ValueError("simulate: t must be a strictly increasing 1-D tensor of >= 2 times")
     global calls
     calls += 1
-    func = ArmODE(body, program, track_work, options.max_evals)
+    func = ArmODE(body, program, track_work, options.max_evals, base)
     y0 = pack(body, q0, v0)
     if track_work:
         y0 = torch.cat([y0, torch.zeros_like(y0[..., :1])], dim=-1)

@@ -1,0 +1,135 @@
+"""One shared basis over recorded right-arm movements (left arms mirrored): import the
+clips of the mocap folder, cut each clip's busiest window, train configs/mocap.yaml on
+the windows, and print per window the joint RMSE, the maximum hand-tip error, M and the
+wall time.
+
+    PYTHONPATH=. python bench/mocap_basis.py [--mocap DIR] [--out runs/mocap_bench]
+        [--window 1.0] [--clips N] [--import-only] [key=value ...]   (train config overrides)
+
+``--import-only`` prints the retargeting report of the import as a markdown table and
+stops (the table in docs/mocap.md).
+
+The mocap folder defaults to $TFLEARN_MOCAP, else ../shared/data/mocap beside the
+repository. Which arm of each clip moves is listed in ARMS (the data README's
+descriptions); the CMU clip is read at 60 fps (its header says 120; see the README).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tflearn import bvh, config, mocap, train  # noqa: E402
+from tflearn import motion as motion_mod  # noqa: E402
+from tflearn import retarget as rt  # noqa: E402
+from tflearn.body import from_config  # noqa: E402
+
+#: The moving arm of each clip (the others: "right"); left arms are mirrored.
+ARMS = {"dataset-1_respond_normal_001": "left", "dataset-1_punch_normal_001": "left",
+        "dataset-2_wave-left-hand_normal_001": "left"}
+FPS = {"cmu_141_16_wave-hello": 60.0}
+
+
+def busiest_window(m: motion_mod.Motion, seconds: float) -> tuple:
+    """(start, stop) sample indices of the window of ``seconds`` with the largest joint
+    path length Σ|Δν|."""
+    n = int(round(seconds * m.rate)) + 1
+    step = np.linalg.norm(np.diff(m.q.numpy(), axis=0), axis=1)
+    path = np.convolve(step, np.ones(n - 1), mode="valid")
+    i = int(np.argmax(path))
+    return i, i + n
+
+
+def import_table(report: dict) -> str:
+    """The retargeting report as a markdown table, one row per clip."""
+    rows = ["| clip | arm | fps | hinge lost RMS / max (°) | twist into wrist RMS / max (°) | "
+            "shoulder max (°) | elbow / wrist error (mm) | torque resolution native → smoothed "
+            "(cutoff) | torso travel (cm) / speed (m/s) / turn (°) / torque change |",
+            "|---|---|---:|---|---|---:|---|---|---|"]
+    for c in report["clips"]:
+        f, pe, t = c["filter"], c["position_error_m"], c["torso"]
+        cut = "none" if f["cutoff_hz"] is None else f"{f['cutoff_hz']:g} Hz"
+        rows.append(
+            f"| {c['clip']} | {('mirrored ' if c['mirrored'] else '') + c['side']} | {c['fps']:.0f} | "
+            f"{c['hinge_lost_deg']['rms']:.3f} / {c['hinge_lost_deg']['max']:.3f} | "
+            f"{c['forearm_twist_deg']['rms']:.1f} / {c['forearm_twist_deg']['max']:.1f} | "
+            f"{c['shoulder_angle_max_deg']:.0f} | "
+            f"{1000 * pe['elbow_max']:.4f} / {1000 * pe['wrist_max']:.3f} | "
+            f"{100 * f['resolution_native']:.2f}% → {100 * f['resolution_smoothed']:.2f}% ({cut}) | "
+            f"{100 * t['travel_m']:.0f} / {t['speed_max_m_s']:.2f} / {t['rotation_max_deg']:.0f} / "
+            f"{100 * t['torque_share']:.0f}% |")
+    return "\n".join(rows)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    default = os.environ.get("TFLEARN_MOCAP") or str(ROOT.parent / "shared" / "data" / "mocap")
+    p.add_argument("--mocap", type=Path, default=Path(default))
+    p.add_argument("--out", type=Path, default=ROOT / "runs" / "mocap_bench")
+    p.add_argument("--window", type=float, default=1.0, help="window length, seconds")
+    p.add_argument("--clips", type=int, default=0, help="use the first N clips (0: all)")
+    p.add_argument("--rate", type=float, default=60.0, help="window sampling rate, Hz")
+    p.add_argument("--import-only", action="store_true", help="print the import table and stop")
+    p.add_argument("overrides", nargs="*")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    files = sorted(args.mocap.glob("*.bvh"))
+    files = files[:args.clips] if args.clips else files
+    frames = []
+    for f in files:
+        skel = bvh.read(f)
+        if f.stem in FPS:
+            skel = replace(skel, frame_time=1.0 / FPS[f.stem])
+        side = ARMS.get(f.stem, "right")
+        frames.append(rt.arm_frames(skel, side, mirror=side == "left"))
+    imported = args.out / "imported"
+    t0 = time.time()
+    report = mocap.import_frames(frames, imported, mocap.ImportOptions(rate=args.rate))
+    body_doc = report["body"]
+    body = from_config(body_doc)
+    windows = args.out / "windows"
+    windows.mkdir(parents=True, exist_ok=True)
+    for c in report["clips"]:
+        m = motion_mod.load(imported / c["file"], body)
+        i, j = busiest_window(m, args.window)
+        w = motion_mod.Motion(m.name, m.t[i:j] - m.t[i], m.q[i:j], m.qd[i:j], body)
+        motion_mod.save(w, windows / c["file"])
+        c["window_s"] = [float(m.t[i]), float(m.t[j - 1])]
+    print(f"imported {len(frames)} clips in {time.time() - t0:.1f} s")
+    if args.import_only:
+        print(import_table(report))
+        return 0
+    cfg = config.load(ROOT / "configs" / "mocap.yaml",
+                      [f"data={windows}", f"out={args.out / 'run'}",
+                       "body=" + json.dumps(body_doc), *args.overrides])
+    t0 = time.time()
+    metrics = train.run(cfg, restart=True)
+    wall = time.time() - t0
+    rows = metrics["motions"]
+    print(f"\n{'window':>44s}  {'from (s)':>8s}  {'rmse (rad)':>10s}  {'tip (cm)':>8s}  reproduced")
+    for c in report["clips"]:
+        r = rows[c["file"][:-4]]
+        print(f"{c['file'][:-4]:>44s}  {c['window_s'][0]:8.2f}  {r['rmse']:10.4f}  "
+              f"{100 * r['tip']:8.2f}  {'yes' if r['success'] else 'no'}")
+    o = metrics["overall"]
+    print(f"M = {o['M']}, overall rmse {o['rmse']:.4f} rad, max tip {100 * o['tip']:.2f} cm, "
+          f"all reproduced: {'yes' if o['success'] else 'no'}; training {wall:.0f} s")
+    (args.out / "bench.json").write_text(json.dumps(
+        {"windows": {c["file"][:-4]: {"from_s": c["window_s"][0], **rows[c["file"][:-4]]}
+                     for c in report["clips"]},
+         "overall": o, "wall_s": wall, "overrides": args.overrides}, indent=2, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
