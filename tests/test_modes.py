@@ -275,3 +275,63 @@ def test_modes_command_bad_input(tmp_path, capsys):
     assert err.startswith(f"tflearn: {cfg}: stiffness.scale: no joint matches 'spine*'")
     assert cli.main(["modes", str(cfg), "stiffness.uniform=-1", "--out", str(tmp_path)]) == 2
     assert "stiffness.uniform" in capsys.readouterr().err
+
+
+def test_human_from_a_bvh_hierarchy(mocap):
+    """The CMU skeleton as a body: a ball per non-root joint (30 → 90 coordinates); masses
+    sum to the total with Winter's per-segment fractions (a thigh 10%, a hand 0.6%, the
+    trunk 49.7% over its bones); inertias positive definite; on a floating base six
+    rigid modes, then elastic ones."""
+    from tflearn import bvh
+    from tflearn import skeleton as sk
+    skel = bvh.read(mocap / "cmu_141_16_wave-hello.bvh")
+    body = sk.body_from_skeleton(skel, 70.0)
+    assert body.nv == 90 and [link.name for link in body.links] == list(skel.joints)
+    m = {link.name: link.mass for link in body.links}
+    assert sum(m.values()) == pytest.approx(70.0, rel=1e-12)
+    assert m["LeftUpLeg"] == pytest.approx(7.0, rel=1e-12)
+    hand = sum(v for k, v in m.items() if sk.segment_class(k) == "hand" and sk.side(k) == "right")
+    assert hand == pytest.approx(0.42, rel=1e-12)
+    trunk = sum(v for k, v in m.items() if sk.segment_class(k) == "trunk")
+    assert trunk == pytest.approx(0.497 * 70, rel=1e-12)
+    assert all(np.linalg.eigvalsh(np.array(link.inertia)).min() > 0 for link in body.links)
+    res = md.analyse(body, np.zeros(90), md.stiffness_matrix(body, 100.0, {"Spine*": 10}),
+                     options=md.ModalOptions(floating=True))
+    assert res.n_rigid == 6 and res.frequencies[6] > 0.1
+
+
+def test_modes_command_writes_bvh(mocap, tmp_path):
+    """For a skeleton, each mode's animation also as BVH in the file's hierarchy: read
+    back, its joint rotations are the motion's (to 1e-9) and its root stays put."""
+    from scipy.spatial.transform import Rotation
+
+    from tflearn import bvh
+    clip = mocap / "dataset-1_bye_normal_001.bvh"
+    out = tmp_path / "human"
+    cfg = tmp_path / "bandai.yaml"
+    cfg.write_text(f"skeleton: {{file: {clip}}}\nfloating: true\n"
+                   "stiffness: {uniform: 100.0, scale: {Spine: 10, Chest: 10}}\n")
+    assert cli.main(["modes", str(cfg), "animation.modes=1", "log.tensorboard=false",
+                     "--out", str(out)]) == 0
+    skel = bvh.read(clip)
+    back = bvh.read(out / "mode_06.bvh", scale=skel.scale)
+    assert back.joints == skel.joints and back.parents == skel.parents
+    doc = json.loads((out / "modes.json").read_text())
+    body = tb.from_dict(doc["body"])
+    q = load_motion(out / "mode_06.npz", body).q.numpy()
+    assert back.frames == q.shape[0]
+    for j, link in enumerate(body.links):
+        if link.joint == "ball":
+            want = Rotation.from_rotvec(q[:, body.slice(j)]).as_matrix()
+            np.testing.assert_allclose(back.rotations[:, j], want, atol=1e-9)
+    np.testing.assert_allclose(back.positions[:, 0], skel.positions[:1, 0].repeat(back.frames, 0),
+                               atol=1e-9)
+
+
+def test_bvh_without_hierarchy_is_one_error(tmp_path, capsys):
+    bad = tmp_path / "nohier.bvh"
+    bad.write_text("MOTION\nFrames: 1\nFrame Time: 0.01\n0 0 0\n")
+    assert cli.main(["modes", str(ROOT / "configs" / "modes" / "human.yaml"),
+                     f"skeleton.file={bad}", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(bad) in err and "HIERARCHY" in err

@@ -10,6 +10,8 @@ Writes into ``out`` (the config's, or ``--out``):
   (:func:`tflearn.modal_motion.unit_shapes`) and α = ``animation.amplitude`` rad
   (Motion format, :mod:`tflearn.motion`; the joints only, a floating base's motion is
   in the pictures but not in the .npz);
+* ``mode_II.bvh`` — the same, for a body from a BVH skeleton (``skeleton``), in that
+  file's hierarchy, playable in any BVH viewer;
 * ``mode_II.png`` — its stick figures at −α, 0 and +α (a floating base moved too);
 * ``motion.npz`` (and ``motion_pd.npz``, the PD-driven simulation, for a fixed base) when
   ``motion.drives`` is given; ``following`` in modes.json says how closely it followed;
@@ -34,9 +36,22 @@ from .motion import save as save_motion
 FORMAT = "tflearn-modes/1"
 
 
-def analyse_config(cfg: ModesConfig) -> md.Modes:
-    """The modes a config describes."""
-    body = from_config(cfg.body)
+def skeleton_of(cfg: ModesConfig):
+    """The BVH skeleton of a config's ``skeleton`` section (None without one)."""
+    if cfg.skeleton is None:
+        return None
+    from .bvh import read
+    return read(cfg.skeleton.file, scale=cfg.skeleton.scale)
+
+
+def analyse_config(cfg: ModesConfig, skel=None) -> md.Modes:
+    """The modes a config describes (``skel``: its skeleton, if already read)."""
+    skel = skel if skel is not None else skeleton_of(cfg)
+    if skel is not None:
+        from .skeleton import body_from_skeleton
+        body = body_from_skeleton(skel, cfg.skeleton.mass)
+    else:
+        body = from_config(cfg.body)
     s = cfg.stiffness
     K = md.stiffness_matrix(body, s.uniform, s.scale, s.matrix)
     constraints = [md.Constraint.from_config(c.model_dump(), f"constraints[{k}]")
@@ -57,6 +72,18 @@ def mode_motion(modes: md.Modes, i: int, amplitude: float, periods: float, sampl
     t = np.linspace(0.0, periods / f, n)
     q = mm.kinematic(modes, [mm.ModeDrive(i, amplitude=amplitude)], t)
     return Motion(f"mode_{i:02d}", t, q, body=modes.body)
+
+
+def write_bvh(skel, body, motion: Motion, path) -> None:
+    """A motion of a skeleton's body as BVH in the skeleton's own hierarchy and channel
+    orders (the root held at its first frame's position, unrotated)."""
+    from . import bvh
+    from .skeleton import rotations
+    F = motion.T
+    R = rotations(skel, body, motion.q.numpy())
+    P = np.broadcast_to(skel.positions[:1], (F,) + skel.positions.shape[1:])
+    bvh.write(skel, path, bvh.channel_values(skel, R, P),
+              frame_time=float(motion.t[1] - motion.t[0]))
 
 
 def base_pose(floating: bool, x: np.ndarray):
@@ -100,13 +127,17 @@ def run(cfg: ModesConfig, out=None) -> dict:
     from . import plots
     out = Path(out if out is not None else cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    modes = analyse_config(cfg)
+    skel = skeleton_of(cfg)
+    modes = analyse_config(cfg, skel)
     written, figures = [], {}
     a = cfg.animation
     unit = mm.unit_shapes(modes)[0]
     for i in animated_modes(modes, a.modes):
         motion = mode_motion(modes, i, a.amplitude, a.periods, a.samples)
         save_motion(motion, out / f"{motion.name}.npz")
+        if skel is not None:
+            write_bvh(skel, modes.body, motion, out / f"{motion.name}.bvh")
+            written.append(out / f"{motion.name}.bvh")
         poses = {"rest": (modes.q0, None)}
         for sign, label in ((-1, "−α"), (1, "+α")):
             x = sign * a.amplitude * unit[:, i]

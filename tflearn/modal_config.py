@@ -53,6 +53,12 @@ class MotionSection(Section):                     # the mode combination (paper 
     damping: float = Field(0.0, ge=0)             # c of the PD controller (N·m·s/rad)
 
 
+class SkeletonSection(Section):                   # a body from a BVH hierarchy (tflearn.skeleton)
+    file: str                                     # .bvh (relative to the working folder)
+    mass: float = Field(70.0, gt=0)               # total body mass, kg
+    scale: Optional[float] = Field(None, gt=0)    # metres per file unit; None: tflearn.bvh's guess
+
+
 class ModesLogSection(Section):
     tensorboard: bool = True
 
@@ -61,6 +67,7 @@ class ModesConfig(Section):
     """The modal-analysis config (``tflearn modes CONFIG``)."""
 
     body: dict[str, Any] = {"preset": "arm"}
+    skeleton: Optional[SkeletonSection] = None    # replaces body when given
     pose: Union[list[float], dict[str, list[float]], None] = None   # θ₀; None: zeros
     stiffness: StiffnessSection = StiffnessSection()
     constraints: list[ConstraintSection] = []
