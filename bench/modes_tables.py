@@ -21,7 +21,7 @@ from tflearn.modal_config import ModesConfig
 from tflearn.simulate import SimOptions
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ("arm", "linear_creature", "loop_creature")
+CONFIGS = ("arm", "linear_creature", "loop_creature", "human")   # human: needs the mocap data
 
 
 def frequency_table(rows: int = 12) -> str:
