@@ -68,8 +68,9 @@ def test_notebook_executes(run_dir, monkeypatch):
     """The notebook runs without error on a run given by a path relative to the
     repository root (the kernel starts in notebooks/); it shows the fields and weights
     tables, a figure per field plus the weights, trajectories, hand paths and edited
-    hand paths; its re-simulation of the first motion matches metrics.json, and the
-    edited program (a × 1.5) moves the end posture."""
+    hand paths; its re-simulation of the first motion matches metrics.json, the
+    edited program (a × 1.5) moves the end posture, and its table of the fields' modes
+    has the frequencies of tflearn.modes.field_modes on basis.json."""
     run = run_dir["out"]
     lb = json.loads((run / "basis.json").read_text())
     ref = json.loads((run / "metrics.json").read_text())
@@ -94,6 +95,15 @@ def test_notebook_executes(run_dir, monkeypatch):
     assert [r.split("|")[1].strip() for r in rows] == names
     for row, name in zip(rows, names):
         assert f"| {ref['motions'][name]['rmse']:.4f} |" in row
+
+    modes = [t for t in out["markdown"] if t.startswith("| modes of field |")]
+    assert len(modes) == 1
+    from tflearn import modes as md
+    from tflearn.body import from_dict
+    want = md.field_modes(from_dict(lb["body"]), [f["eta"] for f in lb["fields"]],
+                          [f["K"] for f in lb["fields"]])
+    for line, fm in zip(modes[0].splitlines()[2:], want, strict=True):
+        assert line.split("|")[2].strip() == " ".join(f"{f:.2f}" for f in fm.frequencies[:4])
 
     assert len(out["png"]) >= M + 4     # fields, weights, trajectories, hand paths, edited
     assert all(png.startswith(b"\x89PNG") for png in out["png"])

@@ -26,6 +26,7 @@ commands:
   render      animate one motion: target and reproduction side by side (GIF)
   experiment  run one of the thesis' chapter 4 experiments
   report      write docs/results.md from the experiments' results
+  modes       natural vibration modes of a body (frequencies, shapes, animations)
   bvh         motion capture: import BVH clips (arm motions, body.yaml, report) or
               export a model's motion (or an .npz) as BVH
 
@@ -152,6 +153,29 @@ def _experiment(args) -> int:
 def _report(args) -> int:
     from . import experiments
     print(f"wrote {experiments.report(args.runs, args.out)}")
+    return 0
+
+
+def _modes(args) -> int:
+    from . import config
+    from .modal_config import ModesConfig
+    cfg = config.load(args.config, args.overrides, schema=ModesConfig)
+    import torch
+
+    from . import modal
+    from .modes import ModalError
+    torch.set_num_threads(args.threads)
+    try:
+        result = modal.run(cfg, out=args.out)
+    except ModalError as err:
+        raise ModalError(f"{args.config}: {err}") from None
+    print(modal.table(result["modes"], cfg.table))
+    fol = result["following"]
+    if fol is not None:
+        print(f"PD controller follows the mode motion: rms {fol['rms_rad']:.4f} rad, "
+              f"max {fol['max_rad']:.4f} rad")
+    print(f"wrote {len(result['written'])} files to {result['out']} (modes.json, "
+          f"mode_II.npz/.png" + (", tensorboard/" if cfg.log.tensorboard else "") + ")")
     return 0
 
 
@@ -286,6 +310,12 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("docs/results.md"), help="report file")
     p.set_defaults(func=_report)
 
+    p = sub.add_parser("modes", help="natural vibration modes of a body (configs/modes/)")
+    p.add_argument("config", type=Path, help="YAML config (e.g. configs/modes/arm.yaml)")
+    p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. stiffness.uniform=5")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out)")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    p.set_defaults(func=_modes)
     _bvh_args(sub)
     return parser
 
