@@ -184,3 +184,41 @@ def test_gains_need_every_moving_link():
         C.joint_gains(chain)
     K, B = C.joint_gains(chain, {"link0": (3.0, 0.1), "link1": (2.0, 0.05)})
     assert K.tolist() == [3.0, 2.0] and B.tolist() == [0.1, 0.05]
+
+
+# ----------------------------------------------------------------------------- the command
+
+def test_perturb_command(tmp_path, capsys):
+    """tflearn perturb on a gesture's basis.json (its NAME.npz beside it is the target):
+    results.json with the figures per case, the push and sweep plots, the GIF and
+    TensorBoard events; bad input is one line and exit status 2."""
+    import json
+
+    from tflearn import cli
+    g = gestures.GESTURES["come_here"]
+    gestures.write(tmp_path, gestures=[gestures.Gesture("short", g.eta, g.k, g.a, g.b, duration=0.8)],
+                   plots=False)
+    cfg = tmp_path / "perturb.yaml"
+    cfg.write_text(f"model: {tmp_path / 'short.json'}\nmotions: [short]\ncontrollers: [fields]\n"
+                   f"pushes: [{{force: [1.0, 0, 0], at: 0.3, duration: 0.1}}]\n"
+                   f"sweep: {{directions: [[0, 1, 0]], impulses: [0.01, 0.02], at: 0.3}}\n"
+                   f"out: {tmp_path / 'out'}\n")
+    assert cli.main(["perturb", "--config", str(cfg)]) == 0
+    doc = json.loads((tmp_path / "out" / "results.json").read_text())
+    rows = doc["motions"]["short"]["fields"]["cases"]
+    assert [r["case"] for r in rows] == ["push (1.0, 0.0, 0.0) N at 0.3 s", "sweep", "sweep"]
+    assert rows[0]["impulse_Ns"] == pytest.approx(0.05)
+    assert rows[2]["max_hand_dev"] > rows[1]["max_hand_dev"] > 0
+    assert doc["motions"]["short"]["fields"]["rmse"] < 1e-6
+    for name in ("short_push.png", "short_sweep.png", "short.gif"):
+        assert (tmp_path / "out" / "figures" / name).stat().st_size > 1000
+    assert list((tmp_path / "out" / "tensorboard").glob("events.*"))
+    assert "fields" in capsys.readouterr().out
+    model = str(tmp_path / "short.json")
+    for argv, word in ((["--motion", "short", "--force", "1,2"], "--force"),
+                       (["--motion", "short", "--controller", "pd"], "controllers"),
+                       (["--motion", "wave", "--out", str(tmp_path / "o2")], "wave"),
+                       (["--motion", "short", "--point", "knee", "--out", str(tmp_path / "o3")], "knee")):
+        assert cli.main(["perturb", model, *argv]) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("tflearn: ") and word in err and "\n" not in err, err

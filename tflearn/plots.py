@@ -542,6 +542,7 @@ def push_response(body: Body, t, base: dict, pushed: dict, window, tol: float = 
         ax.axvspan(window[0], window[1], color="red", alpha=0.15, label="push")
     ax.axhline(100 * tol, color="0.3", ls=":", lw=1, label=f"{100 * tol:g} cm")
     ax.set_yscale("symlog", linthresh=0.1)
+    ax.set_ylim(bottom=0)
     ax.set_xlabel("t (s)")
     ax.set_ylabel("hand distance from unperturbed path (cm)")
     ax.grid(True, lw=0.3)
@@ -560,13 +561,13 @@ def deviation_sweep(rows: dict, title: str = "") -> plt.Figure:
     """Largest hand deviation (cm) against push impulse (N·s), one colour per controller,
     one marker per push direction; ``rows``: controller → [{"impulse", "impulse_Ns",
     "max_hand_dev"}, ...]."""
-    fig, ax = plt.subplots(figsize=(7, 4.6))
+    fig, ax = plt.subplots(figsize=(9, 4.6))
     markers = "osd^v<>"
     dirs = []
     for n, (label, rs) in enumerate(rows.items()):
         by_dir = {}
         for r in rs:
-            d = tuple(np.round(np.asarray(r["impulse"]) / max(r["impulse_Ns"], 1e-300), 3))
+            d = tuple(float(x) for x in np.round(np.asarray(r["impulse"]) / max(r["impulse_Ns"], 1e-300), 3))
             by_dir.setdefault(d, []).append((r["impulse_Ns"], 100 * r["max_hand_dev"]))
         for m, (d, pts) in enumerate(sorted(by_dir.items())):
             if d not in dirs:
@@ -578,7 +579,7 @@ def deviation_sweep(rows: dict, title: str = "") -> plt.Figure:
     for k, d in enumerate(dirs):
         handles.append(Line2D([], [], color="0.4", marker=markers[k % len(markers)], lw=0))
         labels.append(f"direction {d}")
-    ax.legend(handles, labels, fontsize=8)
+    ax.legend(handles, labels, fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.set_xlabel("push impulse (N·s)")
     ax.set_ylabel("largest hand deviation (cm)")
     ax.set_yscale("log")

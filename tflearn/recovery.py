@@ -109,6 +109,9 @@ def run_motion(lb, motion, cfg: PerturbConfig, options: SimOptions) -> dict:
                                 high_gain=cfg.gains.high_gain)
     q0, v0, _ = target(motion.t[0])
     cases = _cases(cfg)
+    for _, case, _ in cases:                     # unknown points refused before any work
+        for push in case.pushes:
+            P.point_on(body, push.point)
     doc, responses = {}, {}
     for name in cfg.controllers:
         ctrl = C.build(name, target, program, copts)
