@@ -48,7 +48,8 @@ def tables(doc: dict) -> str:
                 for j in imps:
                     rs = [row for row in rows if round(row["impulse_Ns"], 6) == j]
                     d = [100 * row["max_hand_dev"] for row in rs]
-                    cells.append(f"{max(d):.1f} / {np.mean(d):.1f}; {max(row['peak_torque'] for row in rs):.1f}")
+                    peak = max(row["peak_torque"] for row in rs)
+                    cells.append(f"{max(d):.1f} / {np.mean(d):.1f}; {peak:.1f}")
                 rec = [row["recovery_s"] for row in rows]
                 ok = [x for x in rec if x is not None]
                 out.append(f"| {c} | " + " | ".join(cells) + f" | {len(ok)}/{len(rec)} | "
