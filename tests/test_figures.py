@@ -391,7 +391,7 @@ def test_render_cli(tiny_run, capsys):
 
 
 def test_gif_frames_are_large_and_evaluation_has_units(tiny_run, tmp_path):
-    """_write_gif's frames: ≥ GIF_MIN_WIDTH px wide, fonts ≥ 10 pt; evaluation.json
+    """write_gif's frames: ≥ GIF_MIN_WIDTH px wide, fonts ≥ 10 pt; evaluation.json
     carries the same units block as metrics.json."""
     assert render.GIF_MIN_WIDTH >= 900 and render.GIF_FONT - 1 >= 10
     body = tb.arm()
@@ -400,7 +400,7 @@ def test_gif_frames_are_large_and_evaluation_has_units(tiny_run, tmp_path):
     P = plots.joint_positions(body, q)
     t = np.linspace(0, 1, 11)
     for paths in ({"target": P}, {"target": P, "reproduced": P}):
-        frames = render._write_gif(paths, t, render.frame_samples(t, 2), 2, tmp_path / "x.gif",
+        frames = render.write_gif(paths, t, render.frame_samples(t, 2), 2, tmp_path / "x.gif",
                                    "x: rmse 0.0000 rad, tip error 0.00 cm", keep=True)
         assert len(frames) == 3 and frames[0].shape[1] >= 900 and frames[0].shape[0] >= 450
     from tflearn import evaluate, metrics

@@ -31,6 +31,9 @@ JOINT_DOFS = {"ball": 3, "hinge": 1, "fixed": 0}
 LINK_KEYS = ("name", "parent", "joint", "origin", "offset", "axis", "mass", "com", "inertia",
              "length", "radius")
 BODY_KEYS = ("name", "links", "gravity", "damping", "tip")
+#: Names of the joints of the thesis' arm, by the link they move (:func:`arm`); a link
+#: not listed names its joint itself.
+JOINT_NAMES = {"upper_arm": "shoulder", "forearm": "elbow", "hand": "wrist"}
 
 
 @dataclass(frozen=True)

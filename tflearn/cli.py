@@ -9,6 +9,7 @@ before torch is imported, so ``--help`` and refusals answer at once.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import traceback
 from pathlib import Path
@@ -24,6 +25,7 @@ commands:
   evaluate    re-simulate a trained model on motions; new motions are synthesised
   simulate    play one motion's torque program from a trained model
   render      animate one motion: target and reproduction side by side (GIF)
+  perturb     push the limb under each controller and measure its recovery
   experiment  run one of the thesis' chapter 4 experiments
   report      write docs/results.md from the experiments' results
   modes       natural vibration modes of a body (frequencies, shapes, animations)
@@ -134,6 +136,49 @@ def _render(args) -> int:
     path = render.render(run, args.motion, out=args.out, fps=args.fps,
                          tensorboard=not args.no_tensorboard)
     print(f"wrote {path}")
+    return 0
+
+
+def _perturb_config(args):
+    """The PerturbConfig of ``tflearn perturb`` flags, or of ``--config FILE`` (MODEL, if
+    given, replacing its model). Raises :class:`InputError` (ConfigError) naming the problem."""
+    from .config import CONTROLLER_NAMES, PerturbConfig, load, validate
+    from .errors import InputError
+    if args.config is not None:
+        overrides = [f"model={args.model}"] if args.model is not None else []
+        return load(args.config, overrides, PerturbConfig)
+    if args.model is None or args.motion is None:
+        raise InputError("perturb: give MODEL and --motion NAME (or --config FILE)")
+    doc = {"model": str(args.model), "motions": [args.motion],
+           "controllers": list(CONTROLLER_NAMES) if args.controller == "all" else [args.controller],
+           "pushes": [{"force": _triple(args.force, "--force"), "at": args.at,
+                       "duration": args.duration, "point": args.point}],
+           "carry": args.carry, "out": str(args.out or Path("runs/perturb") / args.motion),
+           "animation": not args.no_animation}
+    return validate(doc, PerturbConfig, "perturb")
+
+
+def _triple(text: str, flag: str) -> list:
+    from .errors import InputError
+    try:
+        xs = [float(x) for x in text.split(",")]
+    except ValueError:
+        xs = []
+    if len(xs) != 3 or not all(math.isfinite(x) for x in xs):
+        raise InputError(f"{flag} must be three numbers FX,FY,FZ, got {text!r}")
+    return xs
+
+
+def _perturb(args) -> int:
+    cfg = _perturb_config(args)
+    import torch
+
+    from . import recovery
+    torch.set_num_threads(args.threads)
+    doc = recovery.run(cfg)
+    print("\n".join(recovery.summary_lines(doc)))
+    print(f"wrote {cfg.out}/results.json and {cfg.out}/figures/"
+          + (f"; tensorboard in {cfg.out}/tensorboard" if cfg.tensorboard else ""))
     return 0
 
 
@@ -296,6 +341,24 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
                    help="do not log the animation's frames (images) to RUN/tensorboard")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_render)
+
+    p = sub.add_parser("perturb", help="push the limb under each controller (fields, ff+pd, "
+                                       "ff, pd-high) and measure its recovery")
+    p.add_argument("model", type=Path, nargs="?", metavar="MODEL", help="a run folder or its basis.json")
+    p.add_argument("--motion", default=None, help="motion name in the model")
+    p.add_argument("--force", default="0,0,0", help="push force FX,FY,FZ in N, world axes (default 0,0,0)")
+    p.add_argument("--at", type=float, default=1.0, help="push onset in s (default 1)")
+    p.add_argument("--duration", type=float, default=0.1, help="push duration in s (default 0.1)")
+    p.add_argument("--point", default="hand", help="hand | elbow | a link name (default hand)")
+    p.add_argument("--controller", default="all", help="all | fields | ff+pd | ff | pd-high")
+    p.add_argument("--carry", type=float, default=0.0, help="kg held at the hand (default 0)")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default runs/perturb/MOTION)")
+    p.add_argument("--no-animation", action="store_true", help="skip the GIF")
+    p.add_argument("--config", type=Path, default=None,
+                   help="a batch config (e.g. configs/perturb.yaml) instead of the push flags; "
+                        "MODEL, if given, replaces its model")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    p.set_defaults(func=_perturb)
 
     p = sub.add_parser("experiment", help="run one of the thesis' chapter 4 experiments "
                                           "(configs/experiments/NAME.yaml)")

@@ -130,6 +130,63 @@ class Config(Section):
         return validate(merge(self.model_dump(), changes), type(self))
 
 
+# ----------------------------------------------------------------------------- perturb
+
+CONTROLLER_NAMES = ("fields", "ff+pd", "ff", "pd-high")     # tflearn.controllers.CONTROLLERS
+
+
+class PushSection(Section):
+    """One push: force F (N, world) with the cosine-pulse profile over [at, at + duration]."""
+
+    force: list[float] = Field(min_length=3, max_length=3)
+    at: float = Field(ge=0)
+    duration: float = Field(0.1, gt=0)
+    point: str = "hand"
+
+
+class SweepSection(Section):
+    """Pushes of each impulse (N·s) along each direction (normalised), all batched."""
+
+    directions: list[list[float]] = []
+    impulses: list[float] = []
+    at: float = Field(1.0, ge=0)
+    duration: float = Field(0.1, gt=0)
+    point: str = "hand"
+
+
+class GainsSection(Section):
+    """ff+pd: K = scale·K₀ + bilinear·|τ_ff|, B = √scale·B₀; pd-high: high_gain·K₀,
+    √high_gain·B₀ (K₀, B₀ per joint: tflearn.controllers.HUMAN_ARM_GAINS)."""
+
+    scale: float = Field(1.0, gt=0)
+    bilinear: float = Field(0.0, ge=0)
+    high_gain: float = Field(20.0, gt=0)
+
+
+class SimulationSection(Section):
+    method: Literal[SOLVERS] = "dopri5"
+    rtol: float = Field(1e-6, gt=0)
+    atol: float = Field(1e-8, gt=0)
+    max_evals: int = Field(400_000, ge=1)
+
+
+class PerturbConfig(Section):
+    """``tflearn perturb``: controllers × perturbations on motions of a trained model."""
+
+    model: str                                   # a run folder or its basis.json
+    motions: list[str] = Field(min_length=1)
+    controllers: list[Literal[CONTROLLER_NAMES]] = list(CONTROLLER_NAMES)
+    pushes: list[PushSection] = []
+    sweep: SweepSection = SweepSection()
+    carry: float = Field(0.0, ge=0)              # kg held at the hand (with every push)
+    gains: GainsSection = GainsSection()
+    simulation: SimulationSection = SimulationSection()
+    tol: float = Field(0.01, gt=0)               # m: recovered when back within tol for good
+    out: str = "runs/perturb"
+    animation: bool = True
+    tensorboard: bool = True
+
+
 class ConfigError(InputError):
     """A bad config file, key or value; the message names it."""
 

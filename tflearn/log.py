@@ -173,6 +173,11 @@ class RunLog:
         if self.writer is not None:
             self.writer.add_scalar(tag, float(value), step)
 
+    def figure(self, tag: str, fig, step: int) -> None:
+        """A matplotlib figure (left open for the caller)."""
+        if self.writer is not None:
+            self.writer.add_figure(tag, fig, step, close=False)
+
     def fields(self, M: int, step: int, K: Optional[torch.Tensor] = None, weights=None) -> None:
         """A model change: M, and histograms of the stiffness eigenvalues (of K,
         M×n×n) and of the weights (a MotionWeights)."""

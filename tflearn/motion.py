@@ -603,6 +603,16 @@ class MotionSpline:
                 rots.append(dynamics.rotvec_to_rotmat(p))
         return torch.cat(q, -1), torch.cat(v, -1), torch.cat(a, -1), rots
 
+    def torques(self, t):
+        """Inverse-dynamics torques at times t (T'): τ = RNEA(ν, ω, ω̇) + c ω (the body's
+        gravity and damping c), with ν, ω, ω̇ from this spline. Returns (τ, ν, ω, ω̇),
+        T'×nv each."""
+        q, v, a, rots = self(t)
+        tau = dynamics.rnea_rot(self.body, rots, q, v, a)
+        if self.body.damping:
+            tau = tau + self.body.damping * v
+        return tau, q, v, a
+
 
 def kinematics(body: Optional[Body], motion: Motion, t=None, method: str = "quat"):
     """Spline coordinates ν (principal), velocities and accelerations (each T'×nv, body
@@ -626,10 +636,7 @@ def torques(body: Optional[Body], motion: Motion, t=None, method: str = "quat"):
     accelerations: angular for ball joints, angle rates for hinges).
     """
     body = motion.body if body is None else body
-    q, v, a, rots = MotionSpline(body, motion, method)(motion.t if t is None else t)
-    tau = dynamics.rnea_rot(body, rots, q, v, a)
-    if body.damping:
-        tau = tau + body.damping * v
+    tau, _, v, a = MotionSpline(body, motion, method).torques(motion.t if t is None else t)
     return tau, v, a
 
 

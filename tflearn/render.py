@@ -82,7 +82,7 @@ def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
              "reproduced": plots.joint_positions(lb.body, s.q_sim[0, :T])}
     out = Path(out) if out is not None else run / "figures" / f"{motion}.gif"
     out.parent.mkdir(parents=True, exist_ok=True)
-    frames = _write_gif(paths, t, frame_samples(t, fps), fps, out,
+    frames = write_gif(paths, t, frame_samples(t, fps), fps, out,
                         f"{motion}: rmse {s.rmse[0]:.4f} rad, tip error {100 * s.tip[0]:.2f} cm",
                         keep=tensorboard)
     if tensorboard:
@@ -108,11 +108,14 @@ def log_frames(logdir, motion: str, frames: list) -> None:
         writer.add_image(f"render/{motion}/strip", contact_sheet(frames), 0, dataformats="HWC")
 
 
-def _write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Path,
-               title: str, keep: bool) -> list:
+def write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Path,
+              title: str, keep: bool, reference=None, window=None) -> list:
     """Draw one frame per entry of ``samples`` and write them to ``out`` with
     PillowWriter; ``paths``: label → joint positions (T×(L+1)×3), one 3-D panel each
-    (axes x, y, z in m), the title above them with the time in s. Frames are at least
+    (axes x, y, z in m), the title above them with the time in s. ``reference`` (joint
+    positions) is drawn as a dashed "target hand path" in every panel; without it the
+    first path is, in the other panels. ``window`` (t₀, t₁): while t₀ ≤ t ≤ t₁ the hands
+    are marked with a red star and the title says "push". Frames are at least
     :data:`GIF_MIN_WIDTH` px wide (560 px per panel), fonts at least :data:`GIF_FONT` pt.
     Returns the frames as H×W×3 uint8 arrays when ``keep``, else []."""
     import matplotlib.pyplot as plt
@@ -121,33 +124,38 @@ def _write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: P
     dpi = 100
     width = max(GIF_MIN_WIDTH / dpi, 5.6 * len(paths))
     fig = plt.figure(figsize=(width, 5.8), dpi=dpi)
-    allpts = np.concatenate(list(paths.values()), 0)
+    allpts = np.concatenate(list(paths.values()) + ([reference] if reference is not None else []), 0)
     artists = []
-    for n, ((label, P), color) in enumerate(zip(paths.items(), ["C0", "C1"])):
+    for n, (label, P) in enumerate(paths.items()):
+        color = f"C{n}"
         ax = fig.add_subplot(1, len(paths), n + 1, projection="3d")
         ax.computed_zorder = False               # the target's path stays on top of the trail
-        if n:
-            first = next(iter(paths.values()))
-            ax.plot(first[:, -1, 0], first[:, -1, 1], first[:, -1, 2], "--", color="0.3", lw=1.2,
+        ref = reference if reference is not None else (next(iter(paths.values())) if n else None)
+        if ref is not None:
+            ax.plot(ref[:, -1, 0], ref[:, -1, 1], ref[:, -1, 2], "--", color="0.3", lw=1.2,
                     label="target hand path", zorder=4)
         arm, = ax.plot([], [], [], "o-", color=color, ms=6, lw=3, label=f"{label} arm")
         trail, = ax.plot([], [], [], color=color, lw=1.6, label=f"{label} hand trail")
+        star, = ax.plot([], [], [], "*", color="red", ms=16, zorder=5)
         plots._equal_3d(ax, allpts, fontsize=GIF_FONT)
         ax.view_init(elev=15, azim=-30)
         ax.set_title(label, fontsize=GIF_FONT + 2)
         ax.tick_params(labelsize=GIF_FONT - 1)
         ax.legend(fontsize=GIF_FONT - 1, loc="upper left")
-        artists.append((P, arm, trail))
+        artists.append((P, arm, trail, star))
     head = fig.suptitle("", fontsize=GIF_FONT + 3)
     fig.subplots_adjust(left=0.02, right=0.95, bottom=0.04, top=0.86, wspace=0.12)
     frames = []
     writer = PillowWriter(fps=fps)
     with replacing(out) as tmp, writer.saving(fig, str(tmp), dpi=fig.dpi):
         for k in samples:
-            for P, arm, trail in artists:
+            pushing = window is not None and window[0] <= t[k] <= window[1]
+            for P, arm, trail, star in artists:
                 arm.set_data_3d(P[k, :, 0], P[k, :, 1], P[k, :, 2])
                 trail.set_data_3d(P[:k + 1, -1, 0], P[:k + 1, -1, 1], P[:k + 1, -1, 2])
-            head.set_text(f"{title}\nt = {t[k]:.2f} s")
+                star.set_data_3d(P[k:k + 1, -1, 0] if pushing else [], P[k:k + 1, -1, 1] if pushing else [],
+                                 P[k:k + 1, -1, 2] if pushing else [])
+            head.set_text(f"{title}\nt = {t[k]:.2f} s" + ("   (push)" if pushing else ""))
             writer.grab_frame()
             if keep:
                 fig.canvas.draw()

@@ -76,7 +76,8 @@ def report(experiments: dict, runs="runs/experiments", out="docs/results.md") ->
     fig_root = out.parent / "results"
     fig_root.mkdir(parents=True, exist_ok=True)
     words = common.text("report")
-    doc = [f"# {words['title']}", "", words["intro"], "", *_model_section(fig_root)]
+    doc = [f"# {words['title']}", "", words["intro"], "", words["see_also"], "",
+           *_model_section(fig_root)]
     for name, experiment in experiments.items():
         doc += _section(name, experiment, runs, fig_root)
     write_text(out, "\n".join(doc))
