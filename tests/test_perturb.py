@@ -222,3 +222,30 @@ def test_perturb_command(tmp_path, capsys):
         assert cli.main(["perturb", model, *argv]) == 2, argv
         err = capsys.readouterr().err.strip()
         assert err.startswith("tflearn: ") and word in err and "\n" not in err, err
+
+
+def test_perturb_a_folder_of_imported_motions(tmp_path, capsys):
+    """MODEL may be a folder of motions without a basis (NAME.npz and body.yaml, as
+    ``tflearn bvh import`` writes clips): the tracking controllers run on the body of
+    body.yaml; ``fields`` is refused, naming the folder, before any work."""
+    import json
+
+    from tflearn import cli
+    from tflearn.motion import save
+    g = gestures.GESTURES["come_here"]
+    (m, _), = gestures.generate(gestures=[gestures.Gesture("clip", g.eta, g.k, g.a, g.b, duration=0.8)])
+    save(m, tmp_path / "clip.npz")
+    (tmp_path / "body.yaml").write_text("body:\n  preset: arm\n  lengths: [0.3, 0.27, 0.19]\n")
+    out = tmp_path / "out"
+    argv = ["perturb", str(tmp_path), "--motion", "clip", "--force", "1,0,0", "--at", "0.3",
+            "--duration", "0.1", "--no-animation", "--out", str(out)]
+    assert cli.main([*argv, "--controller", "ff+pd"]) == 0
+    rows = json.loads((out / "results.json").read_text())["motions"]["clip"]["ff+pd"]
+    assert rows["rmse"] < 0.01 and 0 < rows["cases"][0]["max_hand_dev"] < 0.05
+    capsys.readouterr()
+    assert cli.main([*argv, "--controller", "fields"]) == 2
+    err = capsys.readouterr().err
+    assert "no basis.json" in err and str(tmp_path) in err
+    (tmp_path / "body.yaml").unlink()
+    assert cli.main([*argv, "--controller", "ff"]) == 2
+    assert "no body.yaml" in capsys.readouterr().err

@@ -248,12 +248,9 @@ def _bvh_export(args) -> int:
     from . import motion as motion_mod
     from .errors import InputError
     if args.source.suffix == ".npz":
-        from .body import arm, from_config
-        from .config import read
-        doc = read(args.body) if args.body else {"body": {}}
-        if not isinstance(doc.get("body"), dict):
-            raise InputError(f"{args.body}: no 'body:' section")
-        body = from_config(doc["body"]) if args.body else arm()
+        from .body import arm
+        from .config import read_body
+        body = read_body(args.body) if args.body else arm()
         m = motion_mod.load(args.source, body)
         t, q = m.t.numpy(), m.q.numpy()
     else:

@@ -308,6 +308,19 @@ def read(path) -> dict:
     return doc
 
 
+def read_body(path):
+    """The :class:`~tflearn.body.Body` of a YAML file's ``body:`` section (a config, or the
+    body.yaml that ``tflearn bvh import`` writes); errors name the file."""
+    from .body import from_config
+    doc = read(path)
+    if not isinstance(doc.get("body"), dict):
+        raise ConfigError(f"{path}: no 'body:' section")
+    try:
+        return from_config(doc["body"])
+    except ValueError as err:
+        raise ConfigError(f"{path}: {err}") from None
+
+
 def merge(base: dict, new: dict) -> dict:
     """``base`` updated recursively by ``new`` (copies; "body" is replaced whole)."""
     out = copy.deepcopy(base)

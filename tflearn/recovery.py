@@ -8,8 +8,10 @@ at the target's times; :func:`tflearn.perturb.measure` gives the figures.
 
 The target of motion NAME: the run's own data (its config.yaml's ``data``) when MODEL is
 a run folder with a config, else NAME.npz beside the basis.json (as ``tflearn gestures``
-writes them). Its feed-forward torques are its spline's inverse dynamics on the model's
-body. ``fields`` plays the basis' program of NAME.
+writes them). MODEL may also be a folder of motions without a basis — NAME.npz with the
+body in body.yaml, as ``tflearn bvh import`` writes recorded clips — for the tracking
+controllers (``ff+pd``, ``ff``, ``pd-high``). The feed-forward torques are the target
+spline's inverse dynamics on the body. ``fields`` plays the basis' program of NAME.
 
 Writes to ``out``: ``results.json`` (per motion and controller: the unperturbed tracking
 RMSE and per case the push and its figures), ``figures/NAME_push.png`` (hand deviation
@@ -38,32 +40,46 @@ from .simulate import SimOptions
 
 
 def targets(model, names: list) -> tuple:
-    """(LearnedBasis, {name: target Motion}) of a MODEL (run folder or basis.json); raises
-    :class:`InputError` naming a motion the basis or the data does not hold."""
+    """(body, LearnedBasis or None, {name: target Motion}) of a MODEL: a run folder or its
+    basis.json (the basis' body and program), or a folder of motions without a basis, as
+    ``tflearn bvh import`` writes them (NAME.npz and body.yaml, the performer's arm), for
+    the tracking controllers only. Raises :class:`InputError` naming a motion the basis
+    or the data does not hold."""
+    model = Path(model)
+    if model.is_dir() and not (model / "basis.json").exists():
+        from .config import read_body
+        if not (model / "body.yaml").exists():
+            raise InputError(f"{model}: neither a run (no basis.json) nor a folder of imported "
+                             f"motions (no body.yaml)")
+        body = read_body(model / "body.yaml")
+        return body, None, _beside(model, names, body)
     from .data import load_motions
     from .evaluate import run_config
-    from .motion import load as load_motion
-    model = Path(model)
     run, path = (model, model / "basis.json") if model.is_dir() else (model.parent, model)
     lb = basis_io.load(path)
     for name in names:
         lb.index(name)
-    if (run / "config.yaml").exists():
-        cfg, _ = run_config(run)
-        found = {m.name: m for m in load_motions(cfg.data, lb.body) if m.name in names}
-        missing = [n for n in names if n not in found]
-        if missing:
-            raise InputError(f"{path}: motions {', '.join(missing)} are not in the run's data "
-                             f"({cfg.data!r})")
-        return lb, found
+    if not (run / "config.yaml").exists():
+        return lb.body, lb, _beside(path.parent, names, lb.body, f"{path}: ")
+    cfg, _ = run_config(run)
+    found = {m.name: m for m in load_motions(cfg.data, lb.body) if m.name in names}
+    missing = [n for n in names if n not in found]
+    if missing:
+        raise InputError(f"{path}: motions {', '.join(missing)} are not in the run's data "
+                         f"({cfg.data!r})")
+    return lb.body, lb, found
+
+
+def _beside(folder: Path, names: list, body, where: str = "") -> dict:
+    """{name: folder/NAME.npz} loaded on ``body``; InputError naming a missing one."""
+    from .motion import load as load_motion
     found = {}
     for name in names:
-        npz = path.parent / f"{name}.npz"
+        npz = folder / f"{name}.npz"
         if not npz.exists():
-            raise InputError(f"{path}: no target for motion {name!r} (no config.yaml in "
-                             f"{run} and no {npz.name} beside the basis)")
-        found[name] = load_motion(npz, lb.body)
-    return lb, found
+            raise InputError(f"{where}no target for motion {name!r} (no {npz})")
+        found[name] = load_motion(npz, body)
+    return found
 
 
 def _cases(cfg: PerturbConfig) -> list:
@@ -98,12 +114,13 @@ def _push_doc(case: P.Perturbation, i: int) -> dict:
             "duration": push.duration, "point": push.point, "carry_kg": case.carry}
 
 
-def run_motion(lb, motion, cfg: PerturbConfig, options: SimOptions) -> dict:
+def run_motion(body, lb, motion, cfg: PerturbConfig, options: SimOptions) -> dict:
     """Every controller × case on one motion: {controller: {"rmse", "cases": [...]}} and the
-    responses {controller: (unperturbed, [pushed per case])} for the figures."""
-    body = lb.body
-    j = lb.index(motion.name)
-    program = FieldProgram(lb.basis, lb.weights.select_motions([j]))
+    responses {controller: (unperturbed, [pushed per case])} for the figures. ``lb``: the
+    learned basis (for ``fields``), or None."""
+    program = None
+    if lb is not None:
+        program = FieldProgram(lb.basis, lb.weights.select_motions([lb.index(motion.name)]))
     target = C.Target(body, motion)
     copts = C.ControllerOptions(scale=cfg.gains.scale, bilinear=cfg.gains.bilinear,
                                 high_gain=cfg.gains.high_gain)
@@ -136,7 +153,10 @@ def run(cfg: PerturbConfig, log: Callable[[str], None] = print) -> dict:
     from .log import RunLog
     out = Path(cfg.out)
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    lb, motions = targets(cfg.model, cfg.motions)
+    body, lb, motions = targets(cfg.model, cfg.motions)
+    if lb is None and "fields" in cfg.controllers:
+        raise InputError(f"{cfg.model}: no basis.json, so there is no 'fields' controller to "
+                         f"push (choose among {', '.join(c for c in C.CONTROLLERS if c != 'fields')})")
     s = cfg.simulation
     options = SimOptions(method=s.method, rtol=s.rtol, atol=s.atol, max_evals=s.max_evals)
     doc = {"model": cfg.model, "config": cfg.model_dump(), "gains": {
@@ -148,13 +168,13 @@ def run(cfg: PerturbConfig, log: Callable[[str], None] = print) -> dict:
         rl.open()
         for name, motion in motions.items():
             log(f"{name}: {', '.join(cfg.controllers)} ...")
-            res, responses, cases = run_motion(lb, motion, cfg, options)
+            res, responses, cases = run_motion(body, lb, motion, cfg, options)
             doc["motions"][name] = res
             for c, r in res.items():
                 for k, row in enumerate(r["cases"]):
                     for key in ("max_hand_dev", "max_joint_dev", "peak_torque", "final_joint_error"):
                         rl.scalar(f"perturb/{name}/{c}/{key}", row[key], k)
-            _figures(lb.body, name, motion, res, responses, cases, cfg, out, rl, plots)
+            _figures(body, name, motion, res, responses, cases, cfg, out, rl, plots)
     write_text(out / "results.json", json.dumps(doc, indent=1))
     return doc
 
