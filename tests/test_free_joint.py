@@ -125,7 +125,7 @@ def momentum(body, q, v):
     mass (their point Jacobians) and their inertias turned into the world."""
     rots = D.joint_rotations(body, q)
     coms = torch.tensor([l.com for l in body.links], dtype=DT)
-    J = D.points_jacobian_rot(body, rots, q, list(range(len(body.links))), coms)
+    J = D.points_kinematics_rot(body, rots, q, list(range(len(body.links))), coms)[1]
     Rw, x = D.forward_kinematics_rot(body, rots, q)
     P, L = 0.0, 0.0
     for i, l in enumerate(body.links):

@@ -14,7 +14,7 @@ Spatial quantities are kept as (angular, linear) pairs of 3-vectors in each link
 * :func:`forward_dynamics` — a = M⁻¹(τ − h) by a Cholesky solve,
 * :func:`forward_kinematics` — world rotations and joint positions, hand tip last,
 * :func:`point_jacobian` — the world-aligned Jacobian of a point on a link (for
-  external forces: τ = Jᵀ (f, m)); :func:`points_jacobian_rot` for many points at once,
+  external forces: τ = Jᵀ (f, m)); :func:`points_kinematics_rot` for many points at once,
 * :func:`kinetic_energy`, :func:`potential_energy`.
 
 The ``*_rot`` variants take the joints' own rotations (a list with one ...×3×3 matrix per
@@ -282,12 +282,13 @@ def point_jacobian_rot(body: Body, rots: list, q: torch.Tensor, link: int,
     — Pinocchio's LOCAL_WORLD_ALIGNED frame Jacobian at that point; one point of
     :func:`points_jacobian_rot`."""
     pt = torch.as_tensor(point, dtype=q.dtype, device=q.device)
-    return points_jacobian_rot(body, rots, q, [link], pt[None])[..., 0, :, :]
+    return points_kinematics_rot(body, rots, q, [link], pt[None])[1][..., 0, :, :]
 
 
-def points_jacobian_rot(body: Body, rots: list, q: torch.Tensor, links, points) -> torch.Tensor:
-    """J(q) (...×P×6×nv) of P points, point k fixed in link ``links[k]`` at ``points[k]``
-    (P×3, link frame), axes world-aligned, rows (linear, angular); one kinematics pass.
+def points_kinematics_rot(body: Body, rots: list, q: torch.Tensor, links, points):
+    """(p (...×P×3), J (...×P×6×nv)): the world positions of P points, point k fixed in
+    link ``links[k]`` at ``points[k]`` (P×3, link frame), and their Jacobians, axes
+    world-aligned, rows (linear, angular); one kinematics pass.
 
     A unit rate of joint j's coordinate d (j the link or an ancestor; S_d = e_d for a ball
     joint or a free joint's rotation, the axis for a hinge) turns the subtree with world
@@ -324,7 +325,7 @@ def points_jacobian_rot(body: Body, rots: list, q: torch.Tensor, links, points) 
     mask = torch.as_tensor(carried, device=q.device).T.unsqueeze(-2)            # P×1×nv
     J_lin = torch.where(mask, torch.cross(A.expand_as(arm), arm, dim=-2) + Lin, 0.0)
     J_ang = torch.where(mask, A, 0.0).expand_as(J_lin)
-    return torch.cat([J_lin, J_ang], dim=-2)
+    return p, torch.cat([J_lin, J_ang], dim=-2)
 
 
 def kinetic_energy_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
