@@ -122,8 +122,10 @@ def to_pin(body: tb.Body, free_flyer: bool = False):
         if link.joint == "fixed":
             frames.append((jid, place))
         else:
-            jm = {"ball": pin.JointModelSpherical, "free": pin.JointModelFreeFlyer}.get(
-                link.joint, lambda: pin.JointModelRevoluteUnaligned(np.array(link.axis, dtype=float)))()
+            if link.joint == "hinge":
+                jm = pin.JointModelRevoluteUnaligned(np.array(link.axis, dtype=float))
+            else:
+                jm = pin.JointModelSpherical() if link.joint == "ball" else pin.JointModelFreeFlyer()
             frames.append((model.addJoint(jid, jm, place, link.name), pin.SE3.Identity()))
         jid, place = frames[-1]
         model.appendBodyToJoint(

@@ -48,7 +48,7 @@ def test_free_joint_against_pinocchio(where, gravity, rng):
     n = 8
     q = _states(body, rng, n)
     v, a, tau = (2.0 * rng.normal(size=q.shape) for _ in range(3))
-    t = lambda x: torch.as_tensor(x, dtype=DT)  # noqa: E731
+    t = lambda x: torch.as_tensor(x, dtype=DT)
     tq, tv, ta, ttau = map(t, (q, v, a, tau))
     ours = {"rnea": D.rnea(body, tq, tv, ta).numpy()[:, P],
             "M": D.mass_matrix(body, tq).numpy()[:, P][:, :, P],

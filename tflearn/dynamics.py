@@ -2,8 +2,9 @@
 
 Every function accepts any leading batch shape ``...`` and works in the input's dtype
 (float64 throughout tflearn). Coordinates ``q`` (...×nv) are rotation vectors for ball
-joints, angles for hinges and (rotation vector, translation) for free joints; velocities ``v``, accelerations ``a`` and torques ``tau``
-(...×nv) follow the layout described in :mod:`tflearn.body`.
+joints, angles for hinges and (rotation vector, translation) for free joints; velocities
+``v``, accelerations ``a`` and torques ``tau`` (...×nv) follow the layout described in
+:mod:`tflearn.body`.
 
 Spatial quantities are kept as (angular, linear) pairs of 3-vectors in each link's frame
 (Featherstone's body-frame formulation). Algorithms:
