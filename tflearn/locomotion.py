@@ -16,7 +16,7 @@ on the second, through their point Jacobians).
 
 Measured (:class:`Gait`), over [settle, duration] so that the landing is left out: the
 centre of mass's horizontal travel d, the speed d/Δt in body lengths per second (body
-length: the largest distance between two contact points at the rest pose), the
+length: the largest distance between two contact points at the rest pose θ₀), the
 direction of travel (a unit vector in the ground plane) and the cost of transport
 W⁺/(m g d) with W⁺ = ∫ Σ_j max(0, τ_j θ̇_j) dt the positive mechanical work of the
 joint torques (trapezoidal rule over the output samples).
@@ -46,7 +46,7 @@ class LocomotionOptions:
     """duration, settle (s): simulated time and the start of the measurement; rate: output
     samples per second (the work integral's grid); damping: c of the PD controller
     (N·m·s/rad); ground: the contact law; closure_stiffness (N/m), closure_damping
-    (N·s/m): the loop-closing spring; lift: the rest pose's lowest contact point starts
+    (N·s/m): the loop-closing spring; lift: the start pose's lowest contact point starts
     this high (m); sim: the integrator (fixed-step RK4 by default: the contact is stiff)."""
 
     duration: float = 3.0
@@ -199,7 +199,10 @@ def locomote(modes: Modes, drives: Sequence[ModeDrive], constraints=(),
     tk = t.numpy()[keep]
     step = com[keep][-1, :2] - com[keep][0, :2]
     distance = float(np.linalg.norm(step))
-    length = float(torch.cdist(p0, p0).max())
+    rest = free_start(modes.body, modes.q0)
+    pr, _ = dynamics.points_kinematics_rot(body, dynamics.joint_rotations(body, rest), rest,
+                                           links, points)
+    length = float(torch.cdist(pr, pr).max())
     mass = sum(link.mass for link in body.links)
     work = float(np.trapezoid(power[keep], tk))
     return Gait(body=body, trajectory=traj, com=com, distance=distance,
