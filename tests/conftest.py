@@ -106,6 +106,8 @@ def to_pin(body: tb.Body, free_flyer: bool = False):
     """The Pinocchio model of a body. Moving link i is Pinocchio joint i + 1 when the body
     has no fixed joints; a fixed link's inertia is appended to the joint that carries it
     (its parent's, placed by the fixed joint), and its children hang from that joint.
+    A free joint is a pin.JointModelFreeFlyer (its velocity and torque halves are in the
+    other order: :func:`v_to_pin`).
     ``free_flyer``: the body's base is a massless free-flyer joint (joint 1, so moving
     link i is joint i + 2; nq += 7, nv += 6)."""
     import pinocchio as pin
@@ -120,8 +122,10 @@ def to_pin(body: tb.Body, free_flyer: bool = False):
         if link.joint == "fixed":
             frames.append((jid, place))
         else:
-            jm = (pin.JointModelSpherical() if link.joint == "ball"
-                  else pin.JointModelRevoluteUnaligned(np.array(link.axis, dtype=float)))
+            if link.joint == "hinge":
+                jm = pin.JointModelRevoluteUnaligned(np.array(link.axis, dtype=float))
+            else:
+                jm = pin.JointModelSpherical() if link.joint == "ball" else pin.JointModelFreeFlyer()
             frames.append((model.addJoint(jid, jm, place, link.name), pin.SE3.Identity()))
         jid, place = frames[-1]
         model.appendBodyToJoint(
@@ -134,7 +138,8 @@ def to_pin(body: tb.Body, free_flyer: bool = False):
 
 
 def q_to_pin(body: tb.Body, q) -> np.ndarray:
-    """tflearn coordinates ν (nv,) → Pinocchio configuration (quaternions XYZW for balls)."""
+    """tflearn coordinates ν (nv,) → Pinocchio configuration (quaternions XYZW for balls;
+    (translation, quaternion) for a free joint)."""
     import pinocchio as pin
 
     q = np.asarray(q, dtype=float)
@@ -143,9 +148,22 @@ def q_to_pin(body: tb.Body, q) -> np.ndarray:
         s = q[body.slice(i)]
         if link.joint == "ball":
             parts.append(pin.Quaternion(pin.exp3(s)).coeffs())
+        elif link.joint == "free":
+            parts += [s[3:], pin.Quaternion(pin.exp3(s[:3])).coeffs()]
         elif link.joint == "hinge":
             parts.append(s)
     return np.concatenate(parts)
+
+
+def v_to_pin(body: tb.Body) -> np.ndarray:
+    """Index array P with x_pin = x[..., P] for velocities, accelerations and torques: a
+    free joint's (angular, linear) halves become Pinocchio's (linear, angular)."""
+    idx = np.arange(body.nv)
+    for i, link in enumerate(body.links):
+        if link.joint == "free":
+            s = body.slice(i)
+            idx[s] = np.concatenate([idx[s][3:], idx[s][:3]])
+    return idx
 
 
 def full_symmetric(upper: np.ndarray) -> np.ndarray:

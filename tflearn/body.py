@@ -8,11 +8,17 @@ parent is then
     R = R0 · exp([v]×)          ball joint, v ∈ R³ the rotation vector (|v| ≤ π)
     R = R0 · Rot(axis, θ)       hinge joint, θ ∈ R about a unit axis of the child frame
     R = R0                      fixed joint
+    R = R0 · exp([v]×), origin + R0 t      free joint (6 DOF), ν = (v, t)
 
-Coordinates ν stack the joints' v and θ in link order (ball 3, hinge 1, fixed 0).
+Coordinates ν stack the joints' v and θ in link order (ball 3, hinge 1, fixed 0, free 6:
+rotation vector v then translation t, the child origin at origin + R0 t in the parent).
 Velocities use the same layout: a ball joint's velocity is the child's angular
 velocity relative to its parent expressed in the child frame (Pinocchio's spherical
-convention), a hinge's is θ̇; torques are the dual quantities (power = τ·v).
+convention), a hinge's is θ̇, a free joint's is (ω, u): the child's angular velocity
+and the velocity of its origin, both relative to the parent and in the child frame
+(Pinocchio's free-flyer LOCAL velocity with its two halves swapped: pin orders
+(linear, angular)), so ṫ = exp([v]×) u; torques are the dual quantities (power = τ·v;
+a free joint's is (moment, force) in the child frame).
 
 The default body is the thesis' arm: shoulder (ball) → upper arm → elbow (hinge
 about the forearm's local x) → forearm → wrist (ball) → hand, hanging along −z at
@@ -27,7 +33,7 @@ from typing import Sequence
 
 import numpy as np
 
-JOINT_DOFS = {"ball": 3, "hinge": 1, "fixed": 0}
+JOINT_DOFS = {"ball": 3, "hinge": 1, "fixed": 0, "free": 6}
 LINK_KEYS = ("name", "parent", "joint", "origin", "offset", "axis", "mass", "com", "inertia",
              "length", "radius")
 BODY_KEYS = ("name", "links", "gravity", "damping", "tip")
@@ -43,7 +49,7 @@ class Link:
     Attributes:
         name: link name.
         parent: index of the parent link, -1 for the fixed base.
-        joint: "ball", "hinge" or "fixed".
+        joint: "ball", "hinge", "fixed" or "free".
         origin: joint position in the parent frame (3,).
         offset: zero orientation R0 of the joint as a rotation vector (3,).
         axis: hinge axis in the child frame (3,), ignored for other joints.

@@ -8,10 +8,13 @@ Coordinates ν (...×nv) stack, per joint in link order, a ball joint's rotation
   :func:`right_jacobian` with :func:`body_velocity` ω = J_r(v) v̇ and
   :func:`body_acceleration`, the chart's wrapping (:func:`wrap_rotvec`,
   :func:`unwrap_rotvec`) and quaternion sequences (:func:`align_quaternions`);
-* the simulator's state y = [unit quaternion (4) per ball joint, θ per hinge, v (nv)]
+* the simulator's state y = [unit quaternion (4) per ball joint, θ per hinge, unit
+  quaternion (4) and translation t (3) per free joint, v (nv)]
   (:func:`n_position`, :func:`pack`, :func:`unpack`);
 * the difference of two configurations (:func:`difference`, Pinocchio's
-  ``difference``): per ball joint log(R_aᵀ R_b) in the child frame, per hinge θ_b − θ_a.
+  ``difference``): per ball joint log(R_aᵀ R_b) in the child frame, per hinge θ_b − θ_a,
+  per free joint (log(R_aᵀ R_b), R_aᵀ (t_b − t_a)) (SO(3) × R³, the velocity convention
+  of :mod:`tflearn.body`; not Pinocchio's SE(3) log).
 """
 from __future__ import annotations
 
@@ -154,9 +157,13 @@ def align_quaternions(quat: torch.Tensor) -> torch.Tensor:
     return quat * torch.cumprod(flips, dim=-1)[..., None]
 
 
+POSITION_SIZE = {"ball": 4, "free": 7}   # packed position entries (others: their dof)
+
+
 def n_position(body: Body) -> int:
-    """Size of the packed position block: 4 per ball joint, 1 per hinge."""
-    return sum(4 if link.joint == "ball" else link.dof for link in body.links)
+    """Size of the packed position block: 4 per ball joint, 1 per hinge, 7 per free joint."""
+    return sum(POSITION_SIZE.get(link.joint, link.dof) for link in body.links)
+
 
 
 def pack(body: Body, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -166,7 +173,10 @@ def pack(body: Body, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     parts = []
     for i, link in enumerate(body.links):
         s = q[..., body.slice(i)]
-        parts.append(roma.rotvec_to_unitquat(s) if link.joint == "ball" else s)
+        if link.joint == "free":
+            parts += [roma.rotvec_to_unitquat(s[..., :3]), s[..., 3:]]
+        else:
+            parts.append(roma.rotvec_to_unitquat(s) if link.joint == "ball" else s)
     return torch.cat(parts + [v], dim=-1)
 
 
@@ -174,15 +184,18 @@ def unpack(body: Body, y: torch.Tensor):
     """State y → (joint rotations, ν principal coordinates, unit quaternions, v).
 
     Rotations (...×3×3) and quaternions (...×4) are lists with one entry per link, None
-    for hinges and fixed joints; quaternions are normalised as they are read."""
+    for hinges and fixed joints; quaternions are normalised as they are read. A free
+    joint's coordinates are its principal rotation vector and its translation."""
     rots, coords, quats, k = [], [], [], 0
     for link in body.links:
-        if link.joint == "ball":
+        if link.joint in ("ball", "free"):
             quat = roma.quat_normalize(y[..., k:k + 4])
             quats.append(quat)
             rots.append(roma.unitquat_to_rotmat(quat))
             coords.append(roma.unitquat_to_rotvec(quat, shortest_arc=True))
-            k += 4
+            if link.joint == "free":
+                coords.append(y[..., k + 4:k + 7])
+            k += POSITION_SIZE[link.joint]
         else:
             quats.append(None)
             rots.append(None)
@@ -194,13 +207,19 @@ def unpack(body: Body, y: torch.Tensor):
 def difference(body: Body, q_a: torch.Tensor, q_b: torch.Tensor) -> torch.Tensor:
     """q_b ⊖ q_a (...×nv): log(R_aᵀ R_b) per ball joint (child frame; ν_b − ν_a to first
     order, and well behaved where the principal rotation vector wraps at π), θ_b − θ_a
-    per hinge."""
+    per hinge, (log(R_aᵀ R_b), R_aᵀ (t_b − t_a)) per free joint."""
     parts = []
     for i, link in enumerate(body.links):
         s = body.slice(i)
         if link.joint == "ball":
             R = rotvec_to_rotmat(q_a[..., s]).transpose(-1, -2) @ rotvec_to_rotmat(q_b[..., s])
             parts.append(roma.unitquat_to_rotvec(roma.rotmat_to_unitquat(R)))
+        elif link.joint == "free":
+            Ra = rotvec_to_rotmat(q_a[..., s][..., :3])
+            R = Ra.transpose(-1, -2) @ rotvec_to_rotmat(q_b[..., s][..., :3])
+            dt = (q_b[..., s][..., 3:] - q_a[..., s][..., 3:]).unsqueeze(-1)
+            parts += [roma.unitquat_to_rotvec(roma.rotmat_to_unitquat(R)),
+                      (Ra.transpose(-1, -2) @ dt).squeeze(-1)]
         elif link.dof:
             parts.append(q_b[..., s] - q_a[..., s])
     return torch.cat(parts, dim=-1)

@@ -2,8 +2,9 @@
 
 Every function accepts any leading batch shape ``...`` and works in the input's dtype
 (float64 throughout tflearn). Coordinates ``q`` (...×nv) are rotation vectors for ball
-joints and angles for hinges; velocities ``v``, accelerations ``a`` and torques ``tau``
-(...×nv) follow the layout described in :mod:`tflearn.body`.
+joints, angles for hinges and (rotation vector, translation) for free joints; velocities
+``v``, accelerations ``a`` and torques ``tau`` (...×nv) follow the layout described in
+:mod:`tflearn.body`.
 
 Spatial quantities are kept as (angular, linear) pairs of 3-vectors in each link's frame
 (Featherstone's body-frame formulation). Algorithms:
@@ -14,7 +15,7 @@ Spatial quantities are kept as (angular, linear) pairs of 3-vectors in each link
 * :func:`forward_dynamics` — a = M⁻¹(τ − h) by a Cholesky solve,
 * :func:`forward_kinematics` — world rotations and joint positions, hand tip last,
 * :func:`point_jacobian` — the world-aligned Jacobian of a point on a link (for
-  external forces: τ = Jᵀ (f, m)),
+  external forces: τ = Jᵀ (f, m)); :func:`points_kinematics_rot` for many points at once,
 * :func:`kinetic_energy`, :func:`potential_energy`.
 
 The ``*_rot`` variants take the joints' own rotations (a list with one ...×3×3 matrix per
@@ -70,9 +71,9 @@ def _broadcast(rots: list, *xs: torch.Tensor):
 
 
 def joint_rotations(body: Body, q: torch.Tensor) -> list:
-    """The joints' own rotations exp([v]×) (ball) or None (hinge, fixed); q (...×nv)."""
-    return [rotvec_to_rotmat(q[..., body.slice(i)]) if l.joint == "ball" else None
-            for i, l in enumerate(body.links)]
+    """The joints' own rotations exp([v]×) (ball, free) or None (hinge, fixed); q (...×nv)."""
+    return [rotvec_to_rotmat(q[..., body.slice(i)][..., :3]) if l.joint in ("ball", "free")
+            else None for i, l in enumerate(body.links)]
 
 
 def _relative_rotations(body: Body, rots: list, q: torch.Tensor) -> list:
@@ -81,7 +82,7 @@ def _relative_rotations(body: Body, rots: list, q: torch.Tensor) -> list:
     out = []
     for i, link in enumerate(body.links):
         R0 = C["R0"][i]
-        if link.joint == "ball":
+        if link.joint in ("ball", "free"):
             out.append(R0 @ rots[i])
         elif link.joint == "hinge":
             out.append(R0 @ hinge_rotmat(C["axis"][i], q[..., body.slice(i)][..., 0]))
@@ -90,12 +91,28 @@ def _relative_rotations(body: Body, rots: list, q: torch.Tensor) -> list:
     return out
 
 
+def _joint_origin(body: Body, i: int, q: torch.Tensor) -> torch.Tensor:
+    """Link i's origin in its parent's frame: the joint origin r, or r + R0 t for a free
+    joint (3, or ...×3 for a free joint)."""
+    C = _constants(body, q.dtype, q.device)
+    if body.links[i].joint != "free":
+        return C["origin"][i]
+    return C["origin"][i] + _mv(C["R0"][i], q[..., body.slice(i)][..., 3:])
+
+
+def _joint_linear(body: Body, i: int, x: torch.Tensor):
+    """The linear part of S_i x (a free joint's u, child frame); None for other joints."""
+    return x[..., body.slice(i)][..., 3:] if body.links[i].joint == "free" else None
+
+
 def _joint_motion(body: Body, i: int, x: torch.Tensor) -> torch.Tensor:
     """S_i x: the angular velocity a joint rate x produces, in the child frame."""
     link = body.links[i]
     xs = x[..., body.slice(i)]
     if link.joint == "ball":
         return xs
+    if link.joint == "free":
+        return xs[..., :3]
     if link.joint == "hinge":
         return xs * _constants(body, x.dtype, x.device)["axis"][i]
     return torch.zeros(x.shape[:-1] + (3,), dtype=x.dtype, device=x.device)
@@ -108,6 +125,8 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
     Forward pass (link i, parent p, E = R_iᵀ, r the joint origin in the parent):
         ω_i = E ω_p + S q̇,                  v_i = E(v_p + ω_p × r)
         ω̇_i = E ω̇_p + S q̈ + ω_i × S q̇,     v̇_i = E(v̇_p + ω̇_p × r) + v_i × S q̇
+    and for a free joint (r = origin + R0 t, joint rate (ω_j, u), acceleration (ω̇_j, u̇))
+    also v_i += u and v̇_i += u̇ + ω_i × u (the linear half of the spatial v_i × S q̇);
     with base acceleration (0, −g) (``gravity``: True for the body's g, False for none, or
     a ...×3 tensor of per-batch gravity vectors). A moving base (``base`` = (ω_b, ω̇_b,
     a_b), ...×3 each, in the base frame: its angular velocity, angular acceleration and
@@ -117,7 +136,8 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
     Link wrench (c the centre of mass, Ic its inertia):
         p = m(v + ω×c), L = Ic ω + c×p,  h = m(v̇ + ω̇×c),  n = Ic ω̇ + c×h
         f_i = (n + ω×L + v×p,  h + ω×p)
-    Backward pass: τ_i = Sᵀ n_i; parent gets (Eᵀn + r×Eᵀf, Eᵀf).
+    Backward pass: τ_i = Sᵀ n_i ((n_i, f_i) for a free joint); parent gets
+    (Eᵀn + r×Eᵀf, Eᵀf).
     """
     C = _constants(body, q.dtype, q.device)
     rots, q, v, a = _broadcast(rots, q, v, a)
@@ -131,7 +151,7 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
     w, vl, dw, dv, E = ([None] * n_links for _ in range(5))
     for i, link in enumerate(body.links):
         E[i] = Rrel[i].transpose(-1, -2)
-        r = C["origin"][i]
+        r = _joint_origin(body, i, q)
         if link.parent < 0 and base is None:
             wp, vp, dwp, dvp = zero, zero, zero, zero - g
         elif link.parent < 0:
@@ -145,6 +165,11 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
         dw[i] = _mv(E[i], dwp) + _joint_motion(body, i, a) + torch.cross(w[i], wj, dim=-1)
         dv[i] = (_mv(E[i], dvp + torch.cross(dwp, r.expand_as(dwp), dim=-1))
                  + torch.cross(vl[i], wj, dim=-1))
+        uj = _joint_linear(body, i, v)
+        if uj is not None:
+            vl[i] = vl[i] + uj
+            dv[i] = (dv[i] + _joint_linear(body, i, a) + torch.cross(w[i], uj, dim=-1)
+                     + torch.cross(uj, wj, dim=-1))
     n, f = [None] * n_links, [None] * n_links
     for i in range(n_links):
         m, c, Ic = C["mass"][i], C["com"][i].expand_as(w[i]), C["Ic"][i]
@@ -161,9 +186,11 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
             tau[i] = n[i]
         elif link.joint == "hinge":
             tau[i] = (n[i] * C["axis"][i]).sum(-1, keepdim=True)
+        elif link.joint == "free":
+            tau[i] = torch.cat([n[i], f[i]], dim=-1)
         if link.parent >= 0:
             fp = _mtv(E[i], f[i])
-            r = C["origin"][i].expand_as(fp)
+            r = _joint_origin(body, i, q).expand_as(fp)
             n[link.parent] = n[link.parent] + _mtv(E[i], n[i]) + torch.cross(r, fp, dim=-1)
             f[link.parent] = f[link.parent] + fp
     return torch.cat([t for t in tau if t is not None], dim=-1)
@@ -219,7 +246,8 @@ def _last_column(x: torch.Tensor, nv: int) -> torch.Tensor:
 def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):
     """World rotations (list of ...×3×3) and positions of joint origins plus the tip.
 
-    R_i = R_p R_rel,i, x_i = x_p + R_p r_i; the tip is x_t + R_t · tip_point.
+    R_i = R_p R_rel,i, x_i = x_p + R_p r_i (r_i = origin + R0 t for a free joint); the
+    tip is x_t + R_t · tip_point.
     Returns (rotations, positions) with positions ...×(n_links+1)×3, tip last.
     """
     C = _constants(body, q.dtype, q.device)
@@ -227,7 +255,7 @@ def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):
     Rrel = _relative_rotations(body, rots, q)
     Rw, xw = [], []
     for i, link in enumerate(body.links):
-        r = C["origin"][i]
+        r = _joint_origin(body, i, q)
         if link.parent < 0:
             Rw.append(Rrel[i])
             xw.append(r.expand(q.shape[:-1] + (3,)))
@@ -252,31 +280,53 @@ def _ancestors(body: Body, link: int) -> list[int]:
 def point_jacobian_rot(body: Body, rots: list, q: torch.Tensor, link: int,
                        point) -> torch.Tensor:
     """J(q) (...×6×nv) of a point fixed in a link, axes world-aligned, rows (linear, angular)
-    — Pinocchio's LOCAL_WORLD_ALIGNED frame Jacobian at that point.
+    — Pinocchio's LOCAL_WORLD_ALIGNED frame Jacobian at that point; one point of
+    :func:`points_jacobian_rot`."""
+    pt = torch.as_tensor(point, dtype=q.dtype, device=q.device)
+    return points_kinematics_rot(body, rots, q, [link], pt[None])[1][..., 0, :, :]
+
+
+def points_kinematics_rot(body: Body, rots: list, q: torch.Tensor, links, points):
+    """(p (...×P×3), J (...×P×6×nv)): the world positions of P points, point k fixed in
+    link ``links[k]`` at ``points[k]`` (P×3, link frame), and their Jacobians, axes
+    world-aligned, rows (linear, angular); one kinematics pass.
 
     A unit rate of joint j's coordinate d (j the link or an ancestor; S_d = e_d for a ball
-    joint, the axis for a hinge) turns the subtree with world angular velocity
-    ω = R_j S_d (R_j the world rotation of link j's frame) about the joint origin x_j, so
-        J_ang[:, d] = R_j S_d,     J_lin[:, d] = ω × (p − x_j),
-    and zero columns for joints that do not carry the link. A force f and moment m applied
+    joint or a free joint's rotation, the axis for a hinge) turns the subtree with world
+    angular velocity ω = R_j S_d (R_j the world rotation of link j's frame) about the
+    joint origin x_j, so
+        J_ang[:, d] = R_j S_d,     J_lin[:, d] = ω × (p − x_j);
+    a free joint's translation rate d moves it rigidly: J_lin[:, d] = R_j e_d, J_ang = 0;
+    joints that do not carry the link give zero columns. A force f and moment m applied
     at the point act on the joints as τ = Jᵀ (f, m) (the dual of ẋ = J v).
     """
     C = _constants(body, q.dtype, q.device)
-    link = link % len(body.links)
+    n = len(body.links)
+    links = [k % n for k in links]
     Rw, x = forward_kinematics_rot(body, rots, q)
-    pt = torch.as_tensor(point, dtype=q.dtype, device=q.device).expand(x.shape[:-2] + (3,))
-    p = x[..., link, :] + _mv(Rw[link], pt)
-    J = torch.zeros(x.shape[:-2] + (6, body.nv), dtype=q.dtype, device=q.device)
-    for j in _ancestors(body, link):
-        joint = body.links[j].joint
-        if joint == "fixed":
+    batch = x.shape[:-2]
+    zero = torch.zeros(batch + (3, 3), dtype=q.dtype, device=q.device)
+    ang, lin, org, carried = [], [], [], []
+    for j, l in enumerate(body.links):
+        if l.joint == "fixed":
             continue
-        axes = Rw[j] if joint == "ball" else _mv(Rw[j], C["axis"][j]).unsqueeze(-1)
-        arm = (p - x[..., j, :]).unsqueeze(-1).expand(axes.shape)
-        cols = body.slice(j)
-        J[..., 3:, cols] = axes
-        J[..., :3, cols] = torch.cross(axes, arm, dim=-2)
-    return J
+        axes = _mv(Rw[j], C["axis"][j]).unsqueeze(-1) if l.joint == "hinge" else Rw[j]
+        ang.append(axes)
+        lin.append(torch.zeros_like(axes))
+        if l.joint == "free":
+            ang.append(zero)
+            lin.append(Rw[j])
+        org.append(x[..., j, :, None].expand(batch + (3, l.dof)))
+        carried += [[j in _ancestors(body, k) for k in links]] * l.dof
+    A, Lin, O = (torch.cat(z, dim=-1).unsqueeze(-3) for z in (ang, lin, org))   # ...×1×3×nv
+    pts = torch.as_tensor(points, dtype=q.dtype, device=q.device)
+    Rl = torch.stack([Rw[k] for k in links], dim=-3)                             # ...×P×3×3
+    p = x[..., links, :] + _mv(Rl, pts.expand(batch + pts.shape))                # ...×P×3
+    arm = (p.unsqueeze(-1) - O).expand(batch + (len(links), 3, body.nv))
+    mask = torch.as_tensor(carried, device=q.device).T.unsqueeze(-2)            # P×1×nv
+    J_lin = torch.where(mask, torch.cross(A.expand_as(arm), arm, dim=-2) + Lin, 0.0)
+    J_ang = torch.where(mask, A, 0.0).expand_as(J_lin)
+    return p, torch.cat([J_lin, J_ang], dim=-2)
 
 
 def kinetic_energy_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

@@ -20,8 +20,8 @@ Dynamic (§4.1): a PD controller whose set point follows that motion,
     τ = K_t (θ_set(t) ⊖ θ) − c v,
 
 with K_t the analysis stiffness in the tangent chart (:func:`tflearn.modes.tangent_stiffness`),
-simulated by :func:`tflearn.simulate.simulate`. The fixed-base bodies only: tflearn's
-simulator has no floating base.
+simulated by :func:`tflearn.simulate.simulate`, for fixed-base bodies; a floating base
+on the ground is :mod:`tflearn.locomotion`'s.
 """
 from __future__ import annotations
 
@@ -164,8 +164,8 @@ def pd_program(modes: Modes, drives: Sequence[ModeDrive], limits: Optional[Limit
                damping: float = 0.0):
     """τ(t, θ, v) = K_t (θ_set(t) ⊖ θ) − c v (see the module)."""
     if modes.options.floating:
-        raise ModalError("dynamic: the simulator has no floating base; PD-driven motion "
-                         "needs a fixed-base body (modes.floating: false)")
+        raise ModalError("dynamic: PD-driven following needs a fixed-base body "
+                         "(modes.floating: false); a floating one walks in tflearn.locomotion")
     Kt = torch.as_tensor(tangent_stiffness(modes), dtype=torch.float64)
     body = modes.body
 

@@ -641,3 +641,43 @@ def deviation_sweep(rows: dict, title: str = "") -> plt.Figure:
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def side_view_gif(body: Body, t, q, path, fps: int = 25, title: str = "", com=None) -> int:
+    """A GIF of a body moving over the ground z = 0, seen from −y (x–z plane, m): its links
+    as segments (:func:`link_segments`; free joints included), the centre of mass's path
+    (``com``, T×3) as a trail, frame k at the sample nearest t = k/fps. Written
+    atomically; returns the number of frames."""
+    from matplotlib.animation import PillowWriter
+
+    from .io.files import replacing
+    t = np.asarray(t)
+    segs = link_segments(body, q)                                   # T×L×2×3
+    picks = np.unique(np.searchsorted(t, np.arange(t[0], t[-1] + 1e-9, 1.0 / fps)).clip(0, t.size - 1))
+    pts = segs.reshape(-1, 3)
+    fig, ax = plt.subplots(figsize=(8, 3.2), dpi=100)
+    pad = 0.05
+    ax.set_xlim(pts[:, 0].min() - pad, pts[:, 0].max() + pad)
+    ax.set_ylim(-0.02, max(pts[:, 2].max(), 0.1) + pad)
+    ax.set_aspect("equal")
+    ax.axhline(0.0, color="0.4", lw=1.0)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m)")
+    lines = [ax.plot([], [], "o-", color="C0", ms=2.5, lw=2.0)[0] for _ in range(segs.shape[1])]
+    trail, = ax.plot([], [], color="C1", lw=1.0, label="centre of mass")
+    if com is not None:
+        ax.legend(fontsize=8, loc="upper right")
+    label = ax.set_title(title)
+    fig.tight_layout()
+    with replacing(path) as tmp:
+        writer = PillowWriter(fps=fps)
+        with writer.saving(fig, str(tmp), dpi=100):
+            for k in picks:
+                for line, seg in zip(lines, segs[k]):
+                    line.set_data(seg[:, 0], seg[:, 2])
+                if com is not None:
+                    trail.set_data(com[:k + 1, 0], com[:k + 1, 2])
+                label.set_text(f"{title}  t = {t[k]:.2f} s")
+                writer.grab_frame()
+    plt.close(fig)
+    return int(picks.size)

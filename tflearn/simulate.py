@@ -5,9 +5,10 @@ Pinocchio), each hinge an angle, followed by the velocities v (nv). The state is
 
     y = [quat_1 (4), θ_2 (1), quat_3 (4), ..., v (nv)]       (...×(n_pos + nv))
 
-and evolves by
+(a free joint: its quaternion then its translation t, 7 entries) and evolves by
     q̇_ball = ½ q ⊗ (ω, 0)     (ω the child-frame angular velocity),
     θ̇ = v_hinge,
+    q̇_free = ½ q ⊗ (ω, 0),  ṫ = R(q) u    (free joint velocity (ω, u), child frame),
     v̇ = M(q)⁻¹ (τ(t, ν, v) − c v − h(q, v)).
 
 Quaternions are normalised wherever they are read, so the rotations used are exactly in
@@ -118,6 +119,10 @@ class ArmODE(torch.nn.Module):
             if link.joint == "ball":
                 omega = torch.cat([vi, torch.zeros_like(vi[..., :1])], dim=-1)
                 dpos.append(0.5 * roma.quat_product(quats[i], omega))
+            elif link.joint == "free":
+                omega = torch.cat([vi[..., :3], torch.zeros_like(vi[..., :1])], dim=-1)
+                dpos += [0.5 * roma.quat_product(quats[i], omega),
+                         (rots[i] @ vi[..., 3:, None]).squeeze(-1)]
             else:
                 dpos.append(vi)
         out = [*dpos, a]
