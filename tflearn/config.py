@@ -14,10 +14,10 @@ import copy
 import difflib
 import re
 from pathlib import Path
-from typing import Any, Literal, Optional, Type, Union
+from typing import Annotated, Any, Literal, Optional, Type, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
 from pydantic_core import PydanticCustomError
 
 from .errors import InputError
@@ -100,6 +100,20 @@ class LogSection(Section):
     progress: bool = True
 
 
+def _body_builds(body: dict) -> dict:
+    """A body section must build a body (:func:`tflearn.body.from_config`)."""
+    from .body import from_config
+    try:
+        from_config(body)
+    except (ValueError, TypeError) as err:
+        raise PydanticCustomError("body", "{problem}", {"problem": str(err)}) from None
+    return body
+
+
+#: A ``body:`` section (any config that has one): checked to build a body.
+BodySection = Annotated[dict[str, Any], AfterValidator(_body_builds)]
+
+
 class Config(Section):
     """The training config (``train CONFIG``); see configs/gestures.yaml."""
 
@@ -108,22 +122,11 @@ class Config(Section):
     strict: bool = False                         # stop at the first bad motion file
     out: str = "runs/gestures"
     seed: int = Field(0, ge=0)
-    body: dict[str, Any] = {"preset": "arm"}
+    body: BodySection = {"preset": "arm"}
     model: ModelSection = ModelSection()
     solver: SolverSection = SolverSection()
     success: SuccessSection = SuccessSection()
     log: LogSection = LogSection()
-
-    @field_validator("body")
-    @classmethod
-    def _body_builds(cls, body: dict) -> dict:
-        """The body section must build a body (:func:`tflearn.body.from_config`)."""
-        from .body import from_config
-        try:
-            from_config(body)
-        except (ValueError, TypeError) as err:
-            raise PydanticCustomError("body", "{problem}", {"problem": str(err)}) from None
-        return body
 
     def replace(self, **changes) -> Config:
         """A validated copy with top-level keys replaced (nested sections as mappings)."""

@@ -5,12 +5,11 @@ key). See configs/modes/*.yaml and docs/modes.md.
 """
 from __future__ import annotations
 
-from typing import Any, Literal, Optional, Union
+from typing import Literal, Optional, Union
 
-from pydantic import Field, field_validator
-from pydantic_core import PydanticCustomError
+from pydantic import Field
 
-from .config import Section
+from .config import BodySection, Section
 
 
 class StiffnessSection(Section):
@@ -66,7 +65,7 @@ class ModesLogSection(Section):
 class ModesConfig(Section):
     """The modal-analysis config (``tflearn modes CONFIG``)."""
 
-    body: dict[str, Any] = {"preset": "arm"}
+    body: BodySection = {"preset": "arm"}
     skeleton: Optional[SkeletonSection] = None    # replaces body when given
     pose: Union[list[float], dict[str, list[float]], None] = None   # θ₀; None: zeros
     stiffness: StiffnessSection = StiffnessSection()
@@ -78,14 +77,3 @@ class ModesConfig(Section):
     motion: MotionSection = MotionSection()
     out: str = "runs/modes"
     log: ModesLogSection = ModesLogSection()
-
-    @field_validator("body")
-    @classmethod
-    def _body_builds(cls, body: dict) -> dict:
-        """The body section must build a body (:func:`tflearn.body.from_config`)."""
-        from .body import from_config
-        try:
-            from_config(body)
-        except (ValueError, TypeError) as err:
-            raise PydanticCustomError("body", "{problem}", {"problem": str(err)}) from None
-        return body
