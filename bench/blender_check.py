@@ -6,8 +6,8 @@ Two steps, two Pythons (bpy is a ~400 MB wheel with its own pins; keep it out of
 project's environment):
 
     PYTHONPATH=. python bench/blender_check.py prepare DIR [--clip NAME]   # tflearn's venv
-    python3.11 -m venv /tmp/bpy && /tmp/bpy/bin/pip install bpy==4.2.0
-    /tmp/bpy/bin/python bench/blender_check.py check DIR                   # bpy's venv
+    python3.11 -m venv .venv-bpy && .venv-bpy/bin/pip install bpy==4.2.0
+    .venv-bpy/bin/python bench/blender_check.py check DIR                   # bpy's venv
 
 ``prepare`` imports one clip's right arm, exports it alone as DIR/arm.bvh and writes
 DIR/expected.json (frame count, frame time, and per frame the shoulder, elbow, wrist and
