@@ -7,12 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pinocchio as pin
 import pytest
-import roma
 import torch
 
 from tflearn import body as tb
 from tflearn import dynamics as D
-from tflearn.configspace import difference, pack, rotvec_to_rotmat, unpack
+from tflearn.configspace import difference, integrate, pack, unpack
 from tflearn.simulate import SimOptions, simulate, zero_program
 
 from conftest import DT, GRAVITY, full_symmetric, make_tree, max_rel_err, q_to_pin, to_pin, v_to_pin
@@ -80,18 +79,8 @@ def test_free_joint_point_jacobian_is_the_point_velocity(rng):
     v = torch.as_tensor(rng.normal(size=q.shape), dtype=DT)
     point, link, h = (0.05, -0.02, 0.1), 4, 1e-6
 
-    def moved(s):
-        parts = []
-        for i, ln in enumerate(body.links):
-            sl = body.slice(i)
-            if ln.joint in ("ball", "free"):
-                R = rotvec_to_rotmat(q[..., sl][..., :3])
-                parts.append(roma.rotmat_to_rotvec(R @ rotvec_to_rotmat(s * v[..., sl][..., :3])))
-                if ln.joint == "free":   # ṫ = R u at s = 0
-                    parts.append(q[..., sl][..., 3:] + s * (R @ v[..., sl][..., 3:, None])[..., 0])
-            else:
-                parts.append(q[..., sl] + s * v[..., sl])
-        return torch.cat(parts, -1)
+    def moved(s):                 # q ⊕ s v: ṫ = R u for the free joint at s = 0
+        return integrate(body, q, s * v)
 
     def point_at(qq):
         Rw, x = D.forward_kinematics_rot(body, D.joint_rotations(body, qq), qq)
@@ -152,3 +141,16 @@ def test_free_floating_body_conserves_energy_and_momentum(rng):
     assert float((T - T[0]).abs().max() / T[0]) < 1e-8
     assert float((P - P[0]).abs().max() / P[0].norm()) < 1e-8
     assert float((L - L[0]).abs().max() / L[0].norm()) < 1e-8
+
+
+@pytest.mark.parametrize("where", [0, 3])
+def test_integrate_inverts_difference(where, rng):
+    """q ⊕ x ⊖ q = x (steps below 1 rad per joint) and q ⊕ (q₂ ⊖ q) = q₂ (as rotations)
+    for ball, hinge and free joints."""
+    body = free_tree(where)
+    q = torch.as_tensor(_states(body, rng, 6), dtype=DT)
+    x = torch.as_tensor(rng.uniform(-0.55, 0.55, size=q.shape), dtype=DT)
+    assert torch.allclose(difference(body, q, integrate(body, q, x)), x, atol=1e-12)
+    q2 = torch.as_tensor(_states(body, rng, 6), dtype=DT)
+    back = integrate(body, q, difference(body, q, q2))
+    assert torch.allclose(difference(body, q2, back), torch.zeros_like(q), atol=1e-12)

@@ -223,3 +223,20 @@ def difference(body: Body, q_a: torch.Tensor, q_b: torch.Tensor) -> torch.Tensor
         elif link.dof:
             parts.append(q_b[..., s] - q_a[..., s])
     return torch.cat(parts, dim=-1)
+
+
+def integrate(body: Body, q: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """q ⊕ x (...×nv), the inverse of :func:`difference` (difference(q, q ⊕ x) = x while
+    each ball rotation stays below π): log(R(ν) exp([x]×)) per ball joint (x in the child
+    frame), θ + x per hinge, (log(R exp([x_ω]×)), t + R x_t) per free joint."""
+    parts = []
+    for i, link in enumerate(body.links):
+        s = body.slice(i)
+        if link.joint in ("ball", "free"):
+            R = rotvec_to_rotmat(q[..., s][..., :3])
+            parts.append(roma.rotmat_to_rotvec(R @ rotvec_to_rotmat(x[..., s][..., :3])))
+            if link.joint == "free":
+                parts.append(q[..., s][..., 3:] + (R @ x[..., s][..., 3:, None])[..., 0])
+        elif link.dof:
+            parts.append(q[..., s] + x[..., s])
+    return torch.cat(parts, dim=-1)

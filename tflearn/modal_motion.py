@@ -30,10 +30,9 @@ from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import numpy as np
-import roma
 import torch
 
-from .configspace import difference, rotvec_to_rotmat, unwrap_rotvec
+from .configspace import difference, integrate, unwrap_rotvec
 from .modes import ModalError, Modes, link_index, tangent_stiffness
 from .simulate import SimOptions, Trajectory, simulate
 
@@ -110,15 +109,7 @@ def retract(modes: Modes, x: torch.Tensor) -> torch.Tensor:
     q0 = torch.as_tensor(modes.q0, dtype=torch.float64)
     if modes.options.chart == "rotvec":
         return q0 + x
-    body, parts = modes.body, []
-    for i, link in enumerate(body.links):
-        s = body.slice(i)
-        if link.joint == "ball":
-            R = rotvec_to_rotmat(q0[s]) @ rotvec_to_rotmat(x[..., s])
-            parts.append(roma.rotmat_to_rotvec(R))
-        elif link.dof:
-            parts.append(q0[s] + x[..., s])
-    return torch.cat(parts, dim=-1)
+    return integrate(modes.body, q0.expand(x.shape), x)
 
 
 def soft_limit(q: torch.Tensor, limits: Optional[Limits]) -> torch.Tensor:
