@@ -167,10 +167,19 @@ class GainsSection(Section):
 
 
 class SimulationSection(Section):
+    """How a command simulates; a simulation needing more than ``max_evals``
+    right-hand-side evaluations fails (:class:`tflearn.simulate.SimulationFailed`)."""
+
     method: Literal[SOLVERS] = "dopri5"
     rtol: float = Field(1e-6, gt=0)
     atol: float = Field(1e-8, gt=0)
     max_evals: int = Field(400_000, ge=1)
+
+    def options(self):
+        """These settings as :class:`tflearn.simulate.SimOptions`."""
+        from .simulate import SimOptions
+        return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
+                          max_evals=self.max_evals)
 
 
 class PerturbConfig(Section):

@@ -157,8 +157,7 @@ def run(cfg: PerturbConfig, log: Callable[[str], None] = print) -> dict:
     if lb is None and "fields" in cfg.controllers:
         raise InputError(f"{cfg.model}: no basis.json, so there is no 'fields' controller to "
                          f"push (choose among {', '.join(c for c in C.CONTROLLERS if c != 'fields')})")
-    s = cfg.simulation
-    options = SimOptions(method=s.method, rtol=s.rtol, atol=s.atol, max_evals=s.max_evals)
+    options = cfg.simulation.options()
     doc = {"model": cfg.model, "config": cfg.model_dump(), "gains": {
         k: {"K": v[0], "B": v[1]} for k, v in C.HUMAN_ARM_GAINS.items()}, "motions": {},
         "units": {"max_joint_dev": "rad", "max_hand_dev": "m", "recovery_s": "s (null: not recovered)",

@@ -14,7 +14,6 @@ from pydantic import Field, field_validator
 from pydantic_core import PydanticCustomError
 
 from ..config import (
-    SOLVERS,
     Config,
     ConfigError,
     LogSection,
@@ -25,6 +24,7 @@ from ..config import (
     read,
     validate,
 )
+from ..config import SimulationSection as BaseSimulation
 
 NAMES = ("basin", "shared", "keyframes", "filtering")
 #: The gesture library's names (``tflearn.gestures.GESTURES``, checked by a test), here so
@@ -53,20 +53,13 @@ class LocalSection(Section):
     path_gate: float = Field(1e-3, ge=0)
 
 
-class SimulationSection(Section):
+class SimulationSection(BaseSimulation):
     """How every check, path matching and resimulation integrates; a simulation needing
     more than ``max_evals`` right-hand-side evaluations counts as failed."""
 
-    method: Literal[SOLVERS] = "dopri5"
     rtol: float = Field(1e-6, ge=0)
     atol: float = Field(1e-8, ge=0)
     max_evals: int = Field(15000, ge=1)
-
-    def options(self):
-        """These settings as :class:`tflearn.simulate.SimOptions`."""
-        from ..simulate import SimOptions
-        return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
-                          max_evals=self.max_evals)
 
 
 class ExperimentConfig(Section):
