@@ -7,6 +7,7 @@ tests and is imported lazily so that the tests that do not need it run without i
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -226,3 +227,25 @@ def mocap():
     if not any(path.glob("*.bvh")):
         pytest.skip(f"motion-capture clips not found in {path} (set TFLEARN_MOCAP to their folder)")
     return path
+
+
+def free_tree(where: int, gravity=(0.0, 0.0, 0.0)) -> tb.Body:
+    """conftest's branching tree with link ``where``'s joint made free (root: a floating
+    base; 3: a free joint below a moving parent, with its origin and zero orientation)."""
+    body = make_tree(gravity)
+    links = list(body.links)
+    links[where] = replace(links[where], joint="free")
+    return body.with_(links=tuple(links))
+
+
+def random_states(body, rng, n):
+    """n random coordinates (n×nv): rotation vectors of uniform angle in [0, π), normal
+    hinge angles and translations."""
+    q = rng.normal(size=(n, body.nv))
+    for i, link in enumerate(body.links):
+        s = body.slice(i)
+        if link.joint in ("ball", "free"):
+            ax = rng.normal(size=(n, 3))
+            ax /= np.linalg.norm(ax, axis=1, keepdims=True)
+            q[:, s.start:s.start + 3] = ax * rng.uniform(0.0, np.pi, size=(n, 1))
+    return q

@@ -2,41 +2,30 @@
 and a free-floating body conserving energy and momentum."""
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pinocchio as pin
 import pytest
 import torch
 
-from tflearn import body as tb
 from tflearn import dynamics as D
 from tflearn.configspace import difference, integrate, pack, unpack
 from tflearn.simulate import SimOptions, simulate, zero_program
 
-from conftest import DT, GRAVITY, full_symmetric, make_tree, max_rel_err, q_to_pin, to_pin, v_to_pin
+from conftest import (
+    DT,
+    GRAVITY,
+    free_tree,
+    full_symmetric,
+    max_rel_err,
+    q_to_pin,
+    random_states,
+    to_pin,
+    v_to_pin,
+)
 
 TOL = 1e-9
 
 
-def free_tree(where: int, gravity=(0.0, 0.0, 0.0)) -> tb.Body:
-    """conftest's branching tree with link ``where``'s joint made free (root: a floating
-    base; 3: a free joint below a moving parent, with its origin and zero orientation)."""
-    body = make_tree(gravity)
-    links = list(body.links)
-    links[where] = replace(links[where], joint="free")
-    return body.with_(links=tuple(links))
-
-
-def _states(body, rng, n):
-    q = rng.normal(size=(n, body.nv))
-    for i, link in enumerate(body.links):
-        s = body.slice(i)
-        if link.joint in ("ball", "free"):
-            ax = rng.normal(size=(n, 3))
-            ax /= np.linalg.norm(ax, axis=1, keepdims=True)
-            q[:, s.start:s.start + 3] = ax * rng.uniform(0.0, np.pi, size=(n, 1))
-    return q
 
 
 @pytest.mark.parametrize("where,gravity", [(0, (0.0, 0.0, 0.0)), (0, GRAVITY), (3, GRAVITY)])
@@ -45,7 +34,7 @@ def test_free_joint_against_pinocchio(where, gravity, rng):
     model, P = to_pin(body), v_to_pin(body)
     data = model.createData()
     n = 8
-    q = _states(body, rng, n)
+    q = random_states(body, rng, n)
     v, a, tau = (2.0 * rng.normal(size=q.shape) for _ in range(3))
     t = lambda x: torch.as_tensor(x, dtype=DT)
     tq, tv, ta, ttau = map(t, (q, v, a, tau))
@@ -75,7 +64,7 @@ def test_free_joint_point_jacobian_is_the_point_velocity(rng):
     """J v is the derivative of a point's position along the exact free motion
     R(s) = R exp([s ω]×), t(s) = t + s R u (and each other joint moved likewise)."""
     body = free_tree(0)
-    q = torch.as_tensor(_states(body, rng, 4), dtype=DT)
+    q = torch.as_tensor(random_states(body, rng, 4), dtype=DT)
     v = torch.as_tensor(rng.normal(size=q.shape), dtype=DT)
     point, link, h = (0.05, -0.02, 0.1), 4, 1e-6
 
@@ -93,7 +82,7 @@ def test_free_joint_point_jacobian_is_the_point_velocity(rng):
 
 def test_pack_unpack_difference_round_trip(rng):
     body = free_tree(0)
-    q = torch.as_tensor(_states(body, rng, 5), dtype=DT)
+    q = torch.as_tensor(random_states(body, rng, 5), dtype=DT)
     v = torch.as_tensor(rng.normal(size=q.shape), dtype=DT)
     y = pack(body, q, v)
     assert y.shape[-1] == 7 + 1 + 4 + 1 + 4 + body.nv
@@ -131,7 +120,7 @@ def test_free_floating_body_conserves_energy_and_momentum(rng):
     """Zero gravity, no torques: T, P and L stay constant while the tree tumbles and
     drifts (dopri5 at rtol 1e-10)."""
     body = free_tree(0)
-    q0 = torch.as_tensor(_states(body, rng, 1)[0], dtype=DT)
+    q0 = torch.as_tensor(random_states(body, rng, 1)[0], dtype=DT)
     v0 = torch.as_tensor(rng.normal(size=body.nv), dtype=DT)
     t = torch.linspace(0.0, 1.0, 11, dtype=DT)
     traj = simulate(body, zero_program, q0, v0, t, SimOptions(rtol=1e-10, atol=1e-12))
@@ -148,9 +137,9 @@ def test_integrate_inverts_difference(where, rng):
     """q ⊕ x ⊖ q = x (steps below 1 rad per joint) and q ⊕ (q₂ ⊖ q) = q₂ (as rotations)
     for ball, hinge and free joints."""
     body = free_tree(where)
-    q = torch.as_tensor(_states(body, rng, 6), dtype=DT)
+    q = torch.as_tensor(random_states(body, rng, 6), dtype=DT)
     x = torch.as_tensor(rng.uniform(-0.55, 0.55, size=q.shape), dtype=DT)
     assert torch.allclose(difference(body, q, integrate(body, q, x)), x, atol=1e-12)
-    q2 = torch.as_tensor(_states(body, rng, 6), dtype=DT)
+    q2 = torch.as_tensor(random_states(body, rng, 6), dtype=DT)
     back = integrate(body, q, difference(body, q, q2))
     assert torch.allclose(difference(body, q2, back), torch.zeros_like(q), atol=1e-12)

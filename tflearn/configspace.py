@@ -19,6 +19,7 @@ Coordinates ν (...×nv) stack, per joint in link order, a ball joint's rotation
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import roma
 import torch
@@ -30,7 +31,7 @@ TAYLOR_THETA2 = 0.25  # below θ² = 0.25 the J_r coefficients use their Taylor 
 
 def rotvec_to_rotmat(v: torch.Tensor) -> torch.Tensor:
     """R = exp([v]×) (...×3 → ...×3×3), exact and smooth at v = 0 (via a unit quaternion)."""
-    return roma.unitquat_to_rotmat(roma.rotvec_to_unitquat(v))
+    return quat_to_rotmat(roma.rotvec_to_unitquat(v))
 
 
 
@@ -180,30 +181,6 @@ def pack(body: Body, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return torch.cat(parts + [v], dim=-1)
 
 
-def unpack(body: Body, y: torch.Tensor):
-    """State y → (joint rotations, ν principal coordinates, unit quaternions, v).
-
-    Rotations (...×3×3) and quaternions (...×4) are lists with one entry per link, None
-    for hinges and fixed joints; quaternions are normalised as they are read. A free
-    joint's coordinates are its principal rotation vector and its translation."""
-    rots, coords, quats, k = [], [], [], 0
-    for link in body.links:
-        if link.joint in ("ball", "free"):
-            quat = roma.quat_normalize(y[..., k:k + 4])
-            quats.append(quat)
-            rots.append(roma.unitquat_to_rotmat(quat))
-            coords.append(roma.unitquat_to_rotvec(quat, shortest_arc=True))
-            if link.joint == "free":
-                coords.append(y[..., k + 4:k + 7])
-            k += POSITION_SIZE[link.joint]
-        else:
-            quats.append(None)
-            rots.append(None)
-            coords.append(y[..., k:k + link.dof])
-            k += link.dof
-    return rots, torch.cat(coords, dim=-1), quats, y[..., k:]
-
-
 def difference(body: Body, q_a: torch.Tensor, q_b: torch.Tensor) -> torch.Tensor:
     """q_b ⊖ q_a (...×nv): log(R_aᵀ R_b) per ball joint (child frame; ν_b − ν_a to first
     order, and well behaved where the principal rotation vector wraps at π), θ_b − θ_a
@@ -240,3 +217,136 @@ def integrate(body: Body, q: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         elif link.dof:
             parts.append(q[..., s] + x[..., s])
     return torch.cat(parts, dim=-1)
+
+
+# ----------------------------------------------- unit quaternions (XYZW) by constant tables
+
+def _rotmat_of_outer(M: torch.Tensor) -> torch.Tensor:
+    """R (9) from M = q qᵀ (4×4), q = (x, y, z, w): R is quadratic in q."""
+    (xx, xy, xz, xw), (_, yy, yz, yw), (_, _, zz, zw), (_, _, _, ww) = M
+    return torch.stack([xx - yy - zz + ww, 2 * (xy - zw), 2 * (xz + yw),
+                        2 * (xy + zw), -xx + yy - zz + ww, 2 * (yz - xw),
+                        2 * (xz - yw), 2 * (yz + xw), -xx - yy + zz + ww])
+
+
+def _rate_of_outer(M: torch.Tensor) -> torch.Tensor:
+    """q ⊗ (ω, 0) (4) from M = q ωᵀ (4×3): (w ω + v × ω, −v·ω) for q = (v, w)."""
+    return torch.stack([M[3, 0] + M[1, 2] - M[2, 1], M[3, 1] + M[2, 0] - M[0, 2],
+                        M[3, 2] + M[0, 1] - M[1, 0], -(M[0, 0] + M[1, 1] + M[2, 2])])
+
+
+@lru_cache(maxsize=8)
+def _quat_tables(dtype: torch.dtype, device: torch.device) -> tuple:
+    """(Q 16×9, P 12×4): vec(R(q)) = vec(q qᵀ) Q and q ⊗ (ω, 0) = vec(q ωᵀ) P, so that
+    each is one outer product and one matrix product however many joints are batched."""
+    def table(f, shape):
+        units = torch.eye(shape[0] * shape[1], dtype=torch.float64)
+        return torch.stack([f(u.reshape(shape)) for u in units]).to(dtype=dtype, device=device)
+    return table(_rotmat_of_outer, (4, 4)), table(_rate_of_outer, (4, 3))
+
+
+def quat_to_rotmat(quat: torch.Tensor) -> torch.Tensor:
+    """R(q) (...×4 → ...×3×3) of unit quaternions (XYZW, as roma)."""
+    Q = _quat_tables(quat.dtype, quat.device)[0]
+    outer = quat.unsqueeze(-1) * quat.unsqueeze(-2)
+    return (outer.flatten(-2) @ Q).unflatten(-1, (3, 3))
+
+
+def quat_rate(quat: torch.Tensor, omega: torch.Tensor) -> torch.Tensor:
+    """q̇ = ½ q ⊗ (ω, 0) (...×4) for a child-frame angular velocity ω (...×3)."""
+    P = _quat_tables(quat.dtype, quat.device)[1]
+    return 0.5 * ((quat.unsqueeze(-1) * omega.unsqueeze(-2)).flatten(-2) @ P)
+
+
+def quat_to_rotvec(quat: torch.Tensor) -> torch.Tensor:
+    """The principal rotation vector (|v| ≤ π) of unit quaternions (...×4 → ...×3):
+    with the sign making w > 0 (as roma's shortest arc), v = 2 atan2(|u|, w) u/|u| for
+    q = (u, w); below |u| = 1e-3 w by the series of atan(r)/r, r = |u|/w, so that values
+    and derivatives stay exact at the identity."""
+    quat = torch.where(quat[..., 3:] > 0, quat, -quat)
+    u, w = quat[..., :3], quat[..., 3:]
+    n = u.norm(dim=-1, keepdim=True)
+    small = n < 1e-3 * w
+    n_safe = torch.where(small, torch.ones_like(n), n)
+    w_safe = torch.where(small, w, torch.ones_like(w))
+    r2 = (n / w_safe) ** 2
+    series = (2 / w_safe) * (1 - r2 / 3 + r2 * r2 / 5 - r2 ** 3 / 7)
+    return u * torch.where(small, series, 2 * torch.atan2(n_safe, w) / n_safe)
+
+
+# ------------------------------------------------------------------ the simulator's state
+
+@lru_cache(maxsize=64)
+def _layout(body: Body, device: torch.device) -> dict:
+    """Where each part of the state y lives, for :func:`unpack` and :func:`position_rate`:
+    the rotation joints (ball, free) in link order (``rot``), their quaternions' entries
+    in y (nr×4) and angular rates in v (nr×3); the other position entries (hinge angles,
+    free translations) in y; and two permutations: [rotation vectors (3 nr), other
+    entries] → coordinate order, and [quaternion rates (4 nr), other rates] → y's order."""
+    rot, quat, rate, other, coords, position = [], [], [], [], [], []
+    k = 0
+    for i, link in enumerate(body.links):
+        start = body.slice(i).start
+        if link.joint in ("ball", "free"):
+            j = len(rot)
+            coords += [("rot", 3 * j + d) for d in range(3)]
+            position += [("rot", 4 * j + d) for d in range(4)]
+            rot.append(i)
+            quat.append(list(range(k, k + 4)))
+            rate.append(list(range(start, start + 3)))
+            k += 4
+        n_other = 3 if link.joint == "free" else (0 if link.joint == "ball" else link.dof)
+        for d in range(n_other):
+            coords.append(("other", len(other)))
+            position.append(("other", len(other)))
+            other.append(k + d)
+        k += n_other
+
+    def tensor(x, shape=(-1,)):
+        return torch.tensor(x, dtype=torch.long, device=device).reshape(shape)
+
+    def order(src, width):
+        return tensor([m if kind == "rot" else width * len(rot) + m for kind, m in src])
+    return {"rot": rot, "n_pos": k, "quat": tensor(quat, (len(rot), 4)),
+            "rate": tensor(rate, (len(rot), 3)), "other": tensor(other),
+            "coords": order(coords, 3), "position": order(position, 4)}
+
+
+def rotation_joints(body: Body, device: torch.device) -> tuple:
+    """(links, index): the rotation joints (ball, free) in link order and where their
+    rotation vectors (or angular rates) sit in ν or v (nr×3 long tensor)."""
+    L = _layout(body, device)
+    return L["rot"], L["rate"]
+
+
+def unpack(body: Body, y: torch.Tensor):
+    """State y → (joint rotations, ν principal coordinates, unit quaternions, v).
+
+    Rotations (...×3×3) are a list with one entry per link, None for hinges and fixed
+    joints; the quaternions (...×nr×4) are those of the rotation joints (ball, free) in
+    link order, normalised as they are read. A free joint's coordinates are its principal
+    rotation vector and its translation."""
+    L = _layout(body, y.device)
+    quats = y[..., L["quat"]]
+    quats = quats / quats.norm(dim=-1, keepdim=True)
+    R = quat_to_rotmat(quats)
+    coords = torch.cat([quat_to_rotvec(quats).flatten(-2), y[..., L["other"]]], -1)
+    rots = [None] * len(body.links)
+    for j, i in enumerate(L["rot"]):
+        rots[i] = R[..., j, :, :]
+    return rots, coords[..., L["coords"]], quats, y[..., L["n_pos"]:]
+
+
+def position_rate(body: Body, rots: list, quats: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """The position block of ẏ (...×n_position) from :func:`unpack`'s rotations and
+    quaternions and the velocities v: q̇ = ½ q ⊗ (ω, 0) per rotation joint (ω its
+    child-frame angular velocity), θ̇ = v per hinge, ṫ = R u per free joint."""
+    L = _layout(body, v.device)
+    rates = [quat_rate(quats, v[..., L["rate"]]).flatten(-2)]
+    for i, link in enumerate(body.links):
+        vi = v[..., body.slice(i)]
+        if link.joint == "free":
+            rates.append((rots[i] @ vi[..., 3:, None]).squeeze(-1))
+        elif link.joint != "ball" and link.dof:
+            rates.append(vi)
+    return torch.cat(rates, -1)[..., L["position"]]

@@ -6,13 +6,15 @@ joints, angles for hinges and (rotation vector, translation) for free joints; ve
 ``v``, accelerations ``a`` and torques ``tau`` (...×nv) follow the layout described in
 :mod:`tflearn.body`.
 
-Spatial quantities are kept as (angular, linear) pairs of 3-vectors in each link's frame
-(Featherstone's body-frame formulation). Algorithms:
+Spatial quantities are 6-vectors (angular, linear) in each link's frame (Featherstone's
+body-frame formulation), moved between frames by 6×6 motion transforms X (forces by
+Xᵀ); internally the batch is flattened to one dimension so that every product is a
+single ``bmm`` or ``mm``. Algorithms:
 
 * :func:`rnea` — inverse dynamics τ = M(q) a + h(q, v) (recursive Newton–Euler),
 * :func:`mass_matrix` — M(q), from RNEA columns with v = 0 and no gravity,
 * :func:`bias_forces` — h(q, v) = τ(q, v, 0) (Coriolis, centrifugal, gravity),
-* :func:`forward_dynamics` — a = M⁻¹(τ − h) by a Cholesky solve,
+* :func:`forward_dynamics` — a = M⁻¹(τ − h) by the articulated-body algorithm, O(links),
 * :func:`forward_kinematics` — world rotations and joint positions, hand tip last,
 * :func:`point_jacobian` — the world-aligned Jacobian of a point on a link (for
   external forces: τ = Jᵀ (f, m)); :func:`points_kinematics_rot` for many points at once,
@@ -27,39 +29,131 @@ from __future__ import annotations
 from functools import lru_cache
 
 import torch
+import torch.nn.functional as F
 
 from .body import Body
-from .configspace import rotvec_to_rotmat
+from .configspace import hat, rotation_joints, rotvec_to_rotmat
 
 
 @lru_cache(maxsize=64)
 def _constants(body: Body, dtype: torch.dtype, device: torch.device) -> dict:
-    """Per-link constant tensors: joint origins, zero orientations, axes, inertias."""
+    """Per-link constant tensors: joint origins, zero orientations, axes, inertias, and
+    for the spatial recursions each link's 6×6 spatial inertia about its origin, its
+    motion subspace S (6×dof) and the tables of its motion transform (:func:`_transforms`)."""
     def t(x):
         return torch.as_tensor(x, dtype=dtype, device=device)
-    return {
-        "origin": [t(l.origin) for l in body.links],
-        "R0": [rotvec_to_rotmat(t(l.offset)) for l in body.links],
-        "axis": [t(l.axis) for l in body.links],
-        "mass": [float(l.mass) for l in body.links],
-        "com": [t(l.com) for l in body.links],
-        "Ic": [t(l.inertia) for l in body.links],
-        "gravity": t(body.gravity),
-        "tip": t(body.tip_point),
-    }
+    C = {"origin": [t(l.origin) for l in body.links],
+         "R0": [rotvec_to_rotmat(t(l.offset)) for l in body.links],
+         "axis": [t(l.axis) for l in body.links],
+         "mass": [float(l.mass) for l in body.links],
+         "com": [t(l.com) for l in body.links],
+         "Ic": [t(l.inertia) for l in body.links],
+         "gravity": t(body.gravity),
+         "tip": t(body.tip_point)}
+    C["hat_axis"] = [hat(a) for a in C["axis"]]
+    C["inertia6"] = [_spatial_inertia(m, c, I) for m, c, I in zip(C["mass"], C["com"], C["Ic"])]
+    C["S"] = [_motion_subspace(l.joint, a) for l, a in zip(body.links, C["axis"])]
+    C["X"] = [_transform_table(l.joint, R0, hat(r), K)
+              for l, R0, r, K in zip(body.links, C["R0"], C["origin"], C["hat_axis"])]
+    return C
 
 
-def hinge_rotmat(axis: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-    """Rodrigues: R = I + sin θ [a]× + (1 − cos θ)[a]×² for a unit axis a; θ (...) → ...×3×3."""
-    return rotvec_to_rotmat(theta[..., None] * axis)
+def _spatial_inertia(m: float, c: torch.Tensor, Ic: torch.Tensor) -> torch.Tensor:
+    """I = [[Ic + m [c]×[c]×ᵀ, m [c]×], [m [c]×ᵀ, m 1]] (6×6): a link's spatial inertia
+    about its frame origin, for (angular, linear) motion vectors."""
+    H = hat(c)
+    eye = torch.eye(3, dtype=c.dtype, device=c.device)
+    return torch.cat([torch.cat([Ic + m * H @ H.T, m * H], -1),
+                      torch.cat([m * H.T, m * eye], -1)], -2)
+
+
+def _motion_subspace(joint: str, axis: torch.Tensor) -> torch.Tensor:
+    """S (6×dof): the spatial velocity (ω, v) of the child frame per unit joint rate —
+    [1; 0] for a ball joint, [a; 0] for a hinge, 1₆ for a free joint (ω, u), none fixed."""
+    eye = torch.eye(6, dtype=axis.dtype, device=axis.device)
+    if joint == "ball":
+        return eye[:, :3]
+    if joint == "hinge":
+        return torch.cat([axis, torch.zeros_like(axis)])[:, None]
+    if joint == "free":
+        return eye
+    return eye[:, :0]
+
+
+def _transform(R0: torch.Tensor, H: torch.Tensor, Rj: torch.Tensor) -> torch.Tensor:
+    """X = [[E, 0], [−E H, E]] (...×6×6), E = (R0 Rj)ᵀ: the spatial motion transform from a
+    parent to a link whose frame is R0 Rj relative to it, at origin r ([r]× = H); linear
+    in the joint rotation Rj."""
+    E = (R0 @ Rj).transpose(-1, -2)
+    return torch.cat([torch.cat([E, torch.zeros_like(E)], -1), torch.cat([-E @ H, E], -1)], -2)
+
+
+def _transform_table(joint: str, R0, H, K):
+    """What :func:`_transforms` needs to build a link's X with few operations: for a
+    ball or free joint the 9×36 matrix W with vec(X) = vec(Rj) W (X is linear in Rj);
+    for a hinge (Rj = 1 + sin θ K + (1 − cos θ) K²) the three 6×6 terms of
+    X = X₀ + sin θ X_s + (1 − cos θ) X_c; for a fixed joint X itself."""
+    eye = torch.eye(3, dtype=R0.dtype, device=R0.device)
+    if joint in ("ball", "free"):
+        units = torch.eye(9, dtype=R0.dtype, device=R0.device).reshape(9, 3, 3)
+        return _transform(R0, H, units).reshape(9, 36)
+    if joint == "hinge":
+        return tuple(_transform(R0, H, M) for M in (eye, K, K @ K))
+    return _transform(R0, H, eye)
+
+
+def _bmv(X: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """X x for B matrices (B×k×m) and vectors (B×m)."""
+    return torch.bmm(X, x.unsqueeze(-1)).squeeze(-1)
+
+
+def _bmtv(X: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Xᵀ x (B×m) for B×k×m matrices and B×k vectors."""
+    return torch.bmm(x.unsqueeze(1), X).squeeze(1)
 
 
 def _mv(E, x):
+    """E x for matrices (...×k×m, broadcast) and vectors (...×m)."""
     return (E @ x.unsqueeze(-1)).squeeze(-1)
 
 
-def _mtv(E, x):
-    return (E.transpose(-1, -2) @ x.unsqueeze(-1)).squeeze(-1)
+def _crm(V: torch.Tensor, s: torch.Tensor, linear: bool = False) -> torch.Tensor:
+    """V ×ₘ s = (ω × s_ω, ω × s_v + v × s_ω): the spatial cross product of two motion
+    vectors (B×6 each, V = (ω, v)); ``linear`` False when s_v = 0."""
+    B = V.shape[0]
+    out = torch.cross(V.view(B, 2, 3), s[:, None, :3].expand(B, 2, 3), dim=-1).reshape(B, 6)
+    if linear:
+        out = out + F.pad(torch.cross(V[:, :3], s[:, 3:], dim=-1), (3, 0))
+    return out
+
+
+def _crf(V: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """V ×* P = (ω × n + v × f, ω × f): a motion vector V = (ω, v) acting on a force
+    vector P = (n, f) (B×6 each)."""
+    B = V.shape[0]
+    out = torch.cross(V[:, None, :3].expand(B, 2, 3), P.view(B, 2, 3), dim=-1).reshape(B, 6)
+    return out + F.pad(torch.cross(V[:, 3:], P[:, 3:], dim=-1), (0, 3))
+
+
+def _spd_inverse(D: torch.Tensor) -> torch.Tensor:
+    """D⁻¹ for symmetric positive definite B×k×k matrices: 1/D for k = 1, the adjugate
+    over the determinant for k = 3 (cofactor rows r₁×r₂, r₂×r₀, r₀×r₁), Cholesky
+    otherwise (a LinAlgError where D is not positive definite)."""
+    k = D.shape[-1]
+    if k == 1:
+        return 1.0 / D
+    if k == 3:
+        cof = torch.cross(D.roll(-1, dims=-2), D.roll(1, dims=-2), dim=-1)
+        return cof / (D[:, :1, :] * cof[:, :1, :]).sum(-1, keepdim=True)
+    return torch.cholesky_inverse(torch.linalg.cholesky(D))
+
+
+def _flatten(rots: list, *xs: torch.Tensor):
+    """Broadcast joint rotations (...×3×3) and vectors (...×k) to their common batch
+    shape and flatten it: (batch shape, rotations B×3×3, vectors B×k)."""
+    rots, *xs = _broadcast(rots, *xs)
+    return (xs[0].shape[:-1], [None if R is None else R.reshape(-1, 3, 3) for R in rots],
+            *(x.reshape(-1, x.shape[-1]) for x in xs))
 
 
 def _broadcast(rots: list, *xs: torch.Tensor):
@@ -70,14 +164,25 @@ def _broadcast(rots: list, *xs: torch.Tensor):
     return (rots, *(x.expand(batch + x.shape[-1:]) for x in xs))
 
 
+def _per_sample(x, batch, B: int) -> torch.Tensor:
+    """A 3-vector (3 or ...×3, broadcast to ``batch``) as B×3."""
+    return x.expand(batch + (3,)).reshape(B, 3)
+
+
 def joint_rotations(body: Body, q: torch.Tensor) -> list:
-    """The joints' own rotations exp([v]×) (ball, free) or None (hinge, fixed); q (...×nv)."""
-    return [rotvec_to_rotmat(q[..., body.slice(i)][..., :3]) if l.joint in ("ball", "free")
-            else None for i, l in enumerate(body.links)]
+    """The joints' own rotations exp([v]×) (ball, free) or None (hinge, fixed); q (...×nv).
+    All rotation joints are converted in one batched call."""
+    links, index = rotation_joints(body, q.device)
+    R = rotvec_to_rotmat(q[..., index])
+    out = [None] * len(body.links)
+    for j, i in enumerate(links):
+        out[i] = R[..., j, :, :]
+    return out
 
 
 def _relative_rotations(body: Body, rots: list, q: torch.Tensor) -> list:
-    """R_i = R0_i · R_joint,i: each link frame relative to its parent (...×3×3)."""
+    """R_i = R0_i · R_joint,i: each link frame relative to its parent (...×3×3); a hinge's
+    by Rodrigues, R_joint = 1 + sin θ [a]× + (1 − cos θ)[a]×²."""
     C = _constants(body, q.dtype, q.device)
     out = []
     for i, link in enumerate(body.links):
@@ -85,7 +190,8 @@ def _relative_rotations(body: Body, rots: list, q: torch.Tensor) -> list:
         if link.joint in ("ball", "free"):
             out.append(R0 @ rots[i])
         elif link.joint == "hinge":
-            out.append(R0 @ hinge_rotmat(C["axis"][i], q[..., body.slice(i)][..., 0]))
+            th, K = q[..., body.slice(i)][..., None], C["hat_axis"][i]
+            out.append(R0 + R0 @ (torch.sin(th) * K + (1 - torch.cos(th)) * (K @ K)))
         else:
             out.append(R0.expand(q.shape[:-1] + (3, 3)))
     return out
@@ -100,100 +206,104 @@ def _joint_origin(body: Body, i: int, q: torch.Tensor) -> torch.Tensor:
     return C["origin"][i] + _mv(C["R0"][i], q[..., body.slice(i)][..., 3:])
 
 
-def _joint_linear(body: Body, i: int, x: torch.Tensor):
-    """The linear part of S_i x (a free joint's u, child frame); None for other joints."""
-    return x[..., body.slice(i)][..., 3:] if body.links[i].joint == "free" else None
+def _transforms(body: Body, rots: list, q: torch.Tensor) -> list:
+    """Spatial motion transforms parent → link i (B×6×6) on (angular, linear) vectors,
+        X_i = [[E, 0], [−E [r]×, E]],   E = R_iᵀ, r the joint origin in the parent
+    (ω_i = E ω_p, v_i = E(v_p + ω_p × r)); a force (n, f) goes back to the parent as
+    X_iᵀ. Built from the tables of :func:`_transform_table`; a free joint adds
+    −E [R0 t]× for its translation t. rots (B×3×3), q (B×nv)."""
+    C = _constants(body, q.dtype, q.device)
+    B, out = q.shape[0], []
+    for i, link in enumerate(body.links):
+        T = C["X"][i]
+        if link.joint in ("ball", "free"):
+            X = (rots[i].reshape(B, 9) @ T).view(B, 6, 6)
+        elif link.joint == "hinge":
+            th = q[:, body.slice(i), None]
+            X = T[0] + torch.sin(th) * T[1] + (1 - torch.cos(th)) * T[2]
+        else:
+            X = T.expand(B, 6, 6)
+        if link.joint == "free":
+            shift = hat(q[:, body.slice(i)][:, 3:] @ C["R0"][i].T)
+            X = X - F.pad(X[:, :3, :3] @ shift, (0, 3, 3, 0))
+        out.append(X)
+    return out
 
 
-def _joint_motion(body: Body, i: int, x: torch.Tensor) -> torch.Tensor:
-    """S_i x: the angular velocity a joint rate x produces, in the child frame."""
-    link = body.links[i]
-    xs = x[..., body.slice(i)]
-    if link.joint == "ball":
-        return xs
-    if link.joint == "free":
-        return xs[..., :3]
-    if link.joint == "hinge":
-        return xs * _constants(body, x.dtype, x.device)["axis"][i]
-    return torch.zeros(x.shape[:-1] + (3,), dtype=x.dtype, device=x.device)
+def _root_motion(B: int, g: torch.Tensor, base):
+    """The root's parent: spatial velocity V_0 (None for a fixed base: zero) and
+    acceleration A_0 (B×6), (0, −g) for a fixed base, (ω_b, 0) and (ω̇_b, a_b − g) for a
+    moving one; g and the base terms B×3."""
+    if base is None:
+        return None, F.pad(-g, (3, 0))
+    w, dw, a = base
+    return F.pad(w, (0, 3)), torch.cat([dw, a - g], -1)
+
+
+def _gravity(body: Body, q: torch.Tensor, gravity) -> torch.Tensor:
+    """g (3 or ...×3): True → the body's, False → zero, or the tensor given."""
+    if isinstance(gravity, torch.Tensor):
+        return gravity
+    g = _constants(body, q.dtype, q.device)["gravity"]
+    return g if gravity else torch.zeros_like(g)
+
+
+def _prepare(body: Body, rots: list, q, x, y, gravity, base):
+    """Flatten the batch and build what both recursions start from: (batch shape, X
+    (list of B×6×6), q̇ (B×nv), the second vector (B×nv), V_0, A_0)."""
+    batch, rots, q, x, y = _flatten(rots, q, x, y)
+    B = q.shape[0]
+    g = _per_sample(_gravity(body, q, gravity), batch, B)
+    if base is not None:
+        base = tuple(_per_sample(b, batch, B) for b in base)
+    return (batch, _transforms(body, rots, q), x, y) + _root_motion(B, g, base)
+
+
+def _velocities(body: Body, X: list, v: torch.Tensor, V0):
+    """V_i = X_i V_p + S_i q̇_i and the joint motion s_i = S_i q̇_i (B×6 each)."""
+    C = _constants(body, v.dtype, v.device)
+    V, s = [], []
+    for i, link in enumerate(body.links):
+        s.append(v[:, body.slice(i)] @ C["S"][i].T)
+        Vp = V0 if link.parent < 0 else V[link.parent]
+        V.append(s[i] if Vp is None else _bmv(X[i], Vp) + s[i])
+    return V, s
 
 
 def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.Tensor,
              gravity=True, base=None) -> torch.Tensor:
     """Recursive Newton–Euler inverse dynamics, τ = M(q)a + C(q,v)v + g(q).
 
-    Forward pass (link i, parent p, E = R_iᵀ, r the joint origin in the parent):
-        ω_i = E ω_p + S q̇,                  v_i = E(v_p + ω_p × r)
-        ω̇_i = E ω̇_p + S q̈ + ω_i × S q̇,     v̇_i = E(v̇_p + ω̇_p × r) + v_i × S q̇
-    and for a free joint (r = origin + R0 t, joint rate (ω_j, u), acceleration (ω̇_j, u̇))
-    also v_i += u and v̇_i += u̇ + ω_i × u (the linear half of the spatial v_i × S q̇);
-    with base acceleration (0, −g) (``gravity``: True for the body's g, False for none, or
-    a ...×3 tensor of per-batch gravity vectors). A moving base (``base`` = (ω_b, ω̇_b,
-    a_b), ...×3 each, in the base frame: its angular velocity, angular acceleration and
-    the classical acceleration of its origin) enters at the root as ω_p = ω_b, v_p = 0,
-    ω̇_p = ω̇_b, v̇_p = a_b − g: the torques are those seen in the inertial frame moving
-    with the base origin's velocity at that instant (Galilean invariance).
-    Link wrench (c the centre of mass, Ic its inertia):
-        p = m(v + ω×c), L = Ic ω + c×p,  h = m(v̇ + ω̇×c),  n = Ic ω̇ + c×h
-        f_i = (n + ω×L + v×p,  h + ω×p)
-    Backward pass: τ_i = Sᵀ n_i ((n_i, f_i) for a free joint); parent gets
-    (Eᵀn + r×Eᵀf, Eᵀf).
+    Spatial (angular, linear) vectors in each link's frame (Featherstone), X_i the
+    parent → link transform (:func:`_transforms`), S_i the motion subspace
+    (ω = S q̇; for a free joint (ω, u)), I_i the spatial inertia about the link origin:
+        V_i = X_i V_p + S_i q̇_i,      A_i = X_i A_p + S_i q̈_i + V_i ×ₘ S_i q̇_i,
+        F_i = I_i A_i + V_i ×* I_i V_i,
+    backwards τ_i = S_iᵀ F_i and F_p += X_iᵀ F_i. The root's parent has V_0 = 0,
+    A_0 = (0, −g) (``gravity``: True for the body's g, False for none, or a ...×3 tensor
+    of per-batch gravity vectors). A moving base (``base`` = (ω_b, ω̇_b, a_b), ...×3 each,
+    in the base frame: its angular velocity, angular acceleration and the classical
+    acceleration of its origin) enters as V_0 = (ω_b, 0), A_0 = (ω̇_b, a_b − g): the
+    torques seen in the inertial frame moving with the base origin's velocity at that
+    instant (Galilean invariance).
     """
     C = _constants(body, q.dtype, q.device)
-    rots, q, v, a = _broadcast(rots, q, v, a)
-    zero = torch.zeros(q.shape[:-1] + (3,), dtype=q.dtype, device=q.device)
-    Rrel = _relative_rotations(body, rots, q)
-    if isinstance(gravity, torch.Tensor):
-        g = gravity
-    else:
-        g = C["gravity"] if gravity else torch.zeros_like(C["gravity"])
-    n_links = len(body.links)
-    w, vl, dw, dv, E = ([None] * n_links for _ in range(5))
+    batch, X, v, a, V0, A0 = _prepare(body, rots, q, v, a, gravity, base)
+    V, s = _velocities(body, X, v, V0)
+    Fs, A = [], []
     for i, link in enumerate(body.links):
-        E[i] = Rrel[i].transpose(-1, -2)
-        r = _joint_origin(body, i, q)
-        if link.parent < 0 and base is None:
-            wp, vp, dwp, dvp = zero, zero, zero, zero - g
-        elif link.parent < 0:
-            wp, vp, dwp, dvp = base[0].expand_as(zero), zero, base[1].expand_as(zero), base[2] - g
-        else:
-            p = link.parent
-            wp, vp, dwp, dvp = w[p], vl[p], dw[p], dv[p]
-        wj = _joint_motion(body, i, v)
-        w[i] = _mv(E[i], wp) + wj
-        vl[i] = _mv(E[i], vp + torch.cross(wp, r.expand_as(wp), dim=-1))
-        dw[i] = _mv(E[i], dwp) + _joint_motion(body, i, a) + torch.cross(w[i], wj, dim=-1)
-        dv[i] = (_mv(E[i], dvp + torch.cross(dwp, r.expand_as(dwp), dim=-1))
-                 + torch.cross(vl[i], wj, dim=-1))
-        uj = _joint_linear(body, i, v)
-        if uj is not None:
-            vl[i] = vl[i] + uj
-            dv[i] = (dv[i] + _joint_linear(body, i, a) + torch.cross(w[i], uj, dim=-1)
-                     + torch.cross(uj, wj, dim=-1))
-    n, f = [None] * n_links, [None] * n_links
-    for i in range(n_links):
-        m, c, Ic = C["mass"][i], C["com"][i].expand_as(w[i]), C["Ic"][i]
-        p = m * (vl[i] + torch.cross(w[i], c, dim=-1))
-        L = _mv(Ic, w[i]) + torch.cross(c, p, dim=-1)
-        h = m * (dv[i] + torch.cross(dw[i], c, dim=-1))
-        nn_ = _mv(Ic, dw[i]) + torch.cross(c, h, dim=-1)
-        n[i] = nn_ + torch.cross(w[i], L, dim=-1) + torch.cross(vl[i], p, dim=-1)
-        f[i] = h + torch.cross(w[i], p, dim=-1)
-    tau = [None] * n_links
-    for i in reversed(range(n_links)):
-        link = body.links[i]
-        if link.joint == "ball":
-            tau[i] = n[i]
-        elif link.joint == "hinge":
-            tau[i] = (n[i] * C["axis"][i]).sum(-1, keepdim=True)
-        elif link.joint == "free":
-            tau[i] = torch.cat([n[i], f[i]], dim=-1)
-        if link.parent >= 0:
-            fp = _mtv(E[i], f[i])
-            r = _joint_origin(body, i, q).expand_as(fp)
-            n[link.parent] = n[link.parent] + _mtv(E[i], n[i]) + torch.cross(r, fp, dim=-1)
-            f[link.parent] = f[link.parent] + fp
-    return torch.cat([t for t in tau if t is not None], dim=-1)
+        Ap = A0 if link.parent < 0 else A[link.parent]
+        A.append(_bmv(X[i], Ap) + a[:, body.slice(i)] @ C["S"][i].T
+                 + _crm(V[i], s[i], link.joint == "free"))
+        I6 = C["inertia6"][i]                      # symmetric: I x = x I
+        Fs.append(A[i] @ I6 + _crf(V[i], V[i] @ I6))
+    tau = [None] * len(body.links)
+    for i in reversed(range(len(body.links))):
+        tau[i] = Fs[i] @ C["S"][i]
+        p = body.links[i].parent
+        if p >= 0:
+            Fs[p] = Fs[p] + _bmtv(X[i], Fs[i])
+    return torch.cat(tau, dim=-1).reshape(batch + (body.nv,))
 
 
 def mass_matrix_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
@@ -209,38 +319,49 @@ def mass_matrix_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
 
 def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor,
                          tau: torch.Tensor, gravity=None, base=None) -> torch.Tensor:
-    """a = M(q)⁻¹ (τ − h(q, v)) by Cholesky factorisation (M is symmetric positive definite).
+    """a = M(q)⁻¹ (τ − h(q, v)) by the articulated-body algorithm (ABA), O(links).
 
-    One batched RNEA pass gives both: nv columns (v = 0, a = e_k, no gravity) for M and
-    one (v, a = 0, gravity) for h. ``gravity`` (...×3, default the body's) and a moving
-    ``base`` (see :func:`rnea_rot`) enter h only.
+    With V_i, s_i = S_i q̇_i as in :func:`rnea_rot`, c_i = V_i ×ₘ s_i:
+        leaves → root: Iᴬ_i = I_i + Σ_children X_cᵀ Iᵃ_c X_c,
+                       pᴬ_i = V_i ×* I_i V_i + Σ_children X_cᵀ pᵃ_c,
+                       U_i = Iᴬ_i S_i,  D_i = S_iᵀ U_i,  u_i = τ_i − S_iᵀ pᴬ_i,
+                       Iᵃ_i = Iᴬ_i − U_i D_i⁻¹ U_iᵀ,  pᵃ_i = pᴬ_i + Iᵃ_i c_i + U_i D_i⁻¹ u_i;
+        root → leaves: a'_i = X_i A_p + c_i,  q̈_i = D_i⁻¹ (u_i − U_iᵀ a'_i),
+                       A_i = a'_i + S_i q̈_i,
+    from A_0 = (0, −g) (``gravity``: ...×3, default the body's) or a moving ``base``
+    (see :func:`rnea_rot`). D_i (SPD) is inverted in closed form (:func:`_spd_inverse`);
+    a state that blew up gives non-finite accelerations.
     """
-    nv = body.nv
-    rots, q, v, tau = _broadcast(rots, q, v, tau)
-    eye = torch.eye(nv, dtype=q.dtype, device=q.device)
-    acc = torch.cat([eye, torch.zeros_like(eye[:1])], dim=0)
-    vel = torch.cat([torch.zeros(q.shape[:-1] + (nv, nv), dtype=q.dtype, device=q.device),
-                     v.unsqueeze(-2)], dim=-2)
-    if gravity is None and base is None:
-        g = _constants(body, q.dtype, q.device)["gravity"]
-        grav = torch.cat([torch.zeros(nv, 3, dtype=q.dtype, device=q.device), g[None]], dim=0)
-    else:
-        g = _constants(body, q.dtype, q.device)["gravity"] if gravity is None else gravity
-        grav = _last_column(g, nv)
-        base = None if base is None else tuple(_last_column(x, nv) for x in base)
-    out = rnea_rot(body, [None if R is None else R.unsqueeze(-3) for R in rots],
-                   q.unsqueeze(-2), vel, acc, gravity=grav, base=base)
-    M = out[..., :nv, :].transpose(-1, -2)
-    M = 0.5 * (M + M.transpose(-1, -2))
-    h = out[..., nv, :]
-    Lc = torch.linalg.cholesky(M)
-    return torch.cholesky_solve((tau - h).unsqueeze(-1), Lc).squeeze(-1)
-
-
-def _last_column(x: torch.Tensor, nv: int) -> torch.Tensor:
-    """...×3 → ...×(nv+1)×3: zero for the nv mass-matrix columns, x for the bias column."""
-    x = x.unsqueeze(-2)
-    return torch.cat([torch.zeros(x.shape[:-2] + (nv, 3), dtype=x.dtype, device=x.device), x], dim=-2)
+    C = _constants(body, q.dtype, q.device)
+    batch, X, v, tau, V0, A0 = _prepare(body, rots, q, v, tau,
+                                        True if gravity is None else gravity, base)
+    V, s = _velocities(body, X, v, V0)
+    n = len(body.links)
+    c = [_crm(V[i], s[i], body.links[i].joint == "free") for i in range(n)]
+    IA = list(C["inertia6"])                             # 6×6 until a child adds to it
+    pA = [_crf(V[i], V[i] @ IA[i]) for i in range(n)]
+    K = [None] * n                                       # (D⁻¹ Uᵀ, D⁻¹ u) per link
+    for i in reversed(range(n)):
+        S, Ia = C["S"][i], IA[i]
+        pa = pA[i] + (c[i] @ Ia if Ia.ndim == 2 else _bmv(Ia, c[i]))
+        if S.shape[-1]:
+            U = (Ia @ S).expand(X[i].shape[:1] + S.shape)
+            Dinv = _spd_inverse(U.transpose(-1, -2) @ S)
+            K[i] = (Dinv @ U.transpose(-1, -2), _bmv(Dinv, tau[:, body.slice(i)] - pA[i] @ S))
+            Ia = Ia - U @ K[i][0]
+            pa = pa + _bmv(U, K[i][1] - _bmv(K[i][0], c[i]))
+        p = body.links[i].parent
+        if p >= 0:
+            IA[p] = IA[p] + X[i].transpose(-1, -2) @ Ia @ X[i]
+            pA[p] = pA[p] + _bmtv(X[i], pa)
+    A, qdd = [], []
+    for i, link in enumerate(body.links):
+        a = _bmv(X[i], A0 if link.parent < 0 else A[link.parent]) + c[i]
+        if K[i] is not None:
+            qdd.append(K[i][1] - _bmv(K[i][0], a))
+            a = a + qdd[-1] @ C["S"][i].T
+        A.append(a)
+    return torch.cat(qdd, dim=-1).reshape(batch + (body.nv,))
 
 
 def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):

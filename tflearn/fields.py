@@ -182,7 +182,7 @@ class FieldBasis(nn.Module):
     def forward(self, q: torch.Tensor) -> torch.Tensor:
         """χ_i(q) = −K_i d exp(−½ dᵀK_i d), d = q − η_i; q (...×n) → (...×M×n)."""
         d = q.unsqueeze(-2) - self.eta
-        Kd = torch.einsum("mij,...mj->...mi", self.K(), d)
+        Kd = (self.K() * d.unsqueeze(-2)).sum(-1)           # few ops: small M×n×n
         g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
         return -Kd * g
 

@@ -9,7 +9,7 @@ Pinocchio), each hinge an angle, followed by the velocities v (nv). The state is
     q̇_ball = ½ q ⊗ (ω, 0)     (ω the child-frame angular velocity),
     θ̇ = v_hinge,
     q̇_free = ½ q ⊗ (ω, 0),  ṫ = R(q) u    (free joint velocity (ω, u), child frame),
-    v̇ = M(q)⁻¹ (τ(t, ν, v) − c v − h(q, v)).
+    v̇ = M(q)⁻¹ (τ(t, ν, v) − c v − h(q, v))   (the articulated-body algorithm).
 
 Quaternions are normalised wherever they are read, so the rotations used are exactly in
 SO(3) whatever the integrator does to their norm; the double cover has no singularity
@@ -21,13 +21,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable, Optional
 
-import roma
 import torch
 from torchdiffeq import odeint, odeint_adjoint
 
 from . import dynamics
 from .body import Body
-from .configspace import pack, unpack
+from .configspace import pack, position_rate, unpack
 
 TorqueProgram = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -42,8 +41,8 @@ FAILURES = ("budget", "solver", "singular", "nonfinite")
 class SimulationFailed(Exception):
     """A simulation that cannot go on. ``reason`` is one of :data:`FAILURES`:
     ``budget`` (more right-hand-side evaluations than ``max_evals``), ``solver`` (the
-    integrator gave up, e.g. its step size underflowed), ``singular`` (a mass matrix
-    could not be factorised: the state blew up) or ``nonfinite`` (NaN or Inf in the
+    integrator gave up, e.g. its step size underflowed), ``singular`` (a joint's
+    articulated inertia could not be factorised: the state blew up) or ``nonfinite`` (NaN or Inf in the
     state or its derivative). Not a RuntimeError, so that ``except RuntimeError`` never
     hides it and it never hides torch's own errors."""
 
@@ -111,21 +110,9 @@ class ArmODE(torch.nn.Module):
         try:
             a = dynamics.forward_dynamics_rot(body, rots, coords, v, total, **moving)
         except torch.linalg.LinAlgError:
-            raise SimulationFailed("singular", f"the mass matrix cannot be factorised at "
+            raise SimulationFailed("singular", f"an articulated inertia cannot be factorised at "
                                                f"t = {float(t.detach()):.4g} s") from None
-        dpos = []
-        for i, link in enumerate(body.links):
-            vi = v[..., body.slice(i)]
-            if link.joint == "ball":
-                omega = torch.cat([vi, torch.zeros_like(vi[..., :1])], dim=-1)
-                dpos.append(0.5 * roma.quat_product(quats[i], omega))
-            elif link.joint == "free":
-                omega = torch.cat([vi[..., :3], torch.zeros_like(vi[..., :1])], dim=-1)
-                dpos += [0.5 * roma.quat_product(quats[i], omega),
-                         (rots[i] @ vi[..., 3:, None]).squeeze(-1)]
-            else:
-                dpos.append(vi)
-        out = [*dpos, a]
+        out = [position_rate(body, rots, quats, v), a]
         if self.track_work:
             out.append((tau * v).sum(-1, keepdim=True))
         return torch.cat(out, dim=-1)

@@ -1,0 +1,160 @@
+"""docs/benchmarks.md: run the benchmarks (or reuse their saved results) and write the page.
+
+    python bench/benchmarks.py --ref 607d0dd            # run everything (~20 min on 2 cores)
+    python bench/benchmarks.py --ref 607d0dd --reuse    # rewrite the page from docs/benchmarks/*.json
+
+Runs ``bench/dynamics.py``, ``bench/main_job.py`` and ``bench/path_step.py`` (each in its
+own process, one after another), keeps their JSON in docs/benchmarks/ and writes
+docs/benchmarks.md from it: every figure with the reference it is a ratio to, measured in
+the same invocation, and the machine beside it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "docs" / "benchmarks"
+PAGE = ROOT / "docs" / "benchmarks.md"
+
+
+def us(x: float) -> str:
+    return f"{x * 1e6:,.2f}" if x < 1e-5 else f"{x * 1e6:,.0f}"
+
+
+def run(script: str, *args: str) -> None:
+    subprocess.run([sys.executable, str(ROOT / "bench" / script), *args], check=True, cwd=ROOT)
+
+
+def dynamics_section(d: dict) -> list:
+    tf, pin = d["tflearn"], d["pinocchio"]
+    ref = d.get("reference", {}).get("tflearn")
+    rev = d.get("reference", {}).get("rev")
+    m = d["machine"]
+    lines = [
+        "## Dynamics throughput", "",
+        f"The 7-DOF arm, float64, one torch thread ({m['cores']}-core {m['cpu']}, torch "
+        f"{m['torch']}, Pinocchio {pin['version']} from PyPI `pin`), random states; µs per "
+        "sample (per call ÷ batch). *Pinocchio Python* is one `pin.rnea` / `pin.aba` / "
+        "`pin.crba` call from Python; *Pinocchio C++* is its compiled batch loop "
+        "(`rneaInParallel`, `abaInParallel`, one thread), the cost of the algorithm "
+        "without Python. *ratio* = tflearn ÷ Pinocchio Python call.", "",
+        "| batch | RNEA | ratio | Pinocchio C++ | forward dynamics (ABA) | ratio | Pinocchio C++ | "
+        "mass matrix | ratio |" + (f" RNEA at {rev} | forward at {rev} |" if ref else ""),
+        "|---" * (9 + (2 if ref else 0)) + "|"]
+    py = pin["python"]
+    for B in tf["rnea"]:
+        b = int(B)
+        r, f = tf["rnea"][B] / b, tf["forward"][B] / b
+        mm = tf["mass"].get(B)
+        row = [f"{b:,}", us(r), f"{r / py['rnea']:.2f}", us(pin["batch"]["rnea"][B]),
+               us(f), f"{f / py['aba']:.2f}", us(pin["batch"]["aba"][B]),
+               us(mm / b) if mm else "–", f"{mm / b / py['crba']:.2f}" if mm else "–"]
+        if ref:
+            row += [us(ref["rnea"][B] / b) if B in ref["rnea"] else "–",
+                    us(ref["forward"][B] / b) if B in ref["forward"] else "–"]
+        lines.append("| " + " | ".join(row) + " |")
+    lines += ["", f"A Pinocchio call from Python: RNEA {us(py['rnea'])} µs, ABA {us(py['aba'])} µs, "
+              f"CRBA {us(py['crba'])} µs.", ""]
+    return lines
+
+
+def latency_section(d: dict) -> list:
+    tf = d["tflearn"]
+    ref = d.get("reference", {}).get("tflearn")
+    g = tf["gesture"]
+    rows = [("one ODE right-hand side, batch 1", tf["rhs_batch1"],
+             ref and ref["rhs_batch1"], "≤ 50 µs"),
+            (f"a {g['duration_s']:g} s gesture ({g['name']}) simulated, default tolerances "
+             f"({g['rhs_evals']} right-hand sides)", g["seconds"],
+             ref and ref["gesture"]["seconds"], "≤ 0.1 s")]
+    lines = ["## Small-batch latency", "",
+             "| what | now | " + (f"at {d['reference']['rev']} | speed-up |" if ref else "") + " goal |",
+             "|---|---|" + ("---|---|" if ref else "") + "---|"]
+    for what, now, before, goal in rows:
+        cells = [what, f"{now * 1e3:.3f} ms"]
+        if ref:
+            cells += [f"{before * 1e3:.3f} ms", f"{before / now:.2f}×"]
+        lines.append("| " + " | ".join(cells + [goal]) + " |")
+    ops = tf.get("aten_ops_batch1")
+    if ops:
+        before = ref.get("aten_ops_batch1") if ref else None
+        lines += ["", "ATen operators dispatched per call at batch 1 (torch.profiler; each costs "
+                  "a roughly fixed 0.3–1 µs of dispatch at this size, so this count bounds latency): "
+                  + ", ".join(f"{k} {v}" + (f" (was {before[k]})" if before and k in before else "")
+                  for k, v in ops.items()) + "."]
+    return lines + [""]
+
+
+def main_job_section(d: dict) -> list:
+    lines = ["## The main job", "",
+             f"`train configs/gestures.yaml`, each run a fresh process, one after another in "
+             f"one invocation ({d['cores']} cores).", "",
+             "| run | wall time | speed-up | M | gestures reproduced | worst RMSE (rad) | "
+             "worst tip (cm) | basis.json vs reference (max abs difference) |",
+             "|---|---|---|---|---|---|---|---|"]
+    names = {"reference": f"at {d['ref']}", "current": f"at {d['commit']}",
+             "launcher": f"at {d['commit']}, `{d.get('launcher')}`"}
+    for key, r in d["runs"].items():
+        lines.append(f"| {names[key]} | {r['wall_s']:.1f} s | {r.get('speedup', 1.0):.2f}× | {r['M']} | "
+                     f"{r['reproduced']}/{r['motions']} | {r['worst_rmse_rad']:.4f} | "
+                     f"{100 * r['worst_tip_m']:.2f} | "
+                     f"{'–' if key == 'reference' else format(r['basis_max_difference'], '.2g')} |")
+    return lines + [""]
+
+
+def path_section(d: dict) -> list:
+    lines = ["## One path-matching step", "",
+             "Simulate every motion, the path loss and its gradient (`bench/path_step.py`; "
+             "the gestures repeated with scaled weights, the library's generating model); "
+             "wall time and peak memory of the process.", "",
+             "| motions | solver | gradient | forward | forward + backward | peak memory |",
+             "|---|---|---|---|---|---|"]
+    for r in d["rows"]:
+        mode = "adjoint" if r["adjoint"] else "direct"
+        if "step_s" in r:
+            lines.append(f"| {r['motions']:,} | {r['method']} | {mode} | {r['forward_s']:.1f} s | "
+                         f"{r['step_s']:.1f} s | {r['max_rss_mb'] / 1024:.1f} GiB |")
+        else:
+            why = f"over {r['timeout_s']:.0f} s" if "timeout_s" in r else r.get("error", "failed")
+            lines.append(f"| {r['motions']:,} | {r['method']} | {mode} | {why} | | |")
+    return lines + [""]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--ref", required=True, help="the revision before the performance work")
+    p.add_argument("--reuse", action="store_true", help="only rewrite the page from saved JSON")
+    p.add_argument("--launcher", help="passed to bench/main_job.py")
+    p.add_argument("--path-sizes", default="5,100,1000")
+    args = p.parse_args(argv)
+    DATA.mkdir(parents=True, exist_ok=True)
+    if not args.reuse:
+        run("dynamics.py", "--ref", args.ref, "--out", str(DATA / "dynamics.json"))
+        run("main_job.py", "--ref", args.ref, "--out", str(DATA / "main_job.json"),
+            *(["--launcher", args.launcher] if args.launcher else []))
+        run("path_step.py", "--sizes", args.path_sizes, "--out", str(DATA / "path_step.json"))
+    dyn = json.loads((DATA / "dynamics.json").read_text())
+    lines = ["# Benchmarks", "",
+             "Measured by `python bench/benchmarks.py --ref " + args.ref + "` (raw results in "
+             "[benchmarks/](benchmarks/)); every ratio is against a reference measured in the same "
+             "invocation on the same machine — absolute times vary between machines and with load, "
+             f"ratios much less. tflearn at commit {dyn.get('commit', '?')}, reference revision "
+             f"{args.ref} (before the performance work).", ""]
+    lines += dynamics_section(dyn) + latency_section(dyn)
+    for name, section in (("main_job.json", main_job_section), ("path_step.json", path_section)):
+        if (DATA / name).exists():
+            lines += section(json.loads((DATA / name).read_text()))
+    notes = ROOT / "bench" / "benchmarks_notes.md"
+    if notes.exists():
+        lines += [notes.read_text().rstrip(), ""]
+    PAGE.write_text("\n".join(lines))
+    print(f"wrote {PAGE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
