@@ -1,0 +1,85 @@
+"""How the pipeline's pooled work grows with the number of motions N: the cost of one EM
+step (NNLS weights for every motion + one Levenberg–Marquardt step on the shared fields)
+and of scoring every motion by one batched simulation, for N random supported programs
+(:func:`tflearn.gestures.random_gestures`, sampled at 100 Hz), with the fitted exponent
+of each (cost ∝ N^p by least squares on log–log).
+
+The model is held fixed in size — the gesture library's M = 7 fields — so that only N
+changes; the per-motion stage (``each``) fits every motion alone, so its cost is linear
+in N by construction and is not repeated here. One process, one torch thread.
+
+    python bench/scale.py --sizes 10,30,100,300,1000 --out runs/bench/scale.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import resource
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+
+def measure(n: int, seed: int) -> dict:
+    from tflearn import gestures
+    from tflearn.body import arm
+    from tflearn.fields import MotionWeights
+    from tflearn.fit import torque
+    from tflearn.fit.targets import prepare
+    from tflearn.metrics import score
+
+    body = arm()
+    programs = gestures.random_gestures(n, seed=seed)
+    t0 = time.perf_counter()
+    motions = [m for m, _ in gestures.generate(body, gestures=programs)]
+    generate = time.perf_counter() - t0
+    tg = prepare(body, motions)
+    basis, _, _ = gestures.library_model(body=body)
+    weights = MotionWeights.zeros(basis.M, tg.duration, names=tg.names)
+    torque.solve_weights(basis, weights, tg)
+    t0 = time.perf_counter()
+    torque.em(basis, weights, tg, steps=1, tol=0.0)
+    em_step = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    scores = score(body, basis, weights, tg)
+    scoring = time.perf_counter() - t0
+    return {"motions": n, "samples": int(tg.mask.sum()), "generate_s": generate,
+            "em_step_s": em_step, "score_s": scoring,
+            "failed_simulations": sum(f is not None for f in scores.failure),
+            "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def exponent(rows: list, key: str) -> float:
+    """p in cost ∝ N^p, least squares on log–log."""
+    xs = [math.log(r["motions"]) for r in rows]
+    ys = [math.log(r[key]) for r in rows]
+    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+    return sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sum((x - mx) ** 2 for x in xs)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", default="10,30,100,300,1000")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    rows = []
+    for n in (int(x) for x in args.sizes.split(",")):
+        rows.append(measure(n, args.seed))
+        print(json.dumps(rows[-1]), flush=True)
+    doc = {"rows": rows}
+    if len(rows) > 1:
+        doc["exponents"] = {k: exponent(rows, k) for k in ("em_step_s", "score_s")}
+        print(json.dumps(doc["exponents"]))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(doc, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
