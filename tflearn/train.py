@@ -262,7 +262,7 @@ class Run:
                 self.log.scalar(tag, cost, state.step)
             self.log.busy(em_step=step + 1, cost=cost)
         return torque.em(basis, weights, tg, steps=c.steps, tol=c.tol,
-                         phases=self.cfg.model.phases == "variable", callback=cb)
+                         phases=self.cfg.model.phases == "variable", callback=cb, distributed=True)
 
     def _each(self, state: RunState, tg: Targets):
         """One round: motions cursor, cursor + 1, … one per rank, each fitted alone
