@@ -32,12 +32,13 @@ values only (loaded with ``torch.load(weights_only=True)``).
 
 Many processes (``torchrun --nproc-per-node N -m tflearn.cli train CONFIG``, see
 :mod:`tflearn.parallel` and docs/parallel.md): ``each`` fits motions in rounds of one
-motion per rank, every simulation that scores the shared model and path matching's
-loss are shared by motion (:func:`tflearn.parallel.shard`), and the results are
-gathered, so that every rank holds the same state and takes the same decisions; EM and
-SLSQP run whole on every rank. Rank 0 alone reads and writes the checkpoint (the state
-is global: a run resumes with any number of ranks) and writes the artefacts, the
-progress display and TensorBoard. Motion j's own search draws from its own generator,
+motion per rank; every simulation that scores the shared model, path matching's loss
+and gradient, and EM's weight solves and Gauss–Newton sums are shared by motion
+(:func:`tflearn.parallel.shard`), and the results are gathered or summed, so that every
+rank holds the same state and takes the same decisions; SLSQP runs whole on every
+rank. Rank 0 alone reads and writes the checkpoint (the state is global: a run resumes
+with any number of ranks) and writes the artefacts, the progress display and
+TensorBoard. Motion j's own search draws from its own generator,
 seeded from the run's generator and j, so that its result does not depend on which
 rank fits it or on the other motions.
 """
