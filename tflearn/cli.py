@@ -83,11 +83,13 @@ def _train(args) -> int:
     cfg = config.load(args.config, overrides)
     import torch
 
-    from . import train
+    from . import parallel, train
     from .log import summary_table
     torch.set_num_threads(args.threads)
-    metrics = train.run(cfg, restart=args.restart)
-    print(summary_table(metrics, cfg.out))
+    with parallel.group("cpu"):           # started by torchrun: one rank of the run
+        metrics = train.run(cfg, restart=args.restart)
+        if parallel.rank() == 0:
+            print(summary_table(metrics, cfg.out))
     return 0 if metrics["overall"]["success"] else 1
 
 

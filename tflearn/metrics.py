@@ -7,6 +7,10 @@ scores are the joint-angle RMSE sqrt(mean_{t,k} e²) (rad), the largest hand-tip
 (m) and the relative RMS torque error sqrt(C_j) (:mod:`tflearn.fit.torque`). A motion
 whose simulation fails (:class:`~tflearn.simulate.SimulationFailed`) scores rmse = tip =
 ∞ with its reason in ``failure``; the others are still scored, each on its own grid.
+
+In a run of many processes (:mod:`tflearn.parallel`) ``score(..., distributed=True)``
+simulates only this rank's motions (:func:`tflearn.parallel.mine`) and gathers the
+others', so that every rank holds the same scores of all motions.
 """
 from __future__ import annotations
 
@@ -16,7 +20,7 @@ from typing import Optional
 
 import torch
 
-from . import dynamics
+from . import dynamics, parallel
 from .body import Body
 from .configspace import difference
 from .fields import FieldBasis, MotionWeights
@@ -72,13 +76,28 @@ def _simulate_each(body, basis, weights, tg, options):
     return q_sim, failure
 
 
+def _simulate_distributed(body, basis, weights, tg, options):
+    """:func:`_simulate_each` of this rank's motions, every rank's gathered (N×T×n, N)."""
+    if parallel.size() == 1:
+        return _simulate_each(body, basis, weights, tg, options)
+    idx, part = parallel.mine(tg.N), []
+    if idx:
+        q_sim, failure = _simulate_each(body, basis, weights.select_motions(idx), tg.select(idx), options)
+        part = list(zip(q_sim, failure))
+    rows = parallel.gather_motions(tg.N, part)
+    return torch.stack([q for q, _ in rows]).to(tg.q.device), [f for _, f in rows]
+
+
 @torch.no_grad()
 def score(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
-          options: SimOptions = SimOptions(), q_sim: Optional[torch.Tensor] = None) -> Scores:
-    """Simulate every motion (unless ``q_sim`` is given) and score it; see the module."""
+          options: SimOptions = SimOptions(), q_sim: Optional[torch.Tensor] = None, *,
+          distributed: bool = False) -> Scores:
+    """Simulate every motion (unless ``q_sim`` is given) and score it; see the module.
+    ``distributed``: share the simulations among the ranks of a run."""
     failure = [None] * tg.N
     if q_sim is None:
-        q_sim, failure = _simulate_each(body, basis, weights, tg, options)
+        simulate = _simulate_distributed if distributed else _simulate_each
+        q_sim, failure = simulate(body, basis, weights, tg, options)
     rmse, tip = path_errors(body, q_sim, tg)
     inf = float("inf")
     rmse = [inf if f else float(r) for f, r in zip(failure, rmse)]

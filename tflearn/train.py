@@ -29,6 +29,18 @@ postures drawn from the motions' samples, K = I, weights by NNLS.
 
 The run's state is a :class:`RunState`; checkpoints hold it as plain tensors and JSON
 values only (loaded with ``torch.load(weights_only=True)``).
+
+Many processes (``torchrun --nproc-per-node N -m tflearn.cli train CONFIG``, see
+:mod:`tflearn.parallel` and docs/parallel.md): ``each`` fits motions in rounds of one
+motion per rank; every simulation that scores the shared model, path matching's loss
+and gradient, and EM's weight solves and Gauss–Newton sums are shared by motion
+(:func:`tflearn.parallel.shard`), and the results are gathered or summed, so that every
+rank holds the same state and takes the same decisions; SLSQP runs whole on every
+rank. Rank 0 alone reads and writes the checkpoint (the state is global: a run resumes
+with any number of ranks) and writes the artefacts, the progress display and
+TensorBoard. Motion j's own search draws from its own generator,
+seeded from the run's generator and j, so that its result does not depend on which
+rank fits it or on the other motions.
 """
 from __future__ import annotations
 
@@ -41,6 +53,7 @@ from typing import Optional
 import torch
 
 from . import config as config_mod
+from . import parallel
 from .body import from_config
 from .config import Config, ConfigError
 from .data import check_resolution, load_motions
@@ -54,7 +67,7 @@ from .io.files import replacing, write_text
 from .log import RunLog
 from .metrics import Scores, score, summarize
 
-CHECKPOINT_FORMAT = "tflearn-checkpoint/3"
+CHECKPOINT_FORMAT = "tflearn-checkpoint/4"
 SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "done"),
              "slsqp": ("slsqp", "done")}
 
@@ -150,10 +163,12 @@ class Run:
 
     # ---- checkpoints
     def save(self, state: RunState):
+        """Write the checkpoint (rank 0; every rank counts it for ``stop_after``)."""
         state.elapsed += time.time() - self._t0
         self._t0 = time.time()
-        with replacing(self.ckpt_path) as tmp:
-            torch.save(state.to_dict(), tmp)
+        if parallel.rank() == 0:
+            with replacing(self.ckpt_path) as tmp:
+                torch.save(state.to_dict(), tmp)
         self.checkpoints += 1
         if self.stop_after is not None and self.checkpoints >= self.stop_after:
             raise Interrupted(f"stopped after {self.checkpoints} checkpoints")
@@ -173,22 +188,42 @@ class Run:
                 f"choose another out= or pass --restart")
         return state
 
+    def _start(self, restart: bool) -> Optional[RunState]:
+        """Rank 0's checkpoint (or None) on every rank; a bad one raises on every rank."""
+        state, error = None, None
+        if parallel.rank() == 0:
+            self.out.mkdir(parents=True, exist_ok=True)
+            if restart:
+                self.ckpt_path.unlink(missing_ok=True)
+            try:
+                state = self.load()
+            except CheckpointError as err:
+                error = str(err)
+        state, error = parallel.broadcast((state, error))
+        if error:
+            raise CheckpointError(error)
+        return state
+
     # ---- stages
     def execute(self, restart: bool = False) -> dict:
+        """The run in this process: alone, or as one rank of the process group torchrun
+        describes (:func:`tflearn.parallel.group`)."""
+        with parallel.group("cpu"):
+            return self._execute(restart)
+
+    def _execute(self, restart: bool) -> dict:
         torch.manual_seed(self.cfg.seed)
         self._t0 = time.time()
         motions = load_motions(self.cfg.data, self.body, strict=self.cfg.strict)
         self.resolution = check_resolution(self.body, motions)
         tg = prepare(self.body, motions)
-        self.out.mkdir(parents=True, exist_ok=True)
-        if restart:
-            self.ckpt_path.unlink(missing_ok=True)
-        state = self.load()
+        state = self._start(restart)
         if state is None:
             gen = torch.Generator().manual_seed(self.cfg.seed)
             state = RunState(config=self.cfg.model_dump(), stage=self.sequence[0], rng=gen.get_state())
-        self.log = RunLog(self.out, tensorboard=self.cfg.log.tensorboard, progress=self.progress,
-                          body=self.body, sequence=self.sequence)
+        lead = parallel.rank() == 0
+        self.log = RunLog(self.out, tensorboard=self.cfg.log.tensorboard and lead,
+                          progress=self.progress and lead, body=self.body, sequence=self.sequence)
         if state.step or state.stage != self.sequence[0]:
             self.log.message(f"resuming {self.out} at stage {state.stage} ({state.cursor})")
         with self.log:
@@ -206,8 +241,10 @@ class Run:
         state.stage = self.sequence[self.sequence.index(state.stage) + 1]
         state.cursor = 0
 
-    def _check(self, basis, weights, tg: Targets):
-        scores = score(self.body, basis, weights, tg, self.options)
+    def _check(self, basis, weights, tg: Targets, distributed: bool = True):
+        """(scores, success per motion); ``distributed``: the simulations shared by the
+        ranks (every rank gets all motions' scores), else simulated here."""
+        scores = score(self.body, basis, weights, tg, self.options, distributed=distributed)
         return scores, scores.succeeded(self.cfg.success.rmse, self.cfg.success.tip)
 
     def _tick(self, state: RunState) -> int:
@@ -226,41 +263,60 @@ class Run:
                 self.log.scalar(tag, cost, state.step)
             self.log.busy(em_step=step + 1, cost=cost)
         return torque.em(basis, weights, tg, steps=c.steps, tol=c.tol,
-                         phases=self.cfg.model.phases == "variable", callback=cb)
+                         phases=self.cfg.model.phases == "variable", callback=cb, distributed=True)
 
     def _each(self, state: RunState, tg: Targets):
-        c, m = self.cfg.solver, self.cfg.model
+        """One round: motions cursor, cursor + 1, … one per rank, each fitted alone
+        (:meth:`_fit_one`), gathered in motion order, then one checkpoint."""
         j = state.cursor
         self.log.stage("each", tg.N, j)
+        gen = self._gen(state)
+        seeds = torch.randint(2 ** 62, (tg.N,), generator=gen).tolist()   # motion k's search: seeds[k]
         if j >= tg.N:
+            state.rng = gen.get_state()
             self.log.end_stage()
             return self._advance(state)
-        gen = self._gen(state)
-        one = tg.select([j])
-        self.log.busy(motion=tg.names[j])
+        batch = list(range(j, min(j + parallel.size(), tg.N)))
+        mine = [self._fit_one(tg, batch[i], seeds[batch[i]]) for i in parallel.mine(len(batch))]
+        for k, fit in zip(batch, parallel.gather_motions(len(batch), mine)):
+            state.fits.append(fit["fit"])
+            step = self._tick(state)
+            if fit["scores"] is not None:
+                one = tg.select([k])
+                self.log.scalar("torque_cost/each", fit["cost"], step)
+                self.log.scores(fit["scores"], one, step, figures=True, overview=False)
+                self.log.fields(sum(f[1].shape[0] for f in state.fits), step,
+                                torch.cat([f[1] for f in state.fits]), fit["weights"])
+            self.log.status(motion=tg.names[k], M=fit["M"], cost=fit["cost"],
+                            reproduced=fit["reproduced"])
+        state.cursor = batch[-1] + 1
+        self.save(state)
+
+    def _fit_one(self, tg: Targets, k: int, seed: int) -> dict:
+        """Motion k's own search (:func:`tflearn.fit.search.grow`) with a generator
+        seeded ``seed``: its fit (η, K, timing), cost, M, whether simulation reproduces
+        it, and for TensorBoard its scores and weights."""
+        c, m = self.cfg.solver, self.cfg.model
+        one = tg.select([k])
+        self.log.busy(motion=tg.names[k])
         checked = {}
 
         def reproduced(b, w):
-            checked["last"] = (b, *self._check(b, w, one))
+            checked["last"] = (b, *self._check(b, w, one, distributed=False))
             return all(checked["last"][2])
         b, w, costs = search.grow(one, m.stiffness, self.body.blocks, c.each.max_fields, c.each.tol,
-                                  c.init.candidates, c.init.stiffness_grid, gen, c.em.steps,
+                                  c.init.candidates, c.init.stiffness_grid,
+                                  torch.Generator().manual_seed(seed), c.em.steps,
                                   phases=m.phases == "variable", em_tol=c.em.tol,
                                   reproduced=reproduced)
-        state.fits.append((b.eta.detach().clone(), b.K().detach().clone(), w.timing(0)))
-        state.rng = gen.get_state()
-        step = self._tick(state)
         last = checked.get("last")
-        if self.log.writer is not None:
-            scores = last[1] if last is not None and last[0] is b else self._check(b, w, one)[0]
-            self.log.scalar("torque_cost/each", costs[0], step)
-            self.log.scores(scores, one, step, figures=True, overview=False)
-            self.log.fields(sum(fit[1].shape[0] for fit in state.fits), step,
-                            torch.cat([fit[1] for fit in state.fits]), w)
-        self.log.status(motion=tg.names[j], M=b.M, cost=float(costs[0]),
-                        reproduced=bool(last is not None and last[0] is b and all(last[2])))
-        state.cursor = j + 1
-        self.save(state)
+        fresh = last is not None and last[0] is b
+        scores = None
+        if self.cfg.log.tensorboard:
+            scores = last[1] if fresh else self._check(b, w, one, distributed=False)[0]
+        return {"fit": (b.eta.detach().clone(), b.K().detach().clone(), w.timing(0)),
+                "cost": float(costs[0]), "M": b.M, "reproduced": bool(fresh and all(last[2])),
+                "scores": scores, "weights": w if self.cfg.log.tensorboard else None}
 
     def _pool(self, state: RunState, tg: Targets):
         merge = self.cfg.solver.merge
@@ -349,7 +405,8 @@ class Run:
         res = path_fit.path_step(self.body, basis, weights, tg, lr=state.path["lr"],
                                  best=state.path["best"], optimizer_state=state.path["optimizer"],
                                  velocity_weight=p.velocity_weight,
-                                 phases=self.cfg.model.phases == "variable", options=self.options)
+                                 phases=self.cfg.model.phases == "variable", options=self.options,
+                                 distributed=True)
         if res.best is None:                 # the simulation fails at the starting point
             state.history["path"] = res.failure
             self.log.status(advance=0, failed="the simulation fails at the start")
@@ -405,6 +462,13 @@ class Run:
         for name, eps in zip(tg.names, self.resolution):
             metrics["motions"][name]["torque_resolution"] = eps
         metrics["history"] = state.history
+        state.stage = "done"
+        if parallel.rank() == 0:
+            self._write(state, tg, scores, lb, metrics)
+        return metrics
+
+    def _write(self, state: RunState, tg: Targets, scores: Scores, lb, metrics: dict) -> None:
+        """The artefacts of a finished run (rank 0)."""
         write_figures(self.body, tg, scores, self.out)
         config_mod.dump(self.cfg, self.out / "config.yaml")
         write_text(self.out / "metrics.json", json.dumps(metrics, indent=1))
@@ -412,10 +476,8 @@ class Run:
         self.log.hparams({"seed": self.cfg.seed, "method": self.cfg.solver.method,
                           "stiffness": self.cfg.model.stiffness, "phases": self.cfg.model.phases,
                           "fields": self.cfg.model.fields, "data": str(self.cfg.data)}, metrics)
-        state.stage = "done"
         with replacing(self.ckpt_path) as tmp:
             torch.save(state.to_dict(), tmp)
-        return metrics
 
 
 def write_figures(body, tg: Targets, scores: Scores, out: Path) -> None:

@@ -20,6 +20,7 @@ from typing import Callable, Optional
 
 import torch
 
+from .. import parallel
 from ..body import Body
 from ..configspace import difference
 from ..fields import FieldBasis, MotionWeights, model_from_state, model_state
@@ -64,21 +65,50 @@ def _restore(basis, weights, best: dict) -> None:
     weights.load_state_dict(w.state_dict())
 
 
-def _loss(body, basis, weights, tg, velocity_weight, options):
-    """(per-motion loss (N), failure message or None)."""
+def _loss(body, basis, weights, tg, velocity_weight, options, motions=None):
+    """(per-motion loss (N, or of ``motions`` only: see :func:`simulate_targets`),
+    failure message or None)."""
+    sub = tg if motions is None else tg.select(motions)
     try:
-        q_sim, v_sim = simulate_targets(body, basis, weights, tg, options)
+        q_sim, v_sim = simulate_targets(body, basis, weights, sub, options, motions=motions)
     except SimulationFailed as err:
-        return None, f"{err} (motions {', '.join(tg.names)})"
-    losses = path_loss(body, q_sim, v_sim, tg, velocity_weight)
-    bad = [n for n, x in zip(tg.names, losses.detach().tolist()) if not math.isfinite(x)]
+        return None, f"{err} (motions {', '.join(sub.names)})"
+    losses = path_loss(body, q_sim, v_sim, sub, velocity_weight)
+    bad = [n for n, x in zip(sub.names, losses.detach().tolist()) if not math.isfinite(x)]
     return losses, (f"non-finite path loss for {', '.join(bad)}" if bad else None)
+
+
+def _summed_loss(body, basis, weights, tg, velocity_weight, options, distributed: bool):
+    """(this process' part of Σ_j L_j to backpropagate, Σ_j L_j over all motions (∞ on a
+    failure), failure message or None). ``distributed``: each rank of a run simulates its
+    own motions (:func:`tflearn.parallel.mine`); the losses and failures are gathered, so
+    that every rank gets the same sum and failure."""
+    if not distributed or parallel.size() == 1:
+        losses, failure = _loss(body, basis, weights, tg, velocity_weight, options)
+        return (None, math.inf, failure) if failure else (losses.sum(), float(losses.sum().detach()), None)
+    idx, losses, failure = parallel.mine(tg.N), None, None
+    if idx:
+        losses, failure = _loss(body, basis, weights, tg, velocity_weight, options, idx)
+    rows = parallel.gather_motions(tg.N, [failure] * len(idx) if failure else
+                                   losses.detach().tolist() if idx else [])
+    failures = list(dict.fromkeys(x for x in rows if isinstance(x, str)))   # one per rank that failed
+    if failures:
+        return None, math.inf, "; ".join(failures)
+    total = float(torch.tensor(rows, dtype=torch.float64).sum())
+    return (None if losses is None else losses.sum()), total, None
+
+
+def _sum_gradients(params: list) -> None:
+    """Each parameter's gradient summed over the ranks of a run (zero where a rank has none)."""
+    for p in params:
+        p.grad = parallel.all_reduce_sum(p.grad if p.grad is not None else torch.zeros_like(p))
 
 
 def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets, lr: float,
               best: Optional[dict] = None, optimizer_state: Optional[dict] = None, *,
               fields: bool = True, phases: bool = False, velocity_weight: float = 0.1,
-              options: SimOptions = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000)) -> PathStep:
+              options: SimOptions = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000),
+              distributed: bool = False) -> PathStep:
     """One safeguarded Adam step on the summed path loss Σ_j L_j.
 
     The loss is evaluated at the current parameters; if it is worse than the best point
@@ -87,17 +117,21 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
     Adam steps from it. Gradients come from backpropagation through the solver or, with
     ``options.adjoint``, the adjoint method. ``fields=False`` freezes the basis (weights
     only: held-out synthesis). A failure at the starting point (no best point yet)
-    leaves the parameters as they are and is returned with ``best`` None."""
+    leaves the parameters as they are and is returned with ``best`` None.
+    ``distributed``: the ranks of a run (:mod:`tflearn.parallel`) simulate their own
+    motions and sum the gradients, and every rank takes the same step."""
     params = _params(basis, weights, fields, phases)
     opt = torch.optim.Adam(params, lr=lr)
     if optimizer_state is not None:
         opt.load_state_dict(optimizer_state)
-    losses, failure = _loss(body, basis, weights, tg, velocity_weight, options)
-    value = float("inf") if failure else float(losses.sum().detach())
+    local, value, failure = _summed_loss(body, basis, weights, tg, velocity_weight, options, distributed)
     if not failure and (best is None or value <= best["loss"]):
         best = {"loss": value, "model": model_state(basis, weights)}
         opt.zero_grad()
-        losses.sum().backward()
+        if local is not None:            # None: a rank with no motions (more ranks than motions)
+            local.backward()
+        if distributed and parallel.size() > 1:
+            _sum_gradients(params)
         if all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None):
             opt.step()
             if fields:

@@ -67,11 +67,14 @@ def _union_grid(t: torch.Tensor):
 
 
 def simulate_targets(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
-                     options: SimOptions = SimOptions()):
+                     options: SimOptions = SimOptions(), motions=None):
     """Every motion simulated from its own initial state under its own program, in one
     batched ``odeint`` over the union grid: (q, v) at each motion's samples (N×T×n each).
+    ``motions``: the indices into ``weights`` of the motions ``tg`` holds (a
+    :meth:`Targets.select` of them; default: ``weights``' motions are ``tg``'s), so that
+    gradients reach the whole ``weights``.
     Raises :class:`~tflearn.simulate.SimulationFailed` when the batch cannot go on."""
-    tr = simulate(body, FieldProgram(basis, weights), tg.q0, tg.qd0, tg.grid, options)
+    tr = simulate(body, FieldProgram(basis, weights, index=motions), tg.q0, tg.qd0, tg.grid, options)
     idx = tg.index.unsqueeze(-1).expand(-1, -1, body.nv)
     return tr.q.gather(1, idx), tr.v.gather(1, idx)
 

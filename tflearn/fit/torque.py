@@ -26,6 +26,7 @@ from typing import Callable, Optional
 
 import torch
 
+from .. import parallel
 from ..fields import FieldBasis, MotionWeights, pulse_profile, step_profile
 from .nnls import nnls, warn_unconverged
 from .targets import Targets
@@ -200,9 +201,45 @@ def _project_out_weights(J, basis, weights, tg, scale, x) -> torch.Tensor:
     return (Jn - Phi @ coef).reshape(J.shape)
 
 
+class _Motions:
+    """The motions one process handles in :func:`em`: all of them, or with ``shared``
+    (a run of many processes, :mod:`tflearn.parallel`) this rank's own
+    (:func:`~tflearn.parallel.mine`), whose weights it solves and whose terms of JᵀJ and
+    Jᵀr it adds to the other ranks' (all-reduce); the costs and weights are gathered."""
+
+    def __init__(self, weights: MotionWeights, tg: Targets, support, shared: bool):
+        self.all, self.N, self.shared = weights, tg.N, shared
+        self.idx = parallel.mine(tg.N) if shared else None
+        self.weights = weights.select_motions(self.idx) if shared else weights
+        self.tg = tg.select(self.idx) if shared else tg
+        self.support = support[self.idx] if shared and support is not None else support
+
+    def solve(self, basis: FieldBasis) -> torch.Tensor:
+        """C_j (N) of every motion at its NNLS weights."""
+        costs = solve_weights(basis, self.weights, self.tg, self.support)
+        if not self.shared:
+            return costs
+        return torch.tensor(parallel.gather_motions(self.N, costs.tolist()), dtype=costs.dtype)
+
+    def sum(self, A: torch.Tensor, g: torch.Tensor):
+        if self.shared:
+            parallel.all_reduce_sum(A)
+            parallel.all_reduce_sum(g)
+        return A, g
+
+    def finish(self) -> None:
+        """Every motion's weights into the caller's ``weights``."""
+        if self.shared:
+            rows = parallel.gather_motions(self.N, list(zip(self.weights.a_raw.detach(),
+                                                            self.weights.b_raw.detach())))
+            with torch.no_grad():
+                self.all.a_raw.copy_(torch.stack([a for a, _ in rows]))
+                self.all.b_raw.copy_(torch.stack([b for _, b in rows]))
+
+
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
        phases: bool = False, tol: float = 1e-10, callback: Optional[Callable] = None,
-       support: Optional[torch.Tensor] = None) -> list:
+       support: Optional[torch.Tensor] = None, distributed: bool = False) -> list:
     """EM-style alternation: exact NNLS weights, then a damped Gauss–Newton step on the
     fields' centres and stiffnesses (and phases) with those weights held.
 
@@ -218,26 +255,31 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     steps, or when the cost falls by less than ``tol`` (relative). ``callback(step, costs)``
     is called every step. ``support`` restricts the weights (see :func:`solve_weights`).
     Returns the cost history (sum over motions) and leaves the weights at their NNLS
-    optimum."""
-    fp = _FieldParameters(basis, weights, tg, phases)
+    optimum.
+
+    ``distributed``: in a run of many processes each rank solves its own motions'
+    weights and the ranks sum JᵀJ and Jᵀr (:class:`_Motions`), so every rank takes the
+    same steps (not with variable ``phases``, whose θ holds every motion's phases: then
+    every rank runs it whole, as with fewer motions than ranks)."""
+    own = _Motions(weights, tg, support, distributed and not phases and 1 < parallel.size() <= tg.N)
+    fp = _FieldParameters(basis, own.weights, own.tg, phases)
     theta = fp.vector()
-    costs = solve_weights(basis, weights, tg, support)
+    costs = own.solve(basis)
     history = [float(costs.sum())]
     mu = 1e-3
     for step in range(steps):
-        x = torch.cat([weights.a, weights.b], -1).detach()
+        x = torch.cat([own.weights.a, own.weights.b], -1).detach()
         with torch.no_grad():
             r = fp.residual(theta, x)
-            J = _project_out_weights(fp.jacobian(theta, x), basis, weights, tg, fp.scale, x)
-        A = J.T @ J
-        g = J.T @ r
+            J = _project_out_weights(fp.jacobian(theta, x), basis, own.weights, own.tg, fp.scale, x)
+        A, g = own.sum(J.T @ J, J.T @ r)
         d = torch.diagonal(A).clone()
         d = d + 1e-12 * d.max().clamp_min(1e-300)
         accepted = False
         for _ in range(8):
             delta = torch.linalg.solve(A + mu * torch.diag(d), -g)
             fp.assign(theta + delta)
-            new_costs = solve_weights(basis, weights, tg, support)
+            new_costs = own.solve(basis)
             _warn_nonfinite(new_costs, tg, "EM")
             if float(new_costs.sum()) < history[-1]:         # False for NaN: rejected
                 theta = fp.vector()
@@ -246,7 +288,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
             mu *= 4
         if not accepted:
             fp.assign(theta)
-            costs = solve_weights(basis, weights, tg, support)
+            costs = own.solve(basis)
             break
         gain = history[-1] - float(costs.sum())
         history.append(float(costs.sum()))
@@ -254,6 +296,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
             callback(step, costs.detach())
         if gain <= tol * max(history[-2], 1e-300):
             break
+    own.finish()
     return history
 
 

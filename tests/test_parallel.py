@@ -1,0 +1,202 @@
+"""Many processes (tflearn.parallel): the shard of motions per rank, the collectives in a
+world of size 1 and of 2 gloo processes, and training under torch.distributed — two
+ranks fit a round of ``each`` as one process does, and torchrun's two processes resume a
+one-process checkpoint to the one-process run's basis.json."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+import tflearn
+from tflearn import parallel, train
+from tflearn.fields import FieldBasis, MotionWeights, model_state
+from tflearn.fit import path as path_fit
+from tflearn.fit import torque
+from tflearn.fit.targets import prepare
+from tflearn.motion import Motion
+from tflearn.simulate import SimOptions
+
+from test_learning import SMALL_OVERRIDES, assert_same_basis, small_config, small_run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    return small_run(tmp_path_factory)       # the one-process run shared with test_learning.py
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 5, 17])
+@pytest.mark.parametrize("size", [1, 2, 3, 8])
+def test_shard_deals_every_index_once(n, size):
+    shards = [parallel.shard(n, r, size) for r in range(size)]
+    assert sorted(j for s in shards for j in s) == list(range(n))
+    for r, s in enumerate(shards):
+        assert s == sorted(s) and all(j % size == r for j in s)
+        assert parallel.shard(n, r, size) == s                       # deterministic
+    assert max(len(s) for s in shards) - min(len(s) for s in shards) <= 1
+
+
+@pytest.mark.parametrize("rank,size", [(-1, 2), (2, 2), (0, 0)])
+def test_shard_refuses_a_rank_outside_the_world(rank, size):
+    with pytest.raises(ValueError, match="not one of"):
+        parallel.shard(4, rank, size)
+
+
+def test_a_single_process_is_a_world_of_one(monkeypatch):
+    for k in parallel.ENV:
+        monkeypatch.delenv(k, raising=False)
+    x = torch.tensor([1.0, 2.0], dtype=torch.float64)
+    with parallel.group("cpu"):
+        assert not dist.is_initialized()
+        assert (parallel.rank(), parallel.size(), parallel.mine(3)) == (0, 1, [0, 1, 2])
+        assert parallel.all_gather({"a": 1}) == [{"a": 1}]
+        assert parallel.broadcast("x") == "x"
+        assert parallel.all_reduce_sum(x) is x and x.tolist() == [1.0, 2.0]
+        assert parallel.gather_motions(3, ["p", "q", "r"]) == ["p", "q", "r"]
+        parallel.barrier()
+    assert parallel.backend("cpu") == "gloo" and parallel.backend("cuda:1") == "nccl"
+
+
+def test_world_size_without_an_address_is_refused(monkeypatch):
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.delenv("MASTER_ADDR", raising=False)
+    with pytest.raises(RuntimeError, match="MASTER_ADDR"):
+        with parallel.group("cpu"):
+            pass
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _path_problem():
+    """Three short made-up motions (0.04 s, 5 samples) and a two-field model, simulated
+    by fixed-step rk4 (so that a batch gives each motion what it gets alone)."""
+    body = tflearn.arm()
+    t = torch.linspace(0, 0.04, 5, dtype=torch.float64)
+    motions = []
+    for j in range(3):
+        phase = torch.arange(7, dtype=torch.float64) + j
+        q = 0.2 * (j + 1) * torch.sin(3 * t[:, None] + phase)
+        motions.append(Motion(f"m{j}", t, q, 0.6 * (j + 1) * torch.cos(3 * t[:, None] + phase)))
+    tg = prepare(body, motions)
+    eye = torch.eye(7, dtype=torch.float64)
+    basis = FieldBasis(torch.stack([0.3 * torch.ones(7), -0.2 * torch.ones(7)]).double(),
+                       torch.stack([1.5 * eye, 0.7 * eye]), kind="diag", blocks=body.blocks)
+    weights = MotionWeights(torch.tensor([[1.0, 2.0], [0.5, 1.5], [2.0, 0.3]], dtype=torch.float64),
+                            torch.tensor([[0.4, 0.1], [0.2, 0.9], [0.6, 0.5]], dtype=torch.float64),
+                            tg.duration, names=tg.names)
+    return body, basis, weights, tg
+
+
+def _path_steps(distributed: bool) -> dict:
+    """Two path-matching steps (the second from the first's Adam state) on
+    :func:`_path_problem`, and 6 EM steps towards its model from centres moved by 0.1."""
+    body, basis, weights, tg = _path_problem()
+    options = SimOptions(method="rk4", solver_options={"step_size": 0.01})
+    first = path_fit.path_step(body, basis, weights, tg, 0.01, options=options, distributed=distributed)
+    second = path_fit.path_step(body, basis, weights, tg, first.lr, first.best, first.optimizer,
+                                options=options, distributed=distributed)
+    path_model = model_state(basis, weights)
+    _, basis, weights, tg = _path_problem()                   # EM from off the model that made tg.tau
+    x = torch.cat([weights.a, weights.b], -1)
+    tg = dataclasses.replace(tg, tau=(torque.design(basis, weights, tg) @ x[:, None, :, None]).squeeze(-1))
+    with torch.no_grad():
+        basis.eta += 0.1
+    history = torque.em(basis, weights, tg, steps=6, distributed=distributed)
+    return {"loss": [first.loss, second.loss], "model": path_model,
+            "em": history, "em_model": model_state(basis, weights)}
+
+
+def _rank_main(rank: int, size: int, port: int, data: str, out: str, steps: str) -> None:
+    """One of two gloo ranks: the collectives, two distributed path-matching steps (rank 0
+    saves them to ``steps``), then training stopped after its first checkpoint (the first
+    round of ``each``: both motions, one per rank)."""
+    dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=size)
+    try:
+        assert (parallel.rank(), parallel.size()) == (rank, 2)
+        assert parallel.mine(5) == {0: [0, 2, 4], 1: [1, 3]}[rank]
+        assert parallel.all_gather(("r", rank)) == [("r", 0), ("r", 1)]
+        assert parallel.broadcast({"from": rank}) == {"from": 0}
+        x = parallel.all_reduce_sum(torch.tensor([1.0, 10.0 * rank], dtype=torch.float64))
+        assert x.tolist() == [2.0, 10.0]
+        assert parallel.gather_motions(5, [f"m{j}" for j in parallel.mine(5)]) == [f"m{j}" for j in range(5)]
+        torch.set_num_threads(1)
+        result = _path_steps(distributed=True)
+        if rank == 0:
+            torch.save(result, steps)
+        try:
+            train.run(small_config(data, out), stop_after=1)
+        except train.Interrupted:
+            pass
+        else:
+            raise AssertionError("the run was not interrupted")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
+    """Two gloo ranks (torch.multiprocessing): two path-matching steps on three motions
+    (two on rank 0, one on rank 1; losses gathered, gradients all-reduced) and EM
+    (weights solved per rank, JᵀJ and Jᵀr all-reduced) end where one process's do;
+    then both ranks fit the two motions of the small run in one round of ``each`` and
+    stop at its checkpoint, written by rank 0 alone: the fits are the one-process run's
+    (each motion's search has its own seeded generator)."""
+    out, steps = tmp_path / "run", tmp_path / "steps.pt"
+    mp.spawn(_rank_main, args=(2, _free_port(), str(run_dir["data"]), str(out), str(steps)), nprocs=2)
+    shared, alone = torch.load(steps, weights_only=True), _path_steps(distributed=False)
+    assert alone["loss"][1] < alone["loss"][0]                  # the steps did something
+    assert shared["loss"] == pytest.approx(alone["loss"], rel=1e-12)
+    assert len(alone["em"]) == 7 and alone["em"][-1] < 0.9 * alone["em"][0]   # EM moved
+    assert shared["em"] == pytest.approx(alone["em"], rel=1e-10)
+    for model in ("model", "em_model"):
+        for part in ("basis", "weights"):
+            for key, value in alone[model][part].items():
+                assert torch.allclose(shared[model][part][key], value, rtol=1e-10, atol=1e-12), key
+        assert not torch.equal(alone[model]["basis"]["eta"], _path_problem()[1].eta.detach())
+    assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    ref = torch.load(run_dir["out"] / "checkpoint.pt", weights_only=True)
+    assert (state["stage"], state["cursor"], state["step"]) == ("each", 2, 2)
+    assert len(state["fits"]) == len(ref["fits"]) == 2
+    for (eta, K, timing), (eta0, K0, timing0) in zip(state["fits"], ref["fits"]):
+        assert torch.equal(eta, eta0) and torch.equal(K, K0)
+        assert timing.keys() == timing0.keys() and all(torch.equal(timing[k], timing0[k]) for k in timing)
+
+
+def test_torchrun_resumes_a_one_process_checkpoint(run_dir, tmp_path):
+    """One process fits the first motion and stops at that checkpoint; ``torchrun
+    --standalone --nproc-per-node 2 -m tflearn.cli train`` resumes it to the end: the
+    one-process run's basis.json (to 1e-6), M and history, and the summary printed once
+    (by rank 0)."""
+    out = tmp_path / "run"
+    with pytest.raises(train.Interrupted):
+        train.run(small_config(run_dir["data"], out), stop_after=1)
+    config = tmp_path / "small.yaml"
+    config.write_text("seed: 0\n")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "tflearn.cli", "train", str(config), f"data={run_dir['data']}", f"out={out}",
+           *SMALL_OVERRIDES]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.count("artefacts in") == 1, done.stdout
+    assert_same_basis(out / "basis.json", run_dir["out"] / "basis.json", tol=1e-6)
+    ref = json.loads((run_dir["out"] / "metrics.json").read_text())
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["overall"]["M"] == ref["overall"]["M"] and metrics["history"] == ref["history"]
+    for name, row in ref["motions"].items():
+        assert abs(metrics["motions"][name]["rmse"] - row["rmse"]) <= 1e-6
