@@ -1,6 +1,7 @@
 """docs/benchmarks.md: run the benchmarks (or reuse their saved results) and write the page.
 
-    python bench/benchmarks.py --ref 607d0dd            # run everything (~20 min on 2 cores)
+    python bench/benchmarks.py --ref 607d0dd --launcher "torchrun --standalone --nproc-per-node 2"
+                                                        # run everything (~30 min on 2 cores)
     python bench/benchmarks.py --ref 607d0dd --reuse    # rewrite the page from docs/benchmarks/*.json
 
 Runs ``bench/dynamics.py``, ``bench/main_job.py`` and ``bench/path_step.py`` (each in its
@@ -130,13 +131,16 @@ def main(argv=None) -> int:
     p.add_argument("--reuse", action="store_true", help="only rewrite the page from saved JSON")
     p.add_argument("--launcher", help="passed to bench/main_job.py")
     p.add_argument("--path-sizes", default="5,100,1000")
+    p.add_argument("--path-methods", default="dopri5")
+    p.add_argument("--path-timeout", default="300")
     args = p.parse_args(argv)
     DATA.mkdir(parents=True, exist_ok=True)
     if not args.reuse:
         run("dynamics.py", "--ref", args.ref, "--out", str(DATA / "dynamics.json"))
         run("main_job.py", "--ref", args.ref, "--out", str(DATA / "main_job.json"),
             *(["--launcher", args.launcher] if args.launcher else []))
-        run("path_step.py", "--sizes", args.path_sizes, "--out", str(DATA / "path_step.json"))
+        run("path_step.py", "--sizes", args.path_sizes, "--methods", args.path_methods,
+            "--timeout", args.path_timeout, "--out", str(DATA / "path_step.json"))
     dyn = json.loads((DATA / "dynamics.json").read_text())
     lines = ["# Benchmarks", "",
              "Measured by `python bench/benchmarks.py --ref " + args.ref + "` (raw results in "

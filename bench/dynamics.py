@@ -169,7 +169,7 @@ def at_revision(rev: str, args) -> dict:
             out = Path(tmp) / "ref.json"
             env = {**os.environ, "PYTHONPATH": str(tree)}
             subprocess.run([sys.executable, __file__, "--tflearn-only", "--out", str(out),
-                            "--max-batch", str(args.max_batch), "--min-time", str(args.min_time)],
+                            "--max-batch", str(args.ref_max_batch), "--min-time", str(args.min_time)],
                            check=True, env=env, cwd=tree)
             return json.loads(out.read_text())["tflearn"]
         finally:
@@ -188,6 +188,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--ref", help="git revision to measure tflearn at as well")
     p.add_argument("--max-batch", type=int, default=1_000_000)
+    p.add_argument("--ref-max-batch", type=int, default=100_000,
+                   help="the reference revision's largest batch (its forward dynamics held "
+                        "nv + 1 RNEA columns: 8× the memory)")
     p.add_argument("--min-time", type=float, default=0.2)
     p.add_argument("--tflearn-only", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
