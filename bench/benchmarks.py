@@ -4,10 +4,10 @@
                                                         # run everything (~30 min on 2 cores)
     python bench/benchmarks.py --ref 607d0dd --reuse    # rewrite the page from docs/benchmarks/*.json
 
-Runs ``bench/dynamics.py``, ``bench/main_job.py`` and ``bench/path_step.py`` (each in its
-own process, one after another), keeps their JSON in docs/benchmarks/ and writes
-docs/benchmarks.md from it: every figure with the reference it is a ratio to, measured in
-the same invocation, and the machine beside it.
+Runs ``bench/dynamics.py``, ``bench/main_job.py``, ``bench/path_step.py`` and
+``bench/scale.py`` (each in its own process, one after another), keeps their JSON in
+docs/benchmarks/ and writes docs/benchmarks.md from it: every figure with the reference it
+is a ratio to, measured in the same invocation, and the machine beside it.
 """
 from __future__ import annotations
 
@@ -125,6 +125,23 @@ def path_section(d: dict) -> list:
     return lines + [""]
 
 
+def scale_section(d: dict) -> list:
+    lines = ["## Pooled work against the number of motions", "",
+             "`bench/scale.py`: N random supported programs, the model held at M = 7 fields; "
+             "one EM step (NNLS weights of every motion and one Levenberg–Marquardt step on the "
+             "shared fields) and one batched scoring simulation of all N motions.", "",
+             "| motions N | samples | EM step | scoring simulation | peak memory |",
+             "|---|---|---|---|---|"]
+    for r in d["rows"]:
+        lines.append(f"| {r['motions']:,} | {r['samples']:,} | {r['em_step_s']:.2f} s | "
+                     f"{r['score_s']:.1f} s | {r['max_rss_mb'] / 1024:.1f} GiB |")
+    if "exponents" in d:
+        e = d["exponents"]
+        lines += ["", f"Fitted exponents (cost ∝ N^p): EM step p = {e['em_step_s']:.2f}, "
+                  f"scoring p = {e['score_s']:.2f}."]
+    return lines + [""]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ref", required=True, help="the revision before the performance work")
@@ -133,6 +150,7 @@ def main(argv=None) -> int:
     p.add_argument("--path-sizes", default="5,100,1000")
     p.add_argument("--path-methods", default="dopri5")
     p.add_argument("--path-timeout", default="300")
+    p.add_argument("--scale-sizes", default="10,30,100")
     args = p.parse_args(argv)
     DATA.mkdir(parents=True, exist_ok=True)
     if not args.reuse:
@@ -141,6 +159,7 @@ def main(argv=None) -> int:
             *(["--launcher", args.launcher] if args.launcher else []))
         run("path_step.py", "--sizes", args.path_sizes, "--methods", args.path_methods,
             "--timeout", args.path_timeout, "--out", str(DATA / "path_step.json"))
+        run("scale.py", "--sizes", args.scale_sizes, "--out", str(DATA / "scale.json"))
     dyn = json.loads((DATA / "dynamics.json").read_text())
     lines = ["# Benchmarks", "",
              "Measured by `python bench/benchmarks.py --ref " + args.ref + "` (raw results in "
@@ -149,7 +168,8 @@ def main(argv=None) -> int:
              f"ratios much less. tflearn at commit {dyn.get('commit', '?')}, reference revision "
              f"{args.ref} (before the performance work).", ""]
     lines += dynamics_section(dyn) + latency_section(dyn)
-    for name, section in (("main_job.json", main_job_section), ("path_step.json", path_section)):
+    for name, section in (("main_job.json", main_job_section), ("path_step.json", path_section),
+                          ("scale.json", scale_section)):
         if (DATA / name).exists():
             lines += section(json.loads((DATA / name).read_text()))
     notes = ROOT / "bench" / "benchmarks_notes.md"

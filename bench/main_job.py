@@ -35,7 +35,7 @@ def run_train(tree: Path, out: Path, prefix=()) -> dict:
     wall = time.perf_counter() - t0
     m = json.loads((out / "metrics.json").read_text())
     motions = m["motions"]
-    return {"wall_s": wall, "M": m["M"],
+    return {"wall_s": wall, "M": m["overall"]["M"],
             "reproduced": sum(bool(x["success"]) for x in motions.values()),
             "motions": len(motions),
             "worst_rmse_rad": max(x["rmse"] for x in motions.values()),

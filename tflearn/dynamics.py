@@ -12,7 +12,7 @@ Xᵀ); internally the batch is flattened to one dimension so that every product 
 single ``bmm`` or ``mm``. Algorithms:
 
 * :func:`rnea` — inverse dynamics τ = M(q) a + h(q, v) (recursive Newton–Euler),
-* :func:`mass_matrix` — M(q), from RNEA columns with v = 0 and no gravity,
+* :func:`mass_matrix` — M(q) by the composite-rigid-body algorithm,
 * :func:`bias_forces` — h(q, v) = τ(q, v, 0) (Coriolis, centrifugal, gravity),
 * :func:`forward_dynamics` — a = M⁻¹(τ − h) by the articulated-body algorithm, O(links),
 * :func:`forward_kinematics` — world rotations and joint positions, hand tip last,
@@ -307,14 +307,34 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
 
 
 def mass_matrix_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
-    """M(q) (...×nv×nv): column k is RNEA(q, v=0, a=e_k) without gravity."""
-    nv = body.nv
-    eye = torch.eye(nv, dtype=q.dtype, device=q.device)
-    qe = q.unsqueeze(-2)
-    rots_e = [None if R is None else R.unsqueeze(-3) for R in rots]
-    cols = rnea_rot(body, rots_e, qe, torch.zeros_like(eye), eye, gravity=False)
-    M = cols.transpose(-1, -2)
-    return 0.5 * (M + M.transpose(-1, -2))
+    """M(q) (...×nv×nv) by the composite-rigid-body algorithm (CRBA):
+        I^c_i = I_i + Σ_children X_cᵀ I^c_c X_c   (leaves → root),
+        M_ii = S_iᵀ I^c_i S_i,   and for each ancestor j of i, with F carried up by
+        F ← X_kᵀ F from F = I^c_i S_i:   M_ji = S_jᵀ F = M_ijᵀ;
+    blocks of joints on different branches are zero."""
+    C = _constants(body, q.dtype, q.device)
+    batch, rots, q = _flatten(rots, q)
+    X = _transforms(body, rots, q)
+    links = body.links
+    Ic = list(C["inertia6"])
+    for i in reversed(range(len(links))):
+        if links[i].parent >= 0:
+            Ic[links[i].parent] = Ic[links[i].parent] + X[i].transpose(-1, -2) @ Ic[i] @ X[i]
+    blocks = {}
+    for i in range(len(links)):
+        S = C["S"][i]
+        F = (Ic[i] @ S).expand(q.shape[:1] + S.shape)
+        blocks[i, i] = S.T @ F
+        j = i
+        while links[j].parent >= 0:
+            F = X[j].transpose(-1, -2) @ F
+            j = links[j].parent
+            blocks[j, i] = C["S"][j].T @ F
+            blocks[i, j] = blocks[j, i].transpose(-1, -2)
+    idx = range(len(links))
+    M = torch.cat([torch.cat([blocks.get((r, c), q.new_zeros(q.shape[:1] + (links[r].dof, links[c].dof)))
+                              for c in idx], -1) for r in idx], -2)
+    return (0.5 * (M + M.transpose(-1, -2))).reshape(batch + (body.nv, body.nv))
 
 
 def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor,
