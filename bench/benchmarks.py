@@ -133,6 +133,10 @@ def scale_section(d: dict) -> list:
              "| motions N | samples | EM step | scoring simulation | peak memory |",
              "|---|---|---|---|---|"]
     for r in d["rows"]:
+        if "error" in r:
+            lines.append(f"| {r['motions']:,} | | not measured: making the motions (one batched "
+                         f"simulation of the programs) failed — {r['error']} | | |")
+            continue
         lines.append(f"| {r['motions']:,} | {r['samples']:,} | {r['em_step_s']:.2f} s | "
                      f"{r['score_s']:.1f} s | {r['max_rss_mb'] / 1024:.1f} GiB |")
     if "exponents" in d:
