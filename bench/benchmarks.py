@@ -90,13 +90,17 @@ def latency_section(d: dict) -> list:
     return lines + [""]
 
 
+def heading(title: str, intro: str, columns: list) -> list:
+    """A section's title, its paragraph and the head of its table."""
+    return [f"## {title}", "", intro, "", "| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
+
+
 def main_job_section(d: dict) -> list:
-    lines = ["## The main job", "",
-             f"`train configs/gestures.yaml`, each run a fresh process, one after another in "
-             f"one invocation ({d['cores']} cores).", "",
-             "| run | wall time | speed-up | M | gestures reproduced | worst RMSE (rad) | "
-             "worst tip (cm) | basis.json vs reference (max abs difference) |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = heading("The main job",
+                    f"`train configs/gestures.yaml`, each run a fresh process, one after another "
+                    f"in one invocation ({d['cores']} cores).",
+                    ["run", "wall time", "speed-up", "M", "gestures reproduced", "worst RMSE (rad)",
+                     "worst tip (cm)", "basis.json vs reference (max abs difference)"])
     names = {"reference": f"at {d['ref']}", "current": f"at {d['commit']}",
              "launcher": f"at {d['commit']}, `{d.get('launcher')}`"}
     for key, r in d["runs"].items():
@@ -108,12 +112,11 @@ def main_job_section(d: dict) -> list:
 
 
 def path_section(d: dict) -> list:
-    lines = ["## One path-matching step", "",
-             "Simulate every motion, the path loss and its gradient (`bench/path_step.py`; "
-             "the gestures repeated with scaled weights, the library's generating model); "
-             "wall time and peak memory of the process.", "",
-             "| motions | solver | gradient | forward | forward + backward | peak memory |",
-             "|---|---|---|---|---|---|"]
+    lines = heading("One path-matching step",
+                    "Simulate every motion, the path loss and its gradient (`bench/path_step.py`; "
+                    "the gestures repeated with scaled weights, the library's generating model); "
+                    "wall time and peak memory of the process.",
+                    ["motions", "solver", "gradient", "forward", "forward + backward", "peak memory"])
     for r in d["rows"]:
         mode = "adjoint" if r["adjoint"] else "direct"
         if "step_s" in r:
@@ -126,12 +129,11 @@ def path_section(d: dict) -> list:
 
 
 def scale_section(d: dict) -> list:
-    lines = ["## Pooled work against the number of motions", "",
-             "`bench/scale.py`: N random supported programs, the model held at M = 7 fields; "
-             "one EM step (NNLS weights of every motion and one Levenberg–Marquardt step on the "
-             "shared fields) and one batched scoring simulation of all N motions.", "",
-             "| motions N | samples | EM step | scoring simulation | peak memory |",
-             "|---|---|---|---|---|"]
+    lines = heading("Pooled work against the number of motions",
+                    "`bench/scale.py`: N random supported programs, the model held at M = 7 fields; "
+                    "one EM step (NNLS weights of every motion and one Levenberg–Marquardt step on "
+                    "the shared fields) and one batched scoring simulation of all N motions.",
+                    ["motions N", "samples", "EM step", "scoring simulation", "peak memory"])
     for r in d["rows"]:
         if "error" in r:
             lines.append(f"| {r['motions']:,} | | not measured: making the motions (one batched "
