@@ -171,8 +171,9 @@ def main(argv=None) -> int:
              "Measured by `python bench/benchmarks.py --ref " + args.ref + "` (raw results in "
              "[benchmarks/](benchmarks/)); every ratio is against a reference measured in the same "
              "invocation on the same machine — absolute times vary between machines and with load, "
-             f"ratios much less. tflearn at commit {dyn.get('commit', '?')}, reference revision "
-             f"{args.ref} (before the performance work).", ""]
+             f"ratios much less. Dynamics and latency measured at commit {dyn.get('commit', '?')}, "
+             f"the other tables at the commits they name; reference revision {args.ref} (before "
+             "the performance work).", ""]
     lines += dynamics_section(dyn) + latency_section(dyn)
     for name, section in (("main_job.json", main_job_section), ("path_step.json", path_section),
                           ("scale.json", scale_section)):
