@@ -34,7 +34,6 @@ def rotvec_to_rotmat(v: torch.Tensor) -> torch.Tensor:
     return quat_to_rotmat(roma.rotvec_to_unitquat(v))
 
 
-
 def hat(v: torch.Tensor) -> torch.Tensor:
     """Skew matrix [v]× (...×3 → ...×3×3), [v]× w = v × w."""
     x, y, z = v.unbind(-1)
@@ -158,29 +157,6 @@ def align_quaternions(quat: torch.Tensor) -> torch.Tensor:
     return quat * torch.cumprod(flips, dim=-1)[..., None]
 
 
-POSITION_SIZE = {"ball": 4, "free": 7}   # packed position entries (others: their dof)
-
-
-def n_position(body: Body) -> int:
-    """Size of the packed position block: 4 per ball joint, 1 per hinge, 7 per free joint."""
-    return sum(POSITION_SIZE.get(link.joint, link.dof) for link in body.links)
-
-
-
-def pack(body: Body, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Coordinates ν (...×nv) and velocities v (...×nv) → state y (...×(n_position+nv))."""
-    batch = torch.broadcast_shapes(q.shape[:-1], v.shape[:-1])
-    q, v = q.expand(batch + q.shape[-1:]), v.expand(batch + v.shape[-1:])
-    parts = []
-    for i, link in enumerate(body.links):
-        s = q[..., body.slice(i)]
-        if link.joint == "free":
-            parts += [roma.rotvec_to_unitquat(s[..., :3]), s[..., 3:]]
-        else:
-            parts.append(roma.rotvec_to_unitquat(s) if link.joint == "ball" else s)
-    return torch.cat(parts + [v], dim=-1)
-
-
 def difference(body: Body, q_a: torch.Tensor, q_b: torch.Tensor) -> torch.Tensor:
     """q_b ⊖ q_a (...×nv): log(R_aᵀ R_b) per ball joint (child frame; ν_b − ν_a to first
     order, and well behaved where the principal rotation vector wraps at π), θ_b − θ_a
@@ -276,13 +252,36 @@ def quat_to_rotvec(quat: torch.Tensor) -> torch.Tensor:
 
 # ------------------------------------------------------------------ the simulator's state
 
+POSITION_SIZE = {"ball": 4, "free": 7}   # packed position entries (others: their dof)
+
+
+def n_position(body: Body) -> int:
+    """Size of the packed position block: 4 per ball joint, 1 per hinge, 7 per free joint."""
+    return sum(POSITION_SIZE.get(link.joint, link.dof) for link in body.links)
+
+
+def pack(body: Body, q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Coordinates ν (...×nv) and velocities v (...×nv) → state y (...×(n_position+nv))."""
+    batch = torch.broadcast_shapes(q.shape[:-1], v.shape[:-1])
+    q, v = q.expand(batch + q.shape[-1:]), v.expand(batch + v.shape[-1:])
+    parts = []
+    for i, link in enumerate(body.links):
+        s = q[..., body.slice(i)]
+        if link.joint == "free":
+            parts += [roma.rotvec_to_unitquat(s[..., :3]), s[..., 3:]]
+        else:
+            parts.append(roma.rotvec_to_unitquat(s) if link.joint == "ball" else s)
+    return torch.cat(parts + [v], dim=-1)
+
+
 @lru_cache(maxsize=64)
 def _layout(body: Body, device: torch.device) -> dict:
     """Where each part of the state y lives, for :func:`unpack` and :func:`position_rate`:
     the rotation joints (ball, free) in link order (``rot``), their quaternions' entries
-    in y (nr×4) and angular rates in v (nr×3); the other position entries (hinge angles,
-    free translations) in y; and two permutations: [rotation vectors (3 nr), other
-    entries] → coordinate order, and [quaternion rates (4 nr), other rates] → y's order."""
+    in y (nr×4) and angular rates in v (nr×3; equally their rotation vectors in ν); the
+    other position entries (hinge angles, free translations) in y; and two permutations:
+    [rotation vectors (3 nr), other entries] → coordinate order, and [quaternion rates
+    (4 nr), other rates] → y's order."""
     rot, quat, rate, other, coords, position = [], [], [], [], [], []
     k = 0
     for i, link in enumerate(body.links):
@@ -312,11 +311,20 @@ def _layout(body: Body, device: torch.device) -> dict:
             "coords": order(coords, 3), "position": order(position, 4)}
 
 
-def rotation_joints(body: Body, device: torch.device) -> tuple:
-    """(links, index): the rotation joints (ball, free) in link order and where their
-    rotation vectors (or angular rates) sit in ν or v (nr×3 long tensor)."""
-    L = _layout(body, device)
-    return L["rot"], L["rate"]
+def _per_link(body: Body, L: dict, x: torch.Tensor) -> list:
+    """A list with one matrix per link from x (...×nr×3×3, the rotation joints' in link
+    order), None for links without a rotation joint."""
+    out = [None] * len(body.links)
+    for j, i in enumerate(L["rot"]):
+        out[i] = x[..., j, :, :]
+    return out
+
+
+def joint_rotations(body: Body, q: torch.Tensor) -> list:
+    """The joints' own rotations exp([v]×) (ball, free) or None (hinge, fixed); q (...×nv).
+    All rotation joints are converted in one batched call."""
+    L = _layout(body, q.device)
+    return _per_link(body, L, rotvec_to_rotmat(q[..., L["rate"]]))
 
 
 def unpack(body: Body, y: torch.Tensor):
@@ -329,12 +337,9 @@ def unpack(body: Body, y: torch.Tensor):
     L = _layout(body, y.device)
     quats = y[..., L["quat"]]
     quats = quats / quats.norm(dim=-1, keepdim=True)
-    R = quat_to_rotmat(quats)
     coords = torch.cat([quat_to_rotvec(quats).flatten(-2), y[..., L["other"]]], -1)
-    rots = [None] * len(body.links)
-    for j, i in enumerate(L["rot"]):
-        rots[i] = R[..., j, :, :]
-    return rots, coords[..., L["coords"]], quats, y[..., L["n_pos"]:]
+    return (_per_link(body, L, quat_to_rotmat(quats)), coords[..., L["coords"]], quats,
+            y[..., L["n_pos"]:])
 
 
 def position_rate(body: Body, rots: list, quats: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

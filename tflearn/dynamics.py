@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from .body import Body
-from .configspace import hat, rotation_joints, rotvec_to_rotmat
+from .configspace import hat, joint_rotations, rotvec_to_rotmat
 
 
 @lru_cache(maxsize=64)
@@ -90,11 +90,14 @@ def _transform(R0: torch.Tensor, H: torch.Tensor, Rj: torch.Tensor) -> torch.Ten
 
 def _transform_table(joint: str, R0, H, K):
     """What :func:`_transforms` needs to build a link's X with few operations: for a
-    ball or free joint the 9×36 matrix W with vec(X) = vec(Rj) W (X is linear in Rj);
-    for a hinge (Rj = 1 + sin θ K + (1 − cos θ) K²) the three 6×6 terms of
-    X = X₀ + sin θ X_s + (1 − cos θ) X_c; for a fixed joint X itself."""
+    ball joint the 9×36 matrix W with vec(X) = vec(Rj) W (X is linear in Rj); for a
+    hinge (Rj = 1 + sin θ K + (1 − cos θ) K²) the three 6×6 terms of
+    X = X₀ + sin θ X_s + (1 − cos θ) X_c; for a fixed joint X itself; none for a free
+    joint, whose origin moves with its coordinates."""
     eye = torch.eye(3, dtype=R0.dtype, device=R0.device)
-    if joint in ("ball", "free"):
+    if joint == "free":
+        return None
+    if joint == "ball":
         units = torch.eye(9, dtype=R0.dtype, device=R0.device).reshape(9, 3, 3)
         return _transform(R0, H, units).reshape(9, 36)
     if joint == "hinge":
@@ -115,6 +118,11 @@ def _bmtv(X: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 def _mv(E, x):
     """E x for matrices (...×k×m, broadcast) and vectors (...×m)."""
     return (E @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def _inertia_to_parent(X: torch.Tensor, inertia: torch.Tensor) -> torch.Tensor:
+    """Xᵀ I X (B×6×6): a spatial inertia in a link's frame seen from its parent's."""
+    return X.transpose(-1, -2) @ inertia @ X
 
 
 def _crm(V: torch.Tensor, s: torch.Tensor, linear: bool = False) -> torch.Tensor:
@@ -169,17 +177,6 @@ def _per_sample(x, batch, B: int) -> torch.Tensor:
     return x.expand(batch + (3,)).reshape(B, 3)
 
 
-def joint_rotations(body: Body, q: torch.Tensor) -> list:
-    """The joints' own rotations exp([v]×) (ball, free) or None (hinge, fixed); q (...×nv).
-    All rotation joints are converted in one batched call."""
-    links, index = rotation_joints(body, q.device)
-    R = rotvec_to_rotmat(q[..., index])
-    out = [None] * len(body.links)
-    for j, i in enumerate(links):
-        out[i] = R[..., j, :, :]
-    return out
-
-
 def _relative_rotations(body: Body, rots: list, q: torch.Tensor) -> list:
     """R_i = R0_i · R_joint,i: each link frame relative to its parent (...×3×3); a hinge's
     by Rodrigues, R_joint = 1 + sin θ [a]× + (1 − cos θ)[a]×²."""
@@ -210,22 +207,21 @@ def _transforms(body: Body, rots: list, q: torch.Tensor) -> list:
     """Spatial motion transforms parent → link i (B×6×6) on (angular, linear) vectors,
         X_i = [[E, 0], [−E [r]×, E]],   E = R_iᵀ, r the joint origin in the parent
     (ω_i = E ω_p, v_i = E(v_p + ω_p × r)); a force (n, f) goes back to the parent as
-    X_iᵀ. Built from the tables of :func:`_transform_table`; a free joint adds
-    −E [R0 t]× for its translation t. rots (B×3×3), q (B×nv)."""
+    X_iᵀ. Built from the tables of :func:`_transform_table`; a free joint's by
+    :func:`_transform` at its moving origin r + R0 t. rots (B×3×3), q (B×nv)."""
     C = _constants(body, q.dtype, q.device)
     B, out = q.shape[0], []
     for i, link in enumerate(body.links):
         T = C["X"][i]
-        if link.joint in ("ball", "free"):
+        if link.joint == "ball":
             X = (rots[i].reshape(B, 9) @ T).view(B, 6, 6)
+        elif link.joint == "free":
+            X = _transform(C["R0"][i], hat(_joint_origin(body, i, q)), rots[i])
         elif link.joint == "hinge":
             th = q[:, body.slice(i), None]
             X = T[0] + torch.sin(th) * T[1] + (1 - torch.cos(th)) * T[2]
         else:
             X = T.expand(B, 6, 6)
-        if link.joint == "free":
-            shift = hat(q[:, body.slice(i)][:, 3:] @ C["R0"][i].T)
-            X = X - F.pad(X[:, :3, :3] @ shift, (0, 3, 3, 0))
         out.append(X)
     return out
 
@@ -319,7 +315,7 @@ def mass_matrix_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tensor:
     Ic = list(C["inertia6"])
     for i in reversed(range(len(links))):
         if links[i].parent >= 0:
-            Ic[links[i].parent] = Ic[links[i].parent] + X[i].transpose(-1, -2) @ Ic[i] @ X[i]
+            Ic[links[i].parent] = Ic[links[i].parent] + _inertia_to_parent(X[i], Ic[i])
     blocks = {}
     for i in range(len(links)):
         S = C["S"][i]
@@ -372,7 +368,7 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
             pa = pa + _bmv(U, K[i][1] - _bmv(K[i][0], c[i]))
         p = body.links[i].parent
         if p >= 0:
-            IA[p] = IA[p] + X[i].transpose(-1, -2) @ Ia @ X[i]
+            IA[p] = IA[p] + _inertia_to_parent(X[i], Ia)
             pA[p] = pA[p] + _bmtv(X[i], pa)
     A, qdd = [], []
     for i, link in enumerate(body.links):
