@@ -119,12 +119,6 @@ def all_reduce_sum(tensor: torch.Tensor) -> torch.Tensor:
     return tensor
 
 
-def barrier() -> None:
-    """Wait until every rank has come here."""
-    if active():
-        dist.barrier()
-
-
 def gather_motions(n: int, part: list) -> list:
     """The per-motion results of all ranks in motion order (n): ``part`` is this rank's,
     one item per index of :func:`mine` (n), in that order."""

@@ -42,8 +42,8 @@ class SimulationFailed(Exception):
     """A simulation that cannot go on. ``reason`` is one of :data:`FAILURES`:
     ``budget`` (more right-hand-side evaluations than ``max_evals``), ``solver`` (the
     integrator gave up, e.g. its step size underflowed), ``singular`` (a joint's
-    articulated inertia could not be factorised: the state blew up) or ``nonfinite`` (NaN or Inf in the
-    state or its derivative). Not a RuntimeError, so that ``except RuntimeError`` never
+    articulated inertia could not be factorised: the state blew up) or ``nonfinite``
+    (NaN or Inf in the state or its derivative). Not a RuntimeError, so that ``except RuntimeError`` never
     hides it and it never hides torch's own errors."""
 
     def __init__(self, reason: str, message: str):

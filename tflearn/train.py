@@ -167,11 +167,14 @@ class Run:
         state.elapsed += time.time() - self._t0
         self._t0 = time.time()
         if parallel.rank() == 0:
-            with replacing(self.ckpt_path) as tmp:
-                torch.save(state.to_dict(), tmp)
+            self._write_checkpoint(state)
         self.checkpoints += 1
         if self.stop_after is not None and self.checkpoints >= self.stop_after:
             raise Interrupted(f"stopped after {self.checkpoints} checkpoints")
+
+    def _write_checkpoint(self, state: RunState) -> None:
+        with replacing(self.ckpt_path) as tmp:
+            torch.save(state.to_dict(), tmp)
 
     def load(self) -> Optional[RunState]:
         if not self.ckpt_path.exists():
@@ -476,8 +479,7 @@ class Run:
         self.log.hparams({"seed": self.cfg.seed, "method": self.cfg.solver.method,
                           "stiffness": self.cfg.model.stiffness, "phases": self.cfg.model.phases,
                           "fields": self.cfg.model.fields, "data": str(self.cfg.data)}, metrics)
-        with replacing(self.ckpt_path) as tmp:
-            torch.save(state.to_dict(), tmp)
+        self._write_checkpoint(state)
 
 
 def write_figures(body, tg: Targets, scores: Scores, out: Path) -> None:

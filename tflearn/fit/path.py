@@ -78,12 +78,12 @@ def _loss(body, basis, weights, tg, velocity_weight, options, motions=None):
     return losses, (f"non-finite path loss for {', '.join(bad)}" if bad else None)
 
 
-def _summed_loss(body, basis, weights, tg, velocity_weight, options, distributed: bool):
+def _summed_loss(body, basis, weights, tg, velocity_weight, options, shared: bool):
     """(this process' part of Σ_j L_j to backpropagate, Σ_j L_j over all motions (∞ on a
-    failure), failure message or None). ``distributed``: each rank of a run simulates its
-    own motions (:func:`tflearn.parallel.mine`); the losses and failures are gathered, so
-    that every rank gets the same sum and failure."""
-    if not distributed or parallel.size() == 1:
+    failure), failure message or None). ``shared``: each rank of a run of several
+    processes simulates its own motions (:func:`tflearn.parallel.mine`); the losses and
+    failures are gathered, so that every rank gets the same sum and failure."""
+    if not shared:
         losses, failure = _loss(body, basis, weights, tg, velocity_weight, options)
         return (None, math.inf, failure) if failure else (losses.sum(), float(losses.sum().detach()), None)
     idx, losses, failure = parallel.mine(tg.N), None, None
@@ -124,13 +124,14 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
     opt = torch.optim.Adam(params, lr=lr)
     if optimizer_state is not None:
         opt.load_state_dict(optimizer_state)
-    local, value, failure = _summed_loss(body, basis, weights, tg, velocity_weight, options, distributed)
+    shared = distributed and parallel.size() > 1
+    local, value, failure = _summed_loss(body, basis, weights, tg, velocity_weight, options, shared)
     if not failure and (best is None or value <= best["loss"]):
         best = {"loss": value, "model": model_state(basis, weights)}
         opt.zero_grad()
         if local is not None:            # None: a rank with no motions (more ranks than motions)
             local.backward()
-        if distributed and parallel.size() > 1:
+        if shared:
             _sum_gradients(params)
         if all(bool(torch.isfinite(p.grad).all()) for p in params if p.grad is not None):
             opt.step()
