@@ -44,8 +44,9 @@ def dynamics_section(d: dict) -> list:
         "(`rneaInParallel`, `abaInParallel`, one thread), the cost of the algorithm "
         "without Python. *ratio* = tflearn ÷ Pinocchio Python call.", "",
         "| batch | RNEA | ratio | Pinocchio C++ | forward dynamics (ABA) | ratio | Pinocchio C++ | "
-        "mass matrix | ratio |" + (f" RNEA at {rev} | forward at {rev} |" if ref else ""),
-        "|---" * (9 + (2 if ref else 0)) + "|"]
+        "mass matrix | ratio |" + (f" RNEA at {rev} | forward at {rev} | mass matrix at {rev} |"
+                                   if ref else ""),
+        "|---" * (9 + (3 if ref else 0)) + "|"]
     py = pin["python"]
     for B in tf["rnea"]:
         b = int(B)
@@ -55,8 +56,7 @@ def dynamics_section(d: dict) -> list:
                us(f), f"{f / py['aba']:.2f}", us(pin["batch"]["aba"][B]),
                us(mm / b) if mm else "–", f"{mm / b / py['crba']:.2f}" if mm else "–"]
         if ref:
-            row += [us(ref["rnea"][B] / b) if B in ref["rnea"] else "–",
-                    us(ref["forward"][B] / b) if B in ref["forward"] else "–"]
+            row += [us(ref[k][B] / b) if B in ref[k] else "–" for k in ("rnea", "forward", "mass")]
         lines.append("| " + " | ".join(row) + " |")
     lines += ["", f"A Pinocchio call from Python: RNEA {us(py['rnea'])} µs, ABA {us(py['aba'])} µs, "
               f"CRBA {us(py['crba'])} µs.", ""]
