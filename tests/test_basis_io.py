@@ -89,7 +89,7 @@ def test_round_trip(tmp_path, kind):
     # the same document again
     bio.save(back, tmp_path / "again.json")
     d0, d1 = json.loads(path.read_text()), json.loads((tmp_path / "again.json").read_text())
-    assert d1["format"] == "tflearn-basis/2" and d0["motions"] == d1["motions"]
+    assert d1["format"] == "tflearn-basis/3" and d0["motions"] == d1["motions"]
     assert d0["body"] == d1["body"]
     assert np.abs(np.array([f["K"] for f in d1["fields"]])
                   - np.array([f["K"] for f in d0["fields"]])).max() <= 1e-15 * 10
@@ -109,14 +109,15 @@ def test_document_is_plain_json(tmp_path):
     lb = make_lb()
     bio.save(lb, tmp_path / "b.json")
     doc = json.loads((tmp_path / "b.json").read_text())
-    assert set(doc) == {"format", "body", "fields", "motions"}
+    assert set(doc) == {"format", "body", "fields", "field_damping", "motions"}
     assert set(doc["body"]) == {"name", "links", "gravity", "damping", "tip"}
     assert [set(l) for l in doc["body"]["links"]] == [set(tb.LINK_KEYS)] * 3
     assert doc["body"]["links"][1]["joint"] == "hinge" and doc["body"]["tip"]["link"] == 2
     assert len(doc["fields"]) == M and np.array(doc["fields"][0]["K"]).shape == (NV, NV)
     m = doc["motions"][1]
     assert set(m) == {"name", "duration", "rate", "q0", "qd0", "a", "b", "step_onset",
-                      "step_duration", "pulse_onset", "pulse_duration"}
+                      "step_duration", "pulse_onset", "pulse_duration", "window_onset",
+                      "window_duration", "c"}
     assert m["rate"] == 60.0 and m["duration"] == 3.25 and len(m["a"]) == M
 
 
@@ -163,7 +164,7 @@ def _asymmetric_inertia(doc):
 
 
 BAD = {
-    "format version": (_set(["format"], "tflearn-basis/3"), "unknown format tag"),
+    "format version": (_set(["format"], "tflearn-basis/4"), "unknown format tag"),
     "format tag": (_set(["format"], "basis"), "not a basis document"),
     "format number": (_set(["format"], 2), "not a basis document"),
     "no format": (_delete(["format"]), "format"),
@@ -383,9 +384,9 @@ def test_v1_document_still_loads(tmp_path):
     for key in ("gravity", "damping", "offsets"):
         del no_extras["body"][key]
     assert bio.from_dict(no_extras).body == tb.arm()
-    bio.save(lb, tmp_path / "new.json")               # re-saved as /2, same model
+    bio.save(lb, tmp_path / "new.json")               # re-saved as /3, same model
     again = bio.load(tmp_path / "new.json")
-    assert json.loads((tmp_path / "new.json").read_text())["format"] == "tflearn-basis/2"
+    assert json.loads((tmp_path / "new.json").read_text())["format"] == "tflearn-basis/3"
     assert again.body == lb.body
 
 
@@ -481,7 +482,7 @@ def replaced(doc, at, value):
 
 @pytest.fixture(scope="module")
 def documents():
-    """Valid documents: the arm and the branching tree in /2, and the /1 document."""
+    """Valid documents: the arm and the branching tree in /3, and the /1 document."""
     return {"arm": bio.to_dict(make_lb()),
             "two_arms": bio.to_dict(make_lb(body=branching_tree())),
             "v1": V1_DOC}
@@ -539,7 +540,7 @@ def test_wrong_shape_anywhere(tmp_path, documents, data, which, edit):
 
 
 @FUZZ
-@given(tag=st.text(max_size=20) | st.sampled_from(["tflearn-basis/0", "tflearn-basis/3",
+@given(tag=st.text(max_size=20) | st.sampled_from(["tflearn-basis/0", "tflearn-basis/4",
                                                      "tflearn-basis/2.0", "TFLEARN-BASIS/2"])
        | st.none() | st.integers() | st.lists(st.integers(), max_size=2))
 def test_wrong_tag_or_version(tmp_path, documents, tag):

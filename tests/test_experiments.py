@@ -180,6 +180,35 @@ def test_filtering_quick(tmp_path):
     assert {"straight_reach.png", "straight_reach_hand.png"} <= set(res["figures"])
 
 
+def test_reach_class_is_straight_and_spread():
+    """The reach class of experiment 5: eight straight-line reaches from rest (hand paths
+    straight to the IK's 1 mm) to distinct targets, and a held-out one inside the class
+    (between its turns and its distances); its goal line reads as the others."""
+    import math
+
+    from tflearn import dynamics
+    from tflearn.body import arm
+    from tflearn.experiments import filtering, reaches
+    from tflearn.experiments.reporting import goal_line
+    body = arm()
+    train, held = reaches.reach_class(body)
+    assert len(train) == 8 and held.name == "held_out_reach"
+    ends = [dynamics.tip_position(body, m.q[-1]) for m in train + [held]]
+    start = dynamics.tip_position(body, train[0].q[0])
+    for m in train + [held]:
+        assert filtering.straightness(body, m.q) < 1e-3
+        assert float(m.t[-1]) == reaches.DURATION
+    gaps = [float((a - b).norm()) for i, a in enumerate(ends) for b in ends[i + 1:]]
+    assert min(gaps) > 0.05
+    dist = [float((e - start).norm()) for e in ends]
+    assert min(dist[:8]) < dist[8] < max(dist[:8])
+    turn = [math.atan2(float(e[0]), -float(e[1])) for e in ends]
+    assert min(turn[:8]) < turn[8] < max(turn[:8])
+    line, = (goal_line(*g) for g in reaches.goals({"rows": [{}, {"rmse": [0.04]}]}))
+    assert line == ("- goal: the held-out reach, played through the class's frozen basis, within "
+                    "0.05 rad joint RMSE of its input; measured: 0.040 rad — met")
+
+
 def test_report_from_quick_results(tmp_path):
     """``tflearn report`` writes every experiment's section, its figures and the model figures."""
     runs = tmp_path / "runs"
@@ -191,7 +220,7 @@ def test_report_from_quick_results(tmp_path):
     for name in experiments.EXPERIMENTS:
         assert f"## {common.text(name)['title']}" in text
     assert "(quick size)" in text and "recovered at r = 2.6, failed at r = 3" in text
-    assert text.count("Not run yet") == 3
+    assert text.count("Not run yet") == len(experiments.EXPERIMENTS) - 1
     for ref in ("results/fields.png", "results/profiles.png", "results/basin/success_vs_r.png"):
         assert f"]({ref})" in text and (out.parent / ref).exists()
 
@@ -218,9 +247,14 @@ def test_goal_lines_read_as_goal_measured_verdict():
     assert line == ("- goal: local: every motion reproduced every time, at every r; "
                     "measured: lowest success rate 50% — **not met**")
     line, = (goal_line(*g) for g in keyframes.goals(
-        {"rows": [{"method": "pipeline", "rmse": [0.01, 0.02]}]}))
-    assert line == ("- goal: pipeline: every motion with joint RMSE ≤ 0.05 rad; measured: 2 of 2 "
-                    "motions within it, the worst at 0.020 rad — met")
+        {"rows": [{"method": "pipeline", "rmse": [0.01, 0.02], "tip": [0.005, 0.019]}]}))
+    assert line == ("- goal: pipeline: every motion with joint RMSE ≤ 0.03 rad and tip error ≤ 2 cm; "
+                    "measured: 2 of 2 motions within it; the worst RMSE 0.020 rad, the worst tip "
+                    "error 1.9 cm — met")
+    line, = (goal_line(*g) for g in keyframes.goals(
+        {"rows": [{"method": "pipeline", "rmse": [0.01, 0.02], "tip": [0.005, 0.021]}]}))
+    assert line.endswith("1 of 2 motions within it; the worst RMSE 0.020 rad, the worst tip "
+                         "error 2.1 cm — **not met**")
 
 
 def test_config_names_the_gesture_library_and_needs_no_torch():

@@ -122,7 +122,7 @@ def test_weight_support_restricts_nnls(come_here):
     assert float(weights.a.detach()[0, 0]) > 0.1        # unrestricted, field 0's step is used
     support = torch.tensor([[False, True, True, True]])
     cost = torque.solve_weights(basis, weights, tg, support)
-    x_all = torque.weights_vector(weights).detach().numpy()[0]
+    x_all = weights.vector().detach().numpy()[0]
     assert x_all[0] == 0.0
     with torch.no_grad():
         G, h = torque.normal_equations(basis, weights, tg)
@@ -321,7 +321,7 @@ def test_run_artefacts(run_dir):
     # test_overall_rmse_in_double below)
     assert abs(overall["rmse"] - pooled_rmse(run_dir, metrics)) <= 1e-7 * overall["rmse"]
     doc = json.loads((out / "basis.json").read_text())
-    assert doc["format"] == "tflearn-basis/2"
+    assert doc["format"] == "tflearn-basis/3" and doc["field_damping"] == 0.0
     assert overall["M"] == len(doc["fields"]) >= 1
     assert [m["name"] for m in doc["motions"]] == names
     assert config.load(out / "config.yaml") == small_config(run_dir["data"], out)
@@ -453,7 +453,7 @@ def rotvec_to_quat(v):
 
 
 def pin_arm(body: dict):
-    """The arm of a basis.json "body" (tflearn-basis/2) as a Pinocchio model (joints 1
+    """The arm of a basis.json "body" (tflearn-basis/2 and /3) as a Pinocchio model (joints 1
     shoulder, 2 elbow, 3 wrist), built from the numbers alone."""
     import pinocchio as pin
     model = pin.Model()
@@ -483,17 +483,19 @@ def phi(u):
     return 0.5 * (1 - math.cos(2 * math.pi * u)) if 0 <= u <= 1 else 0.0
 
 
-def program_torque(doc: dict, motion: dict, t: float, nu: np.ndarray) -> np.ndarray:
-    """Σ_i (a_i ψ((t − s_i)/d_i) + b_i φ((t − p_i)/e_i)) χ_i(ν), from basis.json's docs."""
+def program_torque(doc: dict, motion: dict, t: float, nu: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Σ_i (a_i ψ((t − s_i)/d_i) + b_i φ((t − p_i)/e_i)) χ_i(ν, v), from basis.json's docs:
+    χ_i = −K_i (ν − η_i + ζ v) exp(−½ (ν − η_i)ᵀ K_i (ν − η_i))."""
     tau = np.zeros(7)
+    zeta = doc.get("field_damping", 0.0)
     for i, f in enumerate(doc["fields"]):
         w = (motion["a"][i] * psi((t - motion["step_onset"][i]) / motion["step_duration"][i])
              + motion["b"][i] * phi((t - motion["pulse_onset"][i]) / motion["pulse_duration"][i]))
         if w == 0.0:
             continue
         d = nu - np.array(f["eta"])
-        Kd = np.array(f["K"]) @ d
-        tau += w * (-Kd * math.exp(-0.5 * d @ Kd))
+        K = np.array(f["K"])
+        tau += w * (-K @ (d + zeta * v) * math.exp(-0.5 * d @ K @ d))
     return tau
 
 
@@ -516,7 +518,7 @@ def independent_simulation(doc: dict, motion: dict, t: np.ndarray):
 
     def rhs(tt, y):
         qs, th, qw, v = split(y)
-        tau = program_torque(doc, motion, tt, nu_of(qs, th, qw)) - c * v
+        tau = program_torque(doc, motion, tt, nu_of(qs, th, qw), v) - c * v
         a = pin.aba(model, data, np.concatenate([qs, [th], qw]), v, tau)
         return np.concatenate([0.5 * quat_mul(qs, np.append(v[0:3], 0.0)), [v[3]],
                                0.5 * quat_mul(qw, np.append(v[4:7], 0.0)), a])
@@ -593,6 +595,37 @@ def test_independent_resimulation(run_dir, tmp_path):
         assert dv <= 1e-5 * max(1.0, np.abs(v).max())
 
 
+def test_independent_simulation_with_field_damping(come_here, tmp_path):
+    """A basis.json with field damping ζ = 0.5 (come_here's field, weights a = 3, b = 1)
+    played by ``tflearn simulate`` and by the independent simulator (the damped torque
+    law written out from docs/model.md) agree to 1e-6 rad and 1e-6 rad/s; the damping
+    changes the path by more than 0.05 rad, so it is not ignored by either."""
+    from tflearn import evaluate
+    _, lb, _ = come_here
+    weights = lb.weights.select_motions([0])
+    with torch.no_grad():
+        weights.b_raw.fill_(1.0)
+    basis = lb.basis.like(lb.basis.eta.detach(), lb.basis.K().detach())
+    paths = {}
+    for zeta in (0.0, 0.5):
+        basis.damping = zeta
+        path = tmp_path / f"basis{zeta}.json"
+        bio.save(bio.LearnedBasis(lb.body, basis, weights, lb.q0, lb.qd0, lb.rate), path)
+        sim = np.load(evaluate.simulate_basis_motion(path, "come_here", tmp_path / f"m{zeta}.npz"))
+        paths[zeta] = sim
+    doc = json.loads((tmp_path / "basis0.5.json").read_text())
+    assert doc["field_damping"] == 0.5
+    model, tip = pin_arm(doc["body"]), tip_point(doc["body"])
+    sim = paths[0.5]
+    rots, hinge, tips, _, v = independent_simulation(doc, doc["motions"][0], sim["t"])
+    _, _, e = errors_against(rots, hinge, tips, sim["q"], model, tip)
+    print(f"damped: vs independent max |Δν| {np.abs(e).max():.2e}, "
+          f"max |Δv| {np.abs(sim['qd'] - v).max():.2e}")
+    assert np.abs(e).max() <= 1e-6
+    assert np.abs(sim["qd"] - v).max() <= 1e-6
+    assert np.abs(paths[0.5]["q"] - paths[0.0]["q"]).max() > 0.05
+
+
 def test_pool_keeps_each_motions_learned_timing(come_here):
     """Pooling carries each per-motion fit's activation timing onto its own fields: a
     motion whose step starts at 0.8 s and lasts 1.7 s is fitted by the pooled basis to
@@ -617,8 +650,9 @@ def test_pool_keeps_each_motions_learned_timing(come_here):
     fit = (lb.basis.eta.detach(), lb.basis.K().detach())
     learned = [(*fit, lb.weights.timing(0)), (*fit, late.timing(0))]
     default = [(*fit, lb.weights.timing(0)), (*fit, lb.weights.timing(0))]
-    kept = search.pool(tg, learned, "scalar", [3, 1, 3])
-    reset = search.pool(tg, default, "scalar", [3, 1, 3])
+    template = FieldBasis.empty(7, "scalar", [3, 1, 3])
+    kept = search.pool(tg, learned, template)
+    reset = search.pool(tg, default, template)
     assert torch.equal(kept[1].step_onset.detach()[1], torch.tensor([0.0, 0.8], dtype=DT))
     cost_kept = torque.solve_weights(*kept, tg)
     cost_reset = torque.solve_weights(*reset, tg)

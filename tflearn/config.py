@@ -35,6 +35,11 @@ class ModelSection(Section):
     fields: int = Field(0, ge=0)                 # M; 0 = the smallest M reproducing every motion
     stiffness: Literal["scalar", "diag", "block", "full"] = "diag"
     phases: Literal["fixed", "variable"] = "fixed"   # variable: learned onsets/durations
+    # ζ (s): every field's damping D_i = ζ K_i, gated like its stiffness (0: the thesis)
+    field_damping: float = Field(0.0, ge=0, allow_inf_nan=False)
+    # P: activation sequences, each motion cut into P sub-movement windows (at the slowest
+    # minima of its joint speed) on which every field has a pulse weight (0: the thesis)
+    windows: int = Field(0, ge=0)
 
 
 class InitSection(Section):

@@ -12,7 +12,7 @@ from .config import Config
 from .data import check_resolution, load_motions
 from .fields import FieldProgram, MotionWeights
 from .fit import path as path_fit
-from .fit.targets import Targets, prepare
+from .fit.targets import Targets, prepare, submovement_windows
 from .fit.torque import solve_weights
 from .io import basis as basis_io
 from .io.files import write_text
@@ -30,16 +30,20 @@ def run_config(run) -> tuple:
 
 
 def synthesize(lb: basis_io.LearnedBasis, tg: Targets, path_steps: int = 20,
-               lr: float = 0.003, options: SimOptions = SimOptions()) -> MotionWeights:
+               lr: float = 0.003, options: SimOptions = SimOptions(),
+               phases: bool = False) -> MotionWeights:
     """Held-out synthesis: with the basis frozen, fit new motions' weights by exact NNLS
-    on their torques, then refine the weights alone by path matching."""
-    weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names)
+    on their torques, then refine the weights (and with ``phases`` their activation
+    timing) by path matching. The new motions get as many sub-movement windows as the
+    basis' own motions have, placed from their data (:func:`submovement_windows`)."""
+    weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
+                                  submovement_windows(tg, lb.weights.P))
     solve_weights(lb.basis, weights, tg)
     for p in lb.basis.parameters():
         p.requires_grad_(False)
     if path_steps:
         path_fit.path_match(lb.body, lb.basis, weights, tg, steps=path_steps, lr=lr,
-                            fields=False, options=options)
+                            fields=False, phases=phases, options=options)
     return weights
 
 

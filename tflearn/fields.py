@@ -13,6 +13,16 @@ Motion j is driven by
 with the smooth step ψ(u) = u − sin(2πu)/2π on [0, 1] (0 before, 1 after) and the cosine
 pulse φ(u) = ½(1 − cos 2πu) on [0, 1] (0 elsewhere); a, b ≥ 0. Onsets s, p default to 0
 and durations d, e to the motion's duration λ (the thesis' fixed phase).
+
+Activation sequences (thesis §4.5.2 "variable phase", generalised): a motion may also
+have P sub-movement windows k with onsets o_jk and durations l_jk (shared by its
+fields), and each field a pulse weight c_jik ≥ 0 on each window,
+
+    w_ji(t) = a_ji ψ(·) + b_ji φ(·) + Σ_k c_jik φ((t − o_jk)/l_jk),
+
+so a field can be switched on, off and on again within one motion; the activation
+stays non-negative and C¹, and is still linear in the weights. P = 0 is the thesis'
+model.
 """
 from __future__ import annotations
 
@@ -122,14 +132,19 @@ class Stiffness(nn.Module):
 
 
 class FieldBasis(nn.Module):
-    """M shared torque fields over n coordinates: centres η (M×n) and stiffnesses K.
+    """M shared torque fields over n coordinates: centres η (M×n), stiffnesses K and the
+    damping ratio ζ (s, ≥ 0) of every field (D_i = ζ K_i; 0: no damping).
 
-    ``forward(q)`` maps coordinates q (...×n) to the field values χ (...×M×n).
+    ``forward(q, v)`` maps coordinates q and velocities v (...×n) to the field values χ
+    (...×M×n); without v (or with ζ = 0) the fields are the thesis' χ_i(ν).
     """
 
     def __init__(self, eta: torch.Tensor, K: torch.Tensor, kind: str = "diag",
-                 blocks: Optional[Sequence[int]] = None):
+                 blocks: Optional[Sequence[int]] = None, damping: float = 0.0):
         super().__init__()
+        if not (damping >= 0 and math.isfinite(damping)):
+            raise ValueError(f"FieldBasis: the damping ratio must be finite and ≥ 0, got {damping}")
+        self.damping = float(damping)
         eta = as_float(eta)
         K = as_float(K)
         if eta.ndim != 2 or K.shape != eta.shape + eta.shape[-1:]:
@@ -140,10 +155,17 @@ class FieldBasis(nn.Module):
         self.stiffness = Stiffness(K, kind, self.blocks)
 
     @classmethod
-    def empty(cls, n: int, kind: str = "diag", blocks: Optional[Sequence[int]] = None) -> FieldBasis:
+    def empty(cls, n: int, kind: str = "diag", blocks: Optional[Sequence[int]] = None,
+              damping: float = 0.0) -> FieldBasis:
         """A basis with no fields over n coordinates."""
         return cls(torch.zeros(0, n, dtype=torch.float64),
-                   torch.zeros(0, n, n, dtype=torch.float64), kind=kind, blocks=blocks)
+                   torch.zeros(0, n, n, dtype=torch.float64), kind=kind, blocks=blocks,
+                   damping=damping)
+
+    def like(self, eta: torch.Tensor, K: torch.Tensor) -> FieldBasis:
+        """A new basis of fields η (k×n), K (k×n×n) of this basis' kind, blocks and
+        damping ratio."""
+        return FieldBasis(eta, K, kind=self.kind, blocks=self.blocks, damping=self.damping)
 
     @property
     def kind(self) -> str:
@@ -165,13 +187,12 @@ class FieldBasis(nn.Module):
     def select(self, idx: Sequence[int]) -> FieldBasis:
         """A new basis (detached) holding fields ``idx`` in that order."""
         idx = torch.as_tensor(list(idx), dtype=torch.long)
-        return FieldBasis(self.eta[idx], self.K()[idx], kind=self.kind, blocks=self.blocks)
+        return self.like(self.eta[idx], self.K()[idx])
 
     @torch.no_grad()
     def extend(self, eta: torch.Tensor, K: torch.Tensor) -> FieldBasis:
         """A new basis (detached): these fields followed by new ones, η (k×n), K (k×n×n)."""
-        return FieldBasis(torch.cat([self.eta, as_float(eta)]), torch.cat([self.K(), as_float(K)]),
-                          kind=self.kind, blocks=self.blocks)
+        return self.like(torch.cat([self.eta, as_float(eta)]), torch.cat([self.K(), as_float(K)]))
 
     @torch.no_grad()
     def project_(self) -> None:
@@ -179,25 +200,31 @@ class FieldBasis(nn.Module):
         self.eta.clamp_(-ETA_MAX, ETA_MAX)
         self.stiffness.project_()
 
-    def forward(self, q: torch.Tensor) -> torch.Tensor:
-        """χ_i(q) = −K_i d exp(−½ dᵀK_i d), d = q − η_i; q (...×n) → (...×M×n)."""
+    def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """χ_i(q, v) = −K_i (d + ζ v) exp(−½ dᵀK_i d), d = q − η_i; q, v (...×n) →
+        (...×M×n). Without v, or with ζ = 0, χ_i(q) = −K_i d exp(−½ dᵀK_i d)."""
         d = q.unsqueeze(-2) - self.eta
-        Kd = (self.K() * d.unsqueeze(-2)).sum(-1)           # few ops: small M×n×n
+        K = self.K()
+        Kd = (K * d.unsqueeze(-2)).sum(-1)                  # few ops: small M×n×n
         g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
+        if self.damping and v is not None:
+            return -(Kd + self.damping * (K * v[..., None, None, :]).sum(-1)) * g
         return -Kd * g
 
 
 class MotionWeights(nn.Module):
-    """Per-motion weights for N motions and M fields.
+    """Per-motion weights for N motions, M fields and P sub-movement windows.
 
-    Holds step weights a and pulse weights b (N×M, non-negative: the module reads them
-    through a clamp at zero and :meth:`project_` keeps the stored values there), step
-    onsets/durations and pulse onsets/durations (N×M), and motion durations λ (N).
+    Holds step weights a and pulse weights b (N×M) and window weights c (N×M×P), all
+    non-negative (the module reads them through a clamp at zero and :meth:`project_`
+    keeps the stored values there), step onsets/durations and pulse onsets/durations
+    (N×M), window onsets/durations (N×P) and motion durations λ (N).
     """
 
     def __init__(self, a: torch.Tensor, b: torch.Tensor, duration: torch.Tensor,
                  step_onset=None, step_duration=None, pulse_onset=None, pulse_duration=None,
-                 names: Optional[Sequence[str]] = None):
+                 names: Optional[Sequence[str]] = None, c=None, window_onset=None,
+                 window_duration=None):
         super().__init__()
         a = as_float(a)
         b = as_float(b)
@@ -208,8 +235,15 @@ class MotionWeights(nn.Module):
 
         def init(x, default):
             return (as_float(x) if x is not None else default).clone()
+        windows = init(window_onset, torch.zeros(a.shape[0], 0, dtype=a.dtype))
+        P = windows.shape[-1]
+        if windows.shape != (a.shape[0], P) or (c is not None and as_float(c).shape != a.shape + (P,)):
+            raise ValueError("MotionWeights: window onsets must be N×P and c N×M×P")
         self.a_raw = nn.Parameter(a.clone())
         self.b_raw = nn.Parameter(b.clone())
+        self.c_raw = nn.Parameter(init(c, torch.zeros(a.shape + (P,), dtype=a.dtype)))
+        self.window_onset = nn.Parameter(windows)
+        self.window_duration = nn.Parameter(init(window_duration, duration[:, None].expand(-1, P)))
         self.step_onset = nn.Parameter(init(step_onset, torch.zeros_like(a)))
         self.step_duration = nn.Parameter(init(step_duration, lam))
         self.pulse_onset = nn.Parameter(init(pulse_onset, torch.zeros_like(a)))
@@ -219,35 +253,48 @@ class MotionWeights(nn.Module):
         self.project_()
 
     TIMING = ("step_onset", "step_duration", "pulse_onset", "pulse_duration")
-    PER_FIELD = ("a_raw", "b_raw", *TIMING)
+    PER_FIELD = ("a_raw", "b_raw", "c_raw", *TIMING)
+    WINDOWS = ("window_onset", "window_duration")
 
     @classmethod
-    def zeros(cls, M: int, duration: torch.Tensor,
-              names: Optional[Sequence[str]] = None) -> MotionWeights:
-        """Zero weights on M fields for motions of these durations (N), default phases."""
+    def zeros(cls, M: int, duration: torch.Tensor, names: Optional[Sequence[str]] = None,
+              windows: Optional[tuple] = None) -> MotionWeights:
+        """Zero weights on M fields for motions of these durations (N), default phases;
+        ``windows``: (onsets, durations) of P sub-movement windows (N×P each), none by
+        default."""
         z = torch.zeros(len(duration), M, dtype=torch.float64)
-        return cls(z, z, duration, names=names)
+        onset, length = windows if windows is not None else (None, None)
+        return cls(z, z, duration, names=names, window_onset=onset, window_duration=length)
+
+    @property
+    def P(self) -> int:
+        """The number of sub-movement windows per motion."""
+        return self.window_onset.shape[-1]
 
     def _arrays(self) -> dict:
-        return {k: getattr(self, k).detach() for k in self.PER_FIELD}
+        return {k: getattr(self, k).detach() for k in self.PER_FIELD + self.WINDOWS}
 
     def _with(self, arrays: dict, duration=None, names=None) -> MotionWeights:
         a = arrays
         return MotionWeights(a["a_raw"], a["b_raw"], self.duration if duration is None else duration,
                              a["step_onset"], a["step_duration"], a["pulse_onset"],
-                             a["pulse_duration"], names=self.names if names is None else names)
+                             a["pulse_duration"], names=self.names if names is None else names,
+                             c=a["c_raw"], window_onset=a["window_onset"],
+                             window_duration=a["window_duration"])
 
     def select_fields(self, idx: Sequence[int]) -> MotionWeights:
         """New weights (detached) on fields ``idx`` only, in that order."""
         idx = torch.as_tensor(list(idx), dtype=torch.long)
-        return self._with({k: v[:, idx] for k, v in self._arrays().items()})
+        return self._with({k: v[:, idx] if k in self.PER_FIELD else v
+                           for k, v in self._arrays().items()})
 
     def extend_fields(self, k: int = 1) -> MotionWeights:
         """New weights (detached) with k more fields: zero weights, default phases."""
         z = torch.zeros(self.N, k, dtype=self.a_raw.dtype)
         lam = self.duration[:, None].expand(self.N, k)
-        fill = {"step_duration": lam, "pulse_duration": lam}
-        return self._with({key: torch.cat([v, fill.get(key, z)], dim=1)
+        fill = {"step_duration": lam, "pulse_duration": lam,
+                "c_raw": torch.zeros(self.N, k, self.P, dtype=z.dtype)}
+        return self._with({key: torch.cat([v, fill.get(key, z)], dim=1) if key in self.PER_FIELD else v
                            for key, v in self._arrays().items()})
 
     def select_motions(self, idx: Sequence[int]) -> MotionWeights:
@@ -257,9 +304,9 @@ class MotionWeights(nn.Module):
                           duration=self.duration[idx], names=[self.names[i] for i in idx.tolist()])
 
     def timing(self, j: int) -> dict:
-        """Motion j's activation timing, {name: (M,) tensor} over :attr:`TIMING` (detached
-        copies)."""
-        return {k: getattr(self, k).detach()[j].clone() for k in self.TIMING}
+        """Motion j's activation timing (detached copies): {name: (M,)} over :attr:`TIMING`
+        and {name: (P,)} over :attr:`WINDOWS`."""
+        return {k: getattr(self, k).detach()[j].clone() for k in self.TIMING + self.WINDOWS}
 
     @property
     def a(self) -> torch.Tensor:
@@ -270,19 +317,37 @@ class MotionWeights(nn.Module):
         return self.b_raw.clamp(min=0.0)
 
     @property
+    def c(self) -> torch.Tensor:
+        return self.c_raw.clamp(min=0.0)
+
+    def vector(self) -> torch.Tensor:
+        """x = [a (M) | b (M) | c (M·P, field by field)] per motion (N×M(2+P)): the layout
+        of :func:`tflearn.fit.torque.design`'s columns."""
+        return torch.cat([self.a, self.b, self.c.reshape(self.N, -1)], dim=-1)
+
+    @torch.no_grad()
+    def set_vector(self, x: torch.Tensor) -> None:
+        """Store x (N×M(2+P), the layout of :meth:`vector`) as a, b, c."""
+        M = self.a_raw.shape[1]
+        self.a_raw.copy_(x[:, :M])
+        self.b_raw.copy_(x[:, M:2 * M])
+        self.c_raw.copy_(x[:, 2 * M:].reshape(self.c_raw.shape))
+
+    @property
     def N(self) -> int:
         return self.a_raw.shape[0]
 
     def phase_parameters(self) -> list:
-        return [self.step_onset, self.step_duration, self.pulse_onset, self.pulse_duration]
+        return [self.step_onset, self.step_duration, self.pulse_onset, self.pulse_duration,
+                self.window_onset, self.window_duration]
 
     @torch.no_grad()
     def project_(self, min_duration: float = 1e-2) -> None:
-        """Project onto the feasible set: a, b ≥ 0, durations ≥ ``min_duration``."""
-        self.a_raw.clamp_(min=0.0)
-        self.b_raw.clamp_(min=0.0)
-        self.step_duration.clamp_(min=min_duration)
-        self.pulse_duration.clamp_(min=min_duration)
+        """Project onto the feasible set: a, b, c ≥ 0, durations ≥ ``min_duration``."""
+        for w in (self.a_raw, self.b_raw, self.c_raw):
+            w.clamp_(min=0.0)
+        for d in (self.step_duration, self.pulse_duration, self.window_duration):
+            d.clamp_(min=min_duration)
 
     def profiles(self, t: torch.Tensor):
         """ψ_ji(t), φ_ji(t): (N×M) each for a scalar t, or (T×N×M) for t (T)."""
@@ -299,16 +364,31 @@ class MotionWeights(nn.Module):
         phi = pulse_profile((tt - self.pulse_onset[:, None]) / self.pulse_duration[:, None])
         return psi, phi
 
+    def windows(self, t: torch.Tensor) -> torch.Tensor:
+        """The window pulses φ((t − o_jk)/l_jk): (N×P) for a scalar t, (T×N×P) for t (T)."""
+        t = torch.as_tensor(t, dtype=self.a_raw.dtype)
+        tt = t[..., None, None] if t.ndim else t
+        return pulse_profile((tt - self.window_onset) / self.window_duration)
+
+    def windows_per_motion(self, t: torch.Tensor) -> torch.Tensor:
+        """The window pulses at each motion's own times: t (N×T) → (N×T×P)."""
+        return pulse_profile((t.unsqueeze(-1) - self.window_onset[:, None])
+                             / self.window_duration[:, None])
+
     def activation(self, t: torch.Tensor) -> torch.Tensor:
-        """w_ji(t) = a_ji ψ_ji(t) + b_ji φ_ji(t): (N×M), or (T×N×M) for t (T)."""
+        """w_ji(t) = a_ji ψ_ji(t) + b_ji φ_ji(t) + Σ_k c_jik φ_jk(t): (N×M), or (T×N×M) for
+        t (T)."""
         psi, phi = self.profiles(t)
-        return self.a * psi + self.b * phi
+        w = self.a * psi + self.b * phi
+        if self.P:
+            w = w + (self.c * self.windows(t).unsqueeze(-2)).sum(-1)
+        return w
 
 
 class FieldProgram(nn.Module):
-    """The torque program of N motions: τ(t, ν) = Σ_i w_ji(t) χ_i(ν) for each motion j.
+    """The torque program of N motions: τ(t, ν, v) = Σ_i w_ji(t) χ_i(ν, v) for each motion j.
 
-    Called as ``program(t, q, v)`` with q (...×N×n) — the motion index on the last batch
+    Called as ``program(t, q, v)`` with q, v (...×N×n) — the motion index on the last batch
     dimension — it returns τ (...×N×n). ``index`` restricts it to some motions.
     """
 
@@ -322,7 +402,7 @@ class FieldProgram(nn.Module):
         w = self.weights.activation(t)
         if self.index is not None:
             w = w[..., self.index, :]
-        chi = self.basis(q)
+        chi = self.basis(q, v)
         return (w.unsqueeze(-1) * chi).sum(-2)
 
 
@@ -334,11 +414,13 @@ def model_state(basis: FieldBasis, weights: MotionWeights) -> dict:
     (:func:`state_to_json` for JSON files). :func:`model_from_state` inverts it exactly."""
     return {"basis": {k: v.detach().clone() for k, v in basis.state_dict().items()},
             "weights": {k: v.detach().clone() for k, v in weights.state_dict().items()},
-            "kind": basis.kind, "blocks": list(basis.blocks), "names": list(weights.names)}
+            "kind": basis.kind, "blocks": list(basis.blocks), "damping": basis.damping,
+            "names": list(weights.names)}
 
 
 def model_from_state(state: dict) -> tuple:
-    """(FieldBasis, MotionWeights) from :func:`model_state` (tensors or nested lists)."""
+    """(FieldBasis, MotionWeights) from :func:`model_state` (tensors or nested lists; a
+    state written before field damping and windows existed has ζ = 0 and P = 0)."""
     def tensors(d):
         return {k: v if isinstance(v, torch.Tensor) else torch.tensor(v, dtype=torch.float64)
                 for k, v in d.items()}
@@ -346,9 +428,16 @@ def model_from_state(state: dict) -> tuple:
     M, n = b["eta"].shape
     basis = FieldBasis(torch.zeros(M, n, dtype=torch.float64),
                        torch.eye(n, dtype=torch.float64).expand(M, n, n),
-                       kind=state["kind"], blocks=state["blocks"])
+                       kind=state["kind"], blocks=state["blocks"],
+                       damping=state.get("damping", 0.0))
     basis.load_state_dict(b)
-    weights = MotionWeights.zeros(M, w["duration"], names=state["names"])
+    N = w["duration"].shape[0]
+    none = torch.zeros(N, 0, dtype=torch.float64)       # a state from before windows: P = 0
+    w.setdefault("window_onset", none)
+    w.setdefault("window_duration", none)
+    w.setdefault("c_raw", torch.zeros(N, M, 0, dtype=torch.float64))
+    weights = MotionWeights.zeros(M, w["duration"], names=state["names"],
+                                  windows=(w["window_onset"], w["window_duration"]))
     weights.load_state_dict(w)
     return basis, weights
 

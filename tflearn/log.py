@@ -19,8 +19,9 @@ TensorBoard (``log.tensorboard``, OUT/tensorboard, one run) — the tag layout:
   ``reduce/removed`` (1 when the field tried went);
 * ``motion/NAME/`` ``rmse_rad``, ``tip_cm``, ``torque_error_pct`` of motion NAME under
   the current model (its own fit during ``each``);
-* histograms ``weights/a``, ``weights/b``, ``stiffness/eigenvalues`` at every model
-  change; figures ``paths/NAME`` (target and simulated path) at the stage ends;
+* histograms ``weights/a``, ``weights/b`` (and ``weights/c`` with windows),
+  ``stiffness/eigenvalues`` at every model change; figures ``paths/NAME`` (target and
+  simulated path) at the stage ends;
 * hyper-parameters (seed, model, data) with the final ``0_overview`` metrics in the
   same run (TensorBoard's HPARAMS tab).
 
@@ -191,6 +192,8 @@ class RunLog:
         if weights is not None and weights.a.numel():
             self.writer.add_histogram("weights/a", weights.a.detach().flatten(), step)
             self.writer.add_histogram("weights/b", weights.b.detach().flatten(), step)
+            if weights.P:
+                self.writer.add_histogram("weights/c", weights.c.detach().flatten(), step)
 
     def model(self, basis, weights, step: int) -> None:
         """A change of the shared model (basis, weights)."""

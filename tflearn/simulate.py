@@ -164,7 +164,7 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
                   options=options.solver_options)
     try:
         if options.adjoint:
-            params = tuple(p for p in func.parameters() if p.requires_grad)
+            params = tuple(p for p in func.parameters() if p.requires_grad and p.numel())
             ys = odeint_adjoint(func, y0, t, adjoint_params=params, **kwargs)
         else:
             ys = odeint(func, y0, t, **kwargs)

@@ -61,13 +61,13 @@ from .errors import InputError
 from .fields import FieldBasis, MotionWeights, model_from_state, model_state
 from .fit import path as path_fit
 from .fit import search, slsqp, torque
-from .fit.targets import Targets, prepare
+from .fit.targets import Targets, prepare, submovement_windows
 from .io import basis as basis_io
 from .io.files import replacing, write_text
 from .log import RunLog
 from .metrics import Scores, score, summarize
 
-CHECKPOINT_FORMAT = "tflearn-checkpoint/4"
+CHECKPOINT_FORMAT = "tflearn-checkpoint/5"
 SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "done"),
              "slsqp": ("slsqp", "done")}
 
@@ -154,12 +154,19 @@ class Run:
         self.sequence = SEQUENCES[cfg.solver.method]
         if cfg.solver.method == "slsqp":
             m = cfg.model
-            if m.fields < 1 or m.stiffness != "diag" or m.phases != "fixed":
+            if (m.fields < 1 or m.stiffness != "diag" or m.phases != "fixed" or m.field_damping
+                    or m.windows):
                 raise ConfigError(
                     "solver.method 'slsqp' (the thesis' baseline) fits a basis of a given size "
-                    "with diagonal stiffness and fixed phases: it needs model.fields ≥ 1, "
-                    f"model.stiffness=diag and model.phases=fixed (got {m.fields}, "
-                    f"{m.stiffness!r}, {m.phases!r})")
+                    "with diagonal stiffness, fixed phases, no field damping and no windows: it "
+                    "needs model.fields ≥ 1, model.stiffness=diag, model.phases=fixed, "
+                    f"model.field_damping=0 and model.windows=0 (got {m.fields}, {m.stiffness!r}, "
+                    f"{m.phases!r}, {m.field_damping}, {m.windows})")
+
+    def template(self) -> FieldBasis:
+        """An empty basis of the configured kind and field damping on the body's blocks."""
+        m = self.cfg.model
+        return FieldBasis.empty(self.body.nv, m.stiffness, self.body.blocks, m.field_damping)
 
     # ---- checkpoints
     def save(self, state: RunState):
@@ -307,11 +314,12 @@ class Run:
         def reproduced(b, w):
             checked["last"] = (b, *self._check(b, w, one, distributed=False))
             return all(checked["last"][2])
-        b, w, costs = search.grow(one, m.stiffness, self.body.blocks, c.each.max_fields, c.each.tol,
+        b, w, costs = search.grow(one, self.template(), c.each.max_fields, c.each.tol,
                                   c.init.candidates, c.init.stiffness_grid,
                                   torch.Generator().manual_seed(seed), c.em.steps,
                                   phases=m.phases == "variable", em_tol=c.em.tol,
-                                  reproduced=reproduced)
+                                  reproduced=reproduced,
+                                  windows=submovement_windows(one, m.windows))
         last = checked.get("last")
         fresh = last is not None and last[0] is b
         scores = None
@@ -324,7 +332,7 @@ class Run:
     def _pool(self, state: RunState, tg: Targets):
         merge = self.cfg.solver.merge
         self.log.stage("pool", 1)
-        basis, weights = search.pool(tg, state.fits, self.cfg.model.stiffness, self.body.blocks)
+        basis, weights = search.pool(tg, state.fits, self.template(), self.cfg.model.windows)
         basis, weights, merged = search.merge_close(basis, weights, merge.distance, merge.stiffness)
         if merged or self.cfg.model.phases == "variable":   # other motions' phases: default
             self._em(basis, weights, tg, state, tag="torque_cost/pool")

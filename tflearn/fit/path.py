@@ -37,7 +37,7 @@ def path_loss(body: Body, q_sim, v_sim, tg: Targets, velocity_weight: float = 0.
 
 
 def _params(basis, weights, fields: bool, phases: bool) -> list:
-    params = [weights.a_raw, weights.b_raw]
+    params = [weights.a_raw, weights.b_raw, weights.c_raw]
     if fields:
         params += [basis.eta, *basis.stiffness.parameters()]
     if phases:

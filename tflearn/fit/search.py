@@ -38,7 +38,7 @@ def residual_torques(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> 
     with torch.no_grad():
         if basis.M == 0:
             return tg.tau.clone()
-        x = torch.cat([weights.a, weights.b], -1)
+        x = weights.vector()
         return tg.tau - (design(basis, weights, tg) @ x[:, None, :, None]).squeeze(-1)
 
 
@@ -91,7 +91,9 @@ def candidate_centres(tg: Targets, residual: torch.Tensor, count: int,
 @torch.no_grad()
 def score_candidates(basis: FieldBasis, weights: MotionWeights, tg: Targets,
                      centres: torch.Tensor, stiffnesses) -> torch.Tensor:
-    """Summed NNLS torque cost of the basis plus each candidate field (C×S).
+    """Summed NNLS torque cost of the basis plus each candidate field (C×S), each an
+    isotropic field (K = k I, k from ``stiffnesses``) with the basis' damping ratio, the
+    default step and pulse, and a weight on each of the motions' windows.
 
     The candidates' normal equations share the existing fields' block:
     G = [[G_oo, G_on], [G_noᵀ, G_nn]], h = [h_o, h_n]; all C·S are solved in one
@@ -103,16 +105,18 @@ def score_candidates(basis: FieldBasis, weights: MotionWeights, tg: Targets,
     phi = 0.5 * (1 - torch.cos(2 * torch.pi * u))
     d = tg.q.unsqueeze(0) - centres[:, None, None, :]                      # C×N×T×n
     sq = (d ** 2).sum(-1)
-    chi = -(ks[:, None, None, None, None] * d.unsqueeze(0)) * \
+    chi = -(ks[:, None, None, None, None] * (d + basis.damping * tg.v).unsqueeze(0)) * \
         torch.exp(-0.5 * ks[:, None, None, None] * sq.unsqueeze(0)).unsqueeze(-1)  # S×C×N×T×n
-    new = torch.stack([psi[..., None] * chi, phi[..., None] * chi], dim=-1)  # S×C×N×T×n×2
+    profiles = torch.cat([torch.stack([psi, phi], -1),
+                          weights.windows_per_motion(tg.t).detach()], -1)   # N×T×(2+P)
+    new = chi.unsqueeze(-1) * profiles[:, :, None]                           # S×C×N×T×n×(2+P)
     ws = tg.wt / tg.torque_scale()[:, None]                                  # N×T
     G_nn = torch.einsum("nt,scntdi,scntdj->scnij", ws, new, new)
     h_n = torch.einsum("nt,scntdi,ntd->scni", ws, new, tg.tau)
     if M:
-        G_oo, h_o = normal_equations(basis, weights, tg)                   # N×2M×2M, N×2M
-        Phi0 = design(basis, weights, tg)                                  # N×T×n×2M
-        G_on = torch.einsum("nt,ntdi,scntdj->scnij", ws, Phi0, new)        # S×C×N×2M×2
+        G_oo, h_o = normal_equations(basis, weights, tg)                   # N×X×X, N×X
+        Phi0 = design(basis, weights, tg)                                  # N×T×n×X
+        G_on = torch.einsum("nt,ntdi,scntdj->scnij", ws, Phi0, new)        # S×C×N×X×(2+P)
         top = torch.cat([G_oo.expand(G_on.shape[:3] + G_oo.shape[-2:]), G_on], -1)
         bottom = torch.cat([G_on.transpose(-1, -2), G_nn], -1)
         G = torch.cat([top, bottom], -2)
@@ -149,10 +153,9 @@ def _finite(costs: torch.Tensor, tg: Targets) -> torch.Tensor:
 @torch.no_grad()
 def field_shares(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
     """Share of each field in the total model torque energy (M), summing to ≤ 1 per motion."""
-    Phi = design(basis, weights, tg)
+    Phi = design(basis, weights, tg) * weights.vector()[:, None, None]    # N×T×n×M(2+P)
     M = basis.M
-    x = torch.cat([weights.a, weights.b], -1)
-    per = (Phi[..., :M] * x[:, None, None, :M] + Phi[..., M:] * x[:, None, None, M:])  # N×T×n×M
+    per = Phi[..., :M] + Phi[..., M:2 * M] + Phi[..., 2 * M:].unflatten(-1, (M, weights.P)).sum(-1)
     e = (tg.wt[..., None] * (per ** 2).sum(-2)).sum(1)                                 # N×M
     return (e / e.sum(-1, keepdim=True).clamp_min(1e-300)).amax(0)
 
@@ -180,19 +183,20 @@ def merge_close(basis: FieldBasis, weights: MotionWeights, distance: float, stif
         new_eta[i] = 0.5 * (eta[i] + eta[k])
         new_K[i] = 0.5 * (K[i] + K[k])
     keep = [i for i in range(basis.M) if i not in {k for _, k in merged}]
-    nb = FieldBasis(new_eta[keep], new_K[keep], kind=basis.kind, blocks=basis.blocks)
-    return nb, weights.select_fields(keep), merged
+    return basis.like(new_eta[keep], new_K[keep]), weights.select_fields(keep), merged
 
 
-def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
-               generator: torch.Generator, top: int = 8, keep: int = 3) -> list:
+def best_pairs(tg: Targets, template: FieldBasis, candidates: int, stiffnesses,
+               generator: torch.Generator, top: int = 8, keep: int = 3, windows=None) -> list:
     """Multi-start for two fields at once: the ``top`` best single candidates (each with
     its best stiffness) are combined in pairs, every pair's weights solved by NNLS, and the
-    ``keep`` best pairs returned as (basis, weights). A second field added to a one-field
-    fit starts from that fit's compromise; a pair found together need not."""
+    ``keep`` best pairs returned as (basis, weights), bases like the empty ``template``
+    (:meth:`~tflearn.fields.FieldBasis.like`). A second field added to a one-field fit
+    starts from that fit's compromise; a pair found together need not. ``windows``: the
+    motions' sub-movement windows (onsets, durations: N×P each), or None."""
     from .torque import solve_weights
     n = tg.q.shape[-1]
-    b0, w0 = FieldBasis.empty(n, kind, blocks), MotionWeights.zeros(0, tg.duration, tg.names)
+    b0, w0 = template, MotionWeights.zeros(0, tg.duration, tg.names, windows)
     centres = candidate_centres(tg, tg.tau, candidates, generator)
     costs = _finite(score_candidates(b0, w0, tg, centres, stiffnesses), tg)   # C×S
     best_k = costs.argmin(-1)
@@ -203,32 +207,36 @@ def best_pairs(tg: Targets, kind: str, blocks, candidates: int, stiffnesses,
         for j in order[x + 1:]:
             eta = torch.stack([centres[i], centres[j]])
             K = torch.stack([float(stiffnesses[best_k[i]]) * eye, float(stiffnesses[best_k[j]]) * eye])
-            basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
-            weights = MotionWeights.zeros(2, tg.duration, tg.names)
+            basis = template.like(eta, K)
+            weights = MotionWeights.zeros(2, tg.duration, tg.names, windows)
             cost = float(solve_weights(basis, weights, tg).sum())
             pairs.append((cost if math.isfinite(cost) else math.inf, len(pairs), basis, weights))
     pairs.sort(key=lambda p: p[:2])
     return [(b, w) for _, _, b, w in pairs[:keep]]
 
 
-def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates: int,
+def grow(tg: Targets, template: FieldBasis, max_fields: int, tol: float, candidates: int,
          stiffnesses, generator: torch.Generator, em_steps: int,
-         phases: bool = False, min_gain: float = 0.05, em_tol: float = 1e-6, reproduced=None):
+         phases: bool = False, min_gain: float = 0.05, em_tol: float = 1e-6, reproduced=None,
+         windows=None):
     """Greedy growth: add the best data-driven field and refine by EM, until every
     motion's relative torque cost is ≤ ``tol`` and ``reproduced(basis, weights)`` (if
     given: a check by simulation) holds, there are ``max_fields`` fields, or a new field
     lowers the summed cost by less than the fraction ``min_gain`` (it is then not kept).
-    Returns (basis, weights, costs per motion)."""
+    ``template`` is an empty basis giving the fields' kind, blocks and damping;
+    ``windows`` the motions' sub-movement windows (onsets, durations: N×P each, see
+    :func:`~.targets.submovement_windows`) or None. Returns (basis, weights, costs per
+    motion)."""
     from .torque import em, solve_weights
     n = tg.q.shape[-1]
-    basis, weights = FieldBasis.empty(n, kind, blocks), MotionWeights.zeros(0, tg.duration, tg.names)
+    basis, weights = template, MotionWeights.zeros(0, tg.duration, tg.names, windows)
     costs = torch.ones(tg.N, dtype=torch.float64)
     while basis.M < max_fields:
         c, s, _ = best_candidate(basis, weights, tg, candidates, stiffnesses, generator)
         starts = [(basis.extend(c[None], s * torch.eye(n, dtype=torch.float64)[None]),
                    weights.extend_fields(1))]
         if basis.M == 1:
-            starts += best_pairs(tg, kind, blocks, candidates, stiffnesses, generator)
+            starts += best_pairs(tg, template, candidates, stiffnesses, generator, windows=windows)
         fits = []
         for nb, nw in starts:
             em(nb, nw, tg, steps=em_steps, phases=phases, tol=em_tol)
@@ -248,23 +256,29 @@ def grow(tg: Targets, kind: str, blocks, max_fields: int, tol: float, candidates
     return basis, weights, costs
 
 
-def pool(tg: Targets, fits: list, kind: str, blocks):
-    """One basis holding the fields of the per-motion fits [(η M_j×n, K M_j×n×n, timing)],
-    fit j being motion j's, with every motion's weights solved over all of them.
+def pool(tg: Targets, fits: list, template: FieldBasis, P: int = 0):
+    """One basis like ``template`` (an empty basis: kind, blocks, damping) holding the
+    fields of the per-motion fits [(η M_j×n, K M_j×n×n, timing)], fit j being motion
+    j's, with every motion's weights solved over all of them.
 
     Motion j keeps the activation timing it learned on its own fields (``timing``, from
-    :meth:`MotionWeights.timing`); on the other motions' fields it starts at the default
-    phases (step from t = 0, pulse over the whole motion)."""
+    :meth:`MotionWeights.timing`) and its P sub-movement windows; on the other motions'
+    fields it starts at the default phases (step from t = 0, pulse over the whole
+    motion)."""
     from .torque import solve_weights
     eta = torch.cat([fit[0] for fit in fits])
     K = torch.cat([fit[1] for fit in fits])
-    basis = FieldBasis(eta, K, kind=kind, blocks=blocks)
-    weights = MotionWeights.zeros(basis.M, tg.duration, tg.names)
+    basis = template.like(eta, K)
+    z = torch.zeros(tg.N, P, dtype=torch.float64)
+    weights = MotionWeights.zeros(basis.M, tg.duration, tg.names, (z, z + 1))
     start = 0
     with torch.no_grad():
         for j, (e, _, timing) in enumerate(fits):
             for key, row in timing.items():
-                getattr(weights, key)[j, start:start + len(e)] = row
+                if key in MotionWeights.WINDOWS:
+                    getattr(weights, key)[j] = row
+                else:
+                    getattr(weights, key)[j, start:start + len(e)] = row
             start += len(e)
     solve_weights(basis, weights, tg)
     return basis, weights

@@ -79,6 +79,33 @@ def simulate_targets(body: Body, basis: FieldBasis, weights: MotionWeights, tg: 
     return tr.q.gather(1, idx), tr.v.gather(1, idx)
 
 
+def submovement_windows(tg: Targets, P: int, spread: float = 0.25):
+    """P sub-movement windows per motion from its joint speed s(t) = ‖v(t)‖ (onsets,
+    durations: N×P each, for :class:`~tflearn.fields.MotionWeights`): the motion is cut at
+    the P − 1 slowest interior local minima of s (a sub-movement ends where the limb
+    nearly stops; minima within 5% of either end are ignored), the longest pieces halved
+    while minima are missing, and window k spans its piece [t_k, t_{k+1}] widened by
+    ``spread`` of its length on each side (a pulse peaks mid-piece and overlaps its
+    neighbours, so the windows' sum has no gaps)."""
+    onsets, lengths = [], []
+    for j in range(tg.N if P else 0):
+        m = tg.mask[j]
+        t, speed = tg.t[j][m], tg.v[j][m].norm(dim=-1)
+        T = len(t)
+        interior = [k for k in range(1, T - 1) if speed[k] < speed[k - 1] and speed[k] <= speed[k + 1]
+                    and 0.05 * t[-1] < t[k] < 0.95 * t[-1]]
+        cuts = sorted(sorted(interior, key=lambda k: float(speed[k]))[:P - 1])
+        bounds = [float(t[0])] + [float(t[k]) for k in cuts] + [float(t[-1])]
+        while len(bounds) < P + 1:
+            k = max(range(len(bounds) - 1), key=lambda i: bounds[i + 1] - bounds[i])
+            bounds.insert(k + 1, 0.5 * (bounds[k] + bounds[k + 1]))
+        piece = [hi - lo for lo, hi in zip(bounds[:-1], bounds[1:])]
+        onsets.append([lo - spread * d for lo, d in zip(bounds[:-1], piece)])
+        lengths.append([(1 + 2 * spread) * d for d in piece])
+    z = dict(dtype=torch.float64)
+    return torch.tensor(onsets, **z).reshape(tg.N, P), torch.tensor(lengths, **z).reshape(tg.N, P)
+
+
 def _trapezoid(t: torch.Tensor) -> torch.Tensor:
     dt = t[1:] - t[:-1]
     w = torch.zeros_like(t)

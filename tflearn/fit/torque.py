@@ -1,9 +1,13 @@
 """Torque matching (thesis eq. 3.10/3.11) and its solvers.
 
 For motion j with inverse-dynamics torques T_j(t) and fields (η_i, K_i) the model torque
-is linear in the motion's weights x_j = (a_j, b_j) ∈ R^{2M}:
+is linear in the motion's weights x_j = (a_j, b_j, c_j) ∈ R^{M(2+P)}:
 
-    F_j(t) = Φ_j(t) x_j,   Φ_j(t) = [ψ_ji(t) χ_i(ν_j(t)) | φ_ji(t) χ_i(ν_j(t))]   (n×2M)
+    F_j(t) = Φ_j(t) x_j,
+    Φ_j(t) = [ψ_ji(t) χ_i | φ_ji(t) χ_i | φ_jk(t) χ_i (window k of field i)]   (n×M(2+P))
+
+(χ_i = χ_i(ν_j(t), v_j(t)) with the basis' field damping, :class:`~tflearn.fields.FieldBasis`;
+the window columns field by field, P sub-movement windows, :class:`~tflearn.fields.MotionWeights`).
 
 The cost of a motion is relative to its torque energy S_j = Σ_t w_t ‖T_j(t)‖²:
 
@@ -45,14 +49,18 @@ def _warn_nonfinite(costs: torch.Tensor, tg: Targets, what: str) -> None:
 
 
 def design(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
-    """Φ (N×T×n×2M): the torque of unit step and pulse weights on each field."""
-    chi = basis(tg.q)                                   # N×T×M×n
+    """Φ (N×T×n×M(2+P)): the torque of unit step, pulse and window weights on each field."""
+    chi = basis(tg.q, tg.v)                             # N×T×M×n
     psi, phi = weights.profiles_per_motion(tg.t)        # N×T×M
-    return torch.cat([(psi.unsqueeze(-1) * chi), (phi.unsqueeze(-1) * chi)], dim=-2).transpose(-1, -2)
+    cols = [psi.unsqueeze(-1) * chi, phi.unsqueeze(-1) * chi]
+    if weights.P:
+        win = weights.windows_per_motion(tg.t)          # N×T×P
+        cols.append((chi.unsqueeze(-2) * win[..., None, :, None]).flatten(-3, -2))
+    return torch.cat(cols, dim=-2).transpose(-1, -2)
 
 
 def normal_equations(basis: FieldBasis, weights: MotionWeights, tg: Targets):
-    """(G (N×2M×2M), h (N×2M)) of the relative torque cost."""
+    """(G (N×X×X), h (N×X)) of the relative torque cost, X = M(2+P)."""
     Phi = design(basis, weights, tg)
     ws = (tg.wt / tg.torque_scale()[:, None])[..., None, None]
     G = (ws * Phi.transpose(-1, -2) @ Phi).sum(1)
@@ -60,16 +68,12 @@ def normal_equations(basis: FieldBasis, weights: MotionWeights, tg: Targets):
     return G, h
 
 
-def weights_vector(weights: MotionWeights) -> torch.Tensor:
-    return torch.cat([weights.a, weights.b], dim=-1)
-
-
 @torch.no_grad()
 def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
                   support: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """Set every motion's (a, b) to its exact NNLS optimum; returns the costs C_j (N).
+    """Set every motion's (a, b, c) to its exact NNLS optimum; returns the costs C_j (N).
 
-    ``support`` (N×2M bool, [a | b]) restricts the optimum to those weights, the others
+    ``support`` (N×M(2+P) bool, [a | b | c]) restricts the optimum to those weights, the others
     held at 0 (their rows of the normal equations become x_i = 0 with a negative
     gradient, so Lawson–Hanson never frees them)."""
     G, h = normal_equations(basis, weights, tg)
@@ -80,15 +84,13 @@ def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
     sol = nnls(G, h)
     warn_unconverged(sol, tg.names, "solve_weights")
     x = sol.x
-    M = basis.M
-    weights.a_raw.copy_(x[:, :M])
-    weights.b_raw.copy_(x[:, M:])
+    weights.set_vector(x)
     return 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
 
 
 def torque_cost(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
     """C_j (N), differentiable in the fields and the weights (eq. 3.10, relative)."""
-    F = (design(basis, weights, tg) @ weights_vector(weights).unsqueeze(1).unsqueeze(-1)).squeeze(-1)
+    F = (design(basis, weights, tg) @ weights.vector().unsqueeze(1).unsqueeze(-1)).squeeze(-1)
     r = ((tg.tau - F) ** 2).sum(-1)
     return (tg.wt * r).sum(-1) / tg.torque_scale()
 
@@ -122,6 +124,7 @@ class _FieldParameters:
         self.s = 1 if self.flat_mask is None else self.flat_mask.numel()
         self.p = self.n + self.s + (4 * self.N if phases else 0)
         self.scale = (tg.wt / tg.torque_scale()[:, None]).sqrt()[..., None]
+        self.windows = weights.windows_per_motion(tg.t).detach()          # N×T×P
 
     def vector(self) -> torch.Tensor:
         st = self.basis.stiffness
@@ -162,13 +165,16 @@ class _FieldParameters:
         from torch.func import functional_call
         eta, raw, ph = self._split(th)
         chi = functional_call(self.basis, {"eta": eta[None], "stiffness.raw": raw[None]},
-                              (self.tg.q,))[..., 0, :]
+                              (self.tg.q, self.tg.v))[..., 0, :]
         if ph is None:
             ph = {k: getattr(self.weights, k)[:, i].detach() for k in PHASES}
-        t = self.tg.t
+        t, M, P = self.tg.t, self.M, self.weights.P
         psi = step_profile((t - ph["step_onset"][:, None]) / ph["step_duration"][:, None])
         phi = pulse_profile((t - ph["pulse_onset"][:, None]) / ph["pulse_duration"][:, None])
-        act = x[:, i, None] * psi + x[:, self.M + i, None] * phi
+        act = x[:, i, None] * psi + x[:, M + i, None] * phi
+        if P:                                     # the windows' timing is not among θ
+            c = x[:, 2 * M + i * P:2 * M + (i + 1) * P]
+            act = act + (self.windows * c[:, None]).sum(-1)
         return (-self.scale * act.unsqueeze(-1) * chi).reshape(-1)
 
     def residual(self, theta, x) -> torch.Tensor:
@@ -230,11 +236,8 @@ class _Motions:
     def finish(self) -> None:
         """Every motion's weights into the caller's ``weights``."""
         if self.shared:
-            rows = parallel.gather_motions(self.N, list(zip(self.weights.a_raw.detach(),
-                                                            self.weights.b_raw.detach())))
-            with torch.no_grad():
-                self.all.a_raw.copy_(torch.stack([a for a, _ in rows]))
-                self.all.b_raw.copy_(torch.stack([b for _, b in rows]))
+            rows = parallel.gather_motions(self.N, list(self.weights.vector().detach()))
+            self.all.set_vector(torch.stack(rows))
 
 
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
@@ -268,7 +271,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     history = [float(costs.sum())]
     mu = 1e-3
     for step in range(steps):
-        x = torch.cat([own.weights.a, own.weights.b], -1).detach()
+        x = own.weights.vector().detach()
         with torch.no_grad():
             r = fp.residual(theta, x)
             J = _project_out_weights(fp.jacobian(theta, x), basis, own.weights, own.tg, fp.scale, x)
@@ -304,7 +307,7 @@ def joint_descent(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps:
                   lr: float = 0.03, phases: bool = False,
                   callback: Optional[Callable] = None) -> list:
     """Plain projected gradient descent (Adam) on fields and weights together."""
-    params = field_parameters(basis, weights, phases) + [weights.a_raw, weights.b_raw]
+    params = field_parameters(basis, weights, phases) + [weights.a_raw, weights.b_raw, weights.c_raw]
     opt = torch.optim.Adam(params, lr=lr)
     history = []
     for step in range(steps):

@@ -1,30 +1,36 @@
 """``basis.json``: a learned basis of torque fields and its motions' weights.
 
-Format ``tflearn-basis/2`` (plain JSON, readable without tflearn; nv coordinates, M
+Format ``tflearn-basis/3`` (plain JSON, readable without tflearn; nv coordinates, M
 fields)::
 
-    {"format": "tflearn-basis/2",
+    {"format": "tflearn-basis/3",
      "body": {"name", "gravity": [3], "damping": c, "tip": {"link": i, "point": [3]},
               "links": [{"name", "parent", "joint", "origin": [3], "offset": [3],
                          "axis": [3], "mass", "com": [3], "inertia": 3×3,
                          "length", "radius"}, ...]},                  # Body.to_dict()
      "fields": [{"eta": [nv], "K": nv×nv}, ...],                   # M fields
+     "field_damping": ζ,                                            # s, ≥ 0
      "motions": [{"name", "duration", "rate", "q0": [nv], "qd0": [nv],
                   "a": [M], "b": [M], "step_onset": [M], "step_duration": [M],
-                  "pulse_onset": [M], "pulse_duration": [M]}, ...]}
+                  "pulse_onset": [M], "pulse_duration": [M],
+                  "window_onset": [P], "window_duration": [P], "c": M×P}, ...]}
 
 The body is the whole kinematic tree of :mod:`tflearn.body` (links in topological order,
 parent −1 the base, joint "ball" / "hinge" / "fixed", offset the zero orientation as a
 rotation vector, inertia about the centre of mass in the link frame, length and radius
-null unless the link is a cylinder). Format ``tflearn-basis/1`` files still load: their
+null unless the link is a cylinder). Files of the earlier formats still load, with
+ζ = 0 and P = 0: ``tflearn-basis/2`` is ``/3`` without ``field_damping`` and the
+motions' windows; a ``tflearn-basis/1``
 body ``{"lengths": [3], "masses": [3], "radii": [3], "gravity": [3], "damping": c,
 "offsets"?: 3×3}`` is the arm of :func:`tflearn.body.arm`.
 
 It defines, for each motion, the torque program
-    τ(t) = Σ_i (a_i ψ((t − s_i)/d_i) + b_i φ((t − p_i)/e_i)) χ_i(ν(t)) − c v
-with χ_i, ψ, φ as in :mod:`tflearn.fields`, started from (q0, qd0) at t = 0.
+    τ(t) = Σ_i (a_i ψ((t − s_i)/d_i) + b_i φ((t − p_i)/e_i) + Σ_k c_ik φ((t − o_k)/l_k))
+           χ_i(ν(t), v(t)) − c v,
+    χ_i(ν, v) = −K_i (ν − η_i + ζ v) exp(−½ (ν − η_i)ᵀ K_i (ν − η_i)),
+with ψ, φ as in :mod:`tflearn.fields`, started from (q0, qd0) at t = 0.
 
-Loading checks every number (finite; a, b ≥ 0; durations and rates > 0), every size
+Loading checks every number (finite; a, b, c, ζ ≥ 0; durations and rates > 0), every size
 against the body's nv and M, that each K is symmetric positive definite and that motion
 names are unique; a file that fails raises :class:`BasisFileError` "<path>: <problem>".
 """
@@ -43,11 +49,12 @@ from ..errors import InputError
 from ..fields import FieldBasis, MotionWeights
 from .files import write_text
 
-FORMAT = "tflearn-basis/2"
-FORMATS = ("tflearn-basis/1", FORMAT)
+FORMAT = "tflearn-basis/3"
+FORMATS = ("tflearn-basis/1", "tflearn-basis/2", FORMAT)
 _MOTION_ARRAYS = ("a", "b", "step_onset", "step_duration", "pulse_onset", "pulse_duration")
-_POSITIVE = ("duration", "rate", "step_duration", "pulse_duration")
-_NON_NEGATIVE = ("a", "b")
+_WINDOW_ARRAYS = ("window_onset", "window_duration", "c")        # tflearn-basis/3
+_POSITIVE = ("duration", "rate", "step_duration", "pulse_duration", "window_duration")
+_NON_NEGATIVE = ("a", "b", "c")
 
 
 class UnknownMotionError(InputError):
@@ -90,11 +97,12 @@ def _lst(x) -> list:
 
 
 def to_dict(lb: LearnedBasis) -> dict:
-    """The JSON document of a :class:`LearnedBasis` (format ``tflearn-basis/2``)."""
+    """The JSON document of a :class:`LearnedBasis` (format ``tflearn-basis/3``)."""
     w = lb.weights
     K = lb.basis.K()
     arrays = {"a": w.a, "b": w.b, "step_onset": w.step_onset, "step_duration": w.step_duration,
-              "pulse_onset": w.pulse_onset, "pulse_duration": w.pulse_duration}
+              "pulse_onset": w.pulse_onset, "pulse_duration": w.pulse_duration,
+              "window_onset": w.window_onset, "window_duration": w.window_duration, "c": w.c}
     motions = []
     for j, name in enumerate(w.names):
         m = {"name": name, "duration": float(w.duration[j]), "rate": float(lb.rate[j]),
@@ -103,7 +111,7 @@ def to_dict(lb: LearnedBasis) -> dict:
         motions.append(m)
     return {"format": FORMAT, "body": lb.body.to_dict(),
             "fields": [{"eta": _lst(lb.basis.eta[i]), "K": _lst(K[i])} for i in range(lb.basis.M)],
-            "motions": motions}
+            "field_damping": lb.basis.damping, "motions": motions}
 
 
 def save(lb: LearnedBasis, path) -> None:
@@ -143,9 +151,10 @@ def _from_dict(doc, kind: str, blocks) -> LearnedBasis:
             raise ValueError(f"missing section {key!r}")
     body = _body(doc["body"], tag)
     eta, K = _fields(doc["fields"], body.nv)
-    q0, qd0, rate, weights = _motions(doc["motions"], len(eta), body.nv)
+    damping = _field_damping(doc, tag)
+    q0, qd0, rate, weights = _motions(doc["motions"], len(eta), body.nv, tag == FORMAT)
     try:
-        basis = FieldBasis(eta, K, kind=kind, blocks=blocks or body.blocks)
+        basis = FieldBasis(eta, K, kind=kind, blocks=blocks or body.blocks, damping=damping)
     except torch.linalg.LinAlgError as err:        # a Cholesky factorisation that fails
         raise ValueError(f"fields: cannot factor K ({err})") from None
     return LearnedBasis(body, basis, weights, q0, qd0, rate)
@@ -153,7 +162,7 @@ def _from_dict(doc, kind: str, blocks) -> LearnedBasis:
 
 def _body(b, tag: str) -> Body:
     try:
-        return body_from_dict(b) if tag == FORMAT else _arm_v1(b)
+        return _arm_v1(b) if tag == "tflearn-basis/1" else body_from_dict(b)
     except ValueError as err:
         text = str(err)
         raise ValueError(text if text.startswith("body") else f"body: {text}") from None
@@ -206,6 +215,21 @@ def _fields(fields, nv: int):
     return _stack(eta, (nv,)), _stack(K, (nv, nv))
 
 
+def _field_damping(doc: dict, tag: str) -> float:
+    """ζ (s, ≥ 0): required by ``/3``, 0 for the earlier formats (which had none, so a
+    ``field_damping`` under their tag is refused rather than dropped)."""
+    if tag != FORMAT:
+        if "field_damping" in doc:
+            raise ValueError(f"'field_damping' belongs to {FORMAT}, but the file is tagged {tag}")
+        return 0.0
+    if "field_damping" not in doc:
+        raise ValueError("missing key 'field_damping'")
+    zeta = float(json_numbers(doc["field_damping"], (), "field_damping"))
+    if zeta < 0:
+        raise ValueError(f"field_damping: must be non-negative, got {zeta}")
+    return zeta
+
+
 def _check_spd(K: torch.Tensor, where: str) -> None:
     """K symmetric (to 1e-10 relative) with eigenvalues > 1e-12 · the largest |eigenvalue|."""
     if not torch.allclose(K, K.T, rtol=1e-10, atol=1e-12):
@@ -219,12 +243,17 @@ def _check_spd(K: torch.Tensor, where: str) -> None:
                          f"{float(eig.min()):.3g})")
 
 
-def _motions(motions, M: int, nv: int):
-    """q0, qd0 (N×nv), rate (N) and the :class:`MotionWeights` of the motions."""
-    cols = {k: [] for k in ("q0", "qd0", "duration", "rate") + _MOTION_ARRAYS}
-    shapes = {"q0": (nv,), "qd0": (nv,), "duration": (), "rate": ()}
+def _motions(motions, M: int, nv: int, windows: bool):
+    """q0, qd0 (N×nv), rate (N) and the :class:`MotionWeights` of the motions; with
+    ``windows`` (format /3) each motion's P windows, P the same for every motion."""
+    motions = _section(motions, "motions")
+    P = _windows(motions) if windows else 0
+    cols = {k: [] for k in ("q0", "qd0", "duration", "rate") + _MOTION_ARRAYS
+            + (_WINDOW_ARRAYS if windows else ())}
+    shapes = {"q0": (nv,), "qd0": (nv,), "duration": (), "rate": (),
+              "window_onset": (P,), "window_duration": (P,), "c": (M, P)}
     names = []
-    for j, m in enumerate(_section(motions, "motions")):
+    for j, m in enumerate(motions):
         where = f"motions[{j}]"
         name = m.get("name")
         if not isinstance(name, str):
@@ -241,8 +270,24 @@ def _motions(motions, M: int, nv: int):
                 raise ValueError(f"{where}.{key}: weights must be non-negative")
     t = {k: _stack(v, shapes.get(k, (M,))) for k, v in cols.items()}
     weights = MotionWeights(t["a"], t["b"], t["duration"], t["step_onset"], t["step_duration"],
-                            t["pulse_onset"], t["pulse_duration"], names=names)
+                            t["pulse_onset"], t["pulse_duration"], names=names, c=t.get("c"),
+                            window_onset=t.get("window_onset"),
+                            window_duration=t.get("window_duration"))
     return t["q0"], t["qd0"], t["rate"], weights
+
+
+def _windows(motions: list) -> int:
+    """P, the number of windows of every motion (the length of its ``window_onset``)."""
+    sizes = set()
+    for j, m in enumerate(motions):
+        w = m.get("window_onset")
+        if not isinstance(w, list):
+            raise ValueError(f"motions[{j}].window_onset: expected a list, got {json_kind(w)}"
+                             if "window_onset" in m else f"motions[{j}]: missing key 'window_onset'")
+        sizes.add(len(w))
+    if len(sizes) > 1:
+        raise ValueError(f"motions: every motion needs the same number of windows, got {sorted(sizes)}")
+    return sizes.pop() if sizes else 0
 
 
 def load(path, kind: str = "full") -> LearnedBasis:

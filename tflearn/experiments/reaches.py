@@ -1,0 +1,136 @@
+"""Experiment 5 (thesis §4.5.4 by class): filtering a motion through a basis learned on
+its own kind.
+
+A basis is learned by the pipeline on a class of motions — minimum-jerk straight-line
+hand reaches from rest to targets spread over the space in front of the arm
+(:func:`reach_class`) — and a held-out reach of the same class is then played through
+it with the basis frozen: its weights by NNLS on its torques, then its weights and
+activation timing by path matching (:func:`tflearn.evaluate.synthesize`). Goal: the
+held-out reach within 0.05 rad joint RMSE of its input. The hand paths' largest
+deviation from their chords (:func:`.filtering.straightness`) shows what the fields add.
+"""
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import torch
+
+from .. import dynamics, plots
+from .. import simulate as sim_mod
+from ..body import Body, arm
+from ..evaluate import synthesize
+from ..fit.targets import prepare
+from ..io import basis as basis_io
+from ..keyframes import straight_reach
+from . import common
+from .config import ExperimentConfig
+from .filtering import straightness
+
+TEXT = common.text("reaches")
+GOAL_RMSE = 0.05                          # rad, the held-out reach against its input
+SCALES = (0.7, 0.85)                      # target distance, fraction of the arm's straight-ahead reach
+TURNS = (-0.6, -0.2, 0.2, 0.6)            # rad about the vertical
+HELD_OUT = (0.78, 0.0)                    # inside the class: between its scales and turns
+DURATION = 2.0                            # s
+
+
+def thesis() -> str:
+    """The thesis' outcome, in words."""
+    return TEXT["thesis"]
+
+
+def targets(body: Body, scales=SCALES, turns=TURNS) -> dict:
+    """{name: hand target (3)}: ``scale`` × the straight-ahead point of the stiff-elbow
+    lift (the arm's full forward reach) turned by ``turn`` about the vertical, for every
+    scale × turn, and the held-out reach's."""
+    ahead = dynamics.tip_position(body, common.gesture_motions(body, ["stiff_elbow_lift"])
+                                  ["stiff_elbow_lift"].q[-1])
+
+    def point(scale, turn):
+        c, s = math.cos(turn), math.sin(turn)
+        Rz = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=common.F64)
+        return scale * Rz @ ahead
+    out = {f"reach_{s:g}_{t:+g}": point(s, t) for s in scales for t in turns}
+    out["held_out_reach"] = point(*HELD_OUT)
+    return out
+
+
+def reach_class(body: Body, scales=SCALES, turns=TURNS) -> tuple:
+    """(the class: a straight-line reach from rest to every target, the held-out reach)."""
+    zero = torch.zeros(body.nv, dtype=common.F64)
+    motions = [straight_reach(name, body, zero, p, DURATION)
+               for name, p in targets(body, scales, turns).items()]
+    return motions[:-1], motions[-1]
+
+
+def _class(cfg: ExperimentConfig, body: Body) -> tuple:
+    if cfg.quick:                         # two turns at one scale
+        return reach_class(body, SCALES[:1], TURNS[1:3])
+    return reach_class(body)
+
+
+def run(cfg: ExperimentConfig) -> dict:
+    """The basis learned on the class (its row), and the held-out reach through it."""
+    body = arm()
+    train, held = _class(cfg, body)
+    learned = common.fit_pipeline_case(train, cfg, Path(cfg.out) / "pipeline" / f"s{cfg.seed0}",
+                                       cfg.seed0)
+    lb = basis_io.load(learned["run"] / "basis.json")
+    tg = prepare(body, [held])
+    calls0, t0 = sim_mod.calls, time.perf_counter()
+    weights = synthesize(lb, tg, cfg.local.path_steps, cfg.local.path_lr, cfg.simulation.options(),
+                         phases=True)
+    fit = {"basis": lb.basis, "weights": weights, "wall": time.perf_counter() - t0,
+           "sims": sim_mod.calls - calls0}
+    m = common.check(body, lb.basis, weights, tg, cfg)
+    row = common.row("filter", "held out", None, cfg.seed0, fit, m, tg.names)
+    row["straightness_in"] = [straightness(body, held.q)]
+    row["straightness_out"] = [straightness(body, m["q_sim"][0, :len(held.t)])]
+    names = list(learned["metrics"]["motions"])
+    basis_row = common.row("pipeline", "class", None, cfg.seed0, learned,
+                           common.pipeline_outcome(learned["metrics"], names), names)
+    return {"rows": [basis_row, row], "summary": {"costs": common.costs([basis_row, row])}}
+
+
+def figures(cfg: ExperimentConfig, result: dict) -> list:
+    """The held-out reach, input vs filtered, as stick figures and hand paths, beside the
+    class's own reproduction."""
+    body, fig_dir = arm(), common.figure_dir(cfg)
+    train, held = _class(cfg, body)
+    q = common.resimulate(body, result["rows"][-1], prepare(body, [held]), cfg)
+    paths = {"input": held.q, "filtered": q[0, :len(held.t)]}
+    strip, hand = fig_dir / f"{held.name}.png", fig_dir / f"{held.name}_hand.png"
+    plots.save(plots.stick_strip(body, paths, title=f"{held.name}: input vs played through "
+                                                    f"the class's fields"), strip)
+    plots.save(plots.hand_paths(body, paths, title=f"{held.name}: hand path"), hand)
+    run_dir = Path(cfg.out) / "pipeline" / f"s{cfg.seed0}" / "run"
+    tg = prepare(body, train)
+    sims = {"pipeline": common.pipeline_q(body, cfg, run_dir, tg)[0]}
+    return [strip, hand] + common.sheets(body, tg, sims, fig_dir)
+
+
+def summary(result: dict) -> str:
+    """The class's own reproduction, and the held-out reach's distance to its input with
+    both hand paths' deviation from their chords."""
+    base, row = result["rows"]
+    worst = max(range(len(base["rmse"])), key=lambda k: base["rmse"][k])
+    head = (f"Basis learned on {len(base['motions'])} reaches: M = {base['M']}, "
+            f"{sum(base['success'])} of {len(base['success'])} reproduced (the worst, "
+            f"{base['motions'][worst]}: {base['rmse'][worst]:.4f} rad, "
+            f"{100 * base['tip'][worst]:.1f} cm).")
+    rows = [[name, f"{row['rmse'][k]:.4f}", f"{100 * row['tip'][k]:.1f}",
+             f"{100 * row['straightness_in'][k]:.1f}%", f"{100 * row['straightness_out'][k]:.1f}%"]
+            for k, name in enumerate(row["motions"])]
+    return head + "\n\n" + common.table(["held-out motion", "RMSE to input (rad)",
+                                         "max tip distance to input (cm)",
+                                         "hand-path deviation from chord: input", "filtered"], rows)
+
+
+def goals(result: dict) -> list:
+    """(goal, measured, met): the held-out reach within 0.05 rad of its input."""
+    row = result["rows"][-1]
+    worst = max(row["rmse"])
+    return [(f"the held-out reach, played through the class's frozen basis, within "
+             f"{GOAL_RMSE:g} rad joint RMSE of its input", f"{worst:.3f} rad", worst <= GOAL_RMSE)]
