@@ -18,7 +18,7 @@ from torch.func import functional_call
 
 from tflearn import config, data, gestures, metrics, train
 from tflearn import motion as motion_mod
-from tflearn.fields import FieldBasis, MotionWeights
+from tflearn.fields import FieldBasis, MotionWeights, model_from_state
 from tflearn.fit import path as path_fit
 from tflearn.fit import targets, torque
 from tflearn.io import basis as bio
@@ -624,6 +624,37 @@ def test_independent_simulation_with_field_damping(come_here, tmp_path):
     assert np.abs(e).max() <= 1e-6
     assert np.abs(sim["qd"] - v).max() <= 1e-6
     assert np.abs(paths[0.5]["q"] - paths[0.0]["q"]).max() > 0.05
+
+
+def test_pool_sharing_own_keeps_each_motion_on_its_fields(run_dir, tmp_path):
+    """With ``solver.pool.sharing=own`` the pooled model is the union of the per-motion
+    fits: each motion's support is its own fields (block-diagonal, in pooling order) and
+    its weights on the other motions' fields are exactly zero."""
+    cfg = small_config(run_dir["data"], tmp_path / "own", "solver.pool.sharing=own")
+    state = None
+    for k in range(1, 6):                    # checkpoints until the pool stage is done
+        try:
+            train.run(cfg, stop_after=k)
+        except train.Interrupted:
+            pass
+        doc = torch.load(tmp_path / "own" / "checkpoint.pt", weights_only=True)
+        if doc["support"] is not None:
+            state = doc
+            break
+    assert state is not None, "the pool stage never ran"
+    sizes = [len(f[0]) for f in state["fits"]]
+    _, weights = model_from_state(state["model"])
+    support = torch.tensor(state["support"])
+    start = 0
+    for j, size in enumerate(sizes):
+        own = torch.zeros(sum(sizes), dtype=torch.bool)
+        own[start:start + size] = True
+        start += size
+        assert torch.equal(support[j], own)
+        assert bool((weights.a[j][~own] == 0).all()) and bool((weights.b[j][~own] == 0).all())
+    assert train._weight_support([[True, False]], 2).tolist() == [[True, False, True, False,
+                                                                   True, True, False, False]]
+    assert train._weight_support(None, 2) is None
 
 
 def test_pool_keeps_each_motions_learned_timing(come_here):

@@ -74,6 +74,13 @@ class PathSection(Section):                     # simulation options and path ma
                           max_evals=self.max_evals, adjoint=self.adjoint)
 
 
+class PoolSection(Section):
+    # joint: every motion's weights solved over every pooled field; own: each motion
+    # starts on its own fields only (the union of the per-motion fits, each as it was
+    # alone), and a motion may use the other fields once one of its own is eliminated
+    sharing: Literal["joint", "own"] = "joint"
+
+
 class MergeSection(Section):                    # merge pooled fields that nearly coincide
     distance: float = Field(0.05, ge=0)          # centres closer than this (rad)
     stiffness: float = Field(0.05, ge=0)         # and stiffnesses within this fraction
@@ -91,6 +98,7 @@ class SolverSection(Section):
     each: EachSection = EachSection()
     em: EMSection = EMSection()
     path: PathSection = PathSection()
+    pool: PoolSection = PoolSection()
     merge: MergeSection = MergeSection()
     slsqp: SlsqpSection = SlsqpSection()
 

@@ -10,12 +10,15 @@ result:
                 cost is below ``solver.each.tol`` and simulation reproduces it (one unit
                 per motion);
 2. ``pool``   — all per-motion fields in one basis, every motion's weights re-solved
-                over all of them (so no motion fits worse than alone); fields that
-                nearly coincide (``solver.merge``) merged and refined jointly by EM;
+                over all of them (so no motion fits worse than alone; with
+                ``solver.pool.sharing: own`` each motion keeps to its own fields, as it
+                was reproduced alone); fields that nearly coincide (``solver.merge``)
+                merged and refined jointly by EM;
 3. ``reduce`` — backward elimination: drop each field in turn (smallest share first)
                 and keep it dropped if no motion gets worse by simulation
                 (:func:`no_worse`) — the smallest M found is reported (one unit per
-                field tried);
+                field tried); with ``sharing: own`` a motion that loses one of its
+                fields may then use every field left;
 4. ``path``   — path matching through ``odeint`` for motions not yet reproduced
                 (safeguarded Adam on the simulated path loss; one unit per step);
 5. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard.
@@ -101,6 +104,7 @@ class RunState:
     order: Optional[list] = None                       # reduce: fields by share
     ids: Optional[list] = None                         # reduce: original ids kept
     path: Optional[dict] = None                        # {"needed", "lr", "optimizer", "best"}
+    support: Optional[list] = None                     # N×M: fields each motion may use, or all
 
     def to_dict(self) -> dict:
         return {"format": CHECKPOINT_FORMAT, **asdict(self)}
@@ -131,6 +135,15 @@ def no_worse(reference: dict, scores: Scores, ok: list) -> bool:
 
 def _reference(scores: Scores, ok: list) -> dict:
     return {"rmse": scores.rmse, "tip": scores.tip, "ok": ok}
+
+
+def _weight_support(fields: Optional[list], P: int) -> Optional[torch.Tensor]:
+    """The weights (N×M(2+P) bools, [a | b | c]) of the fields each motion may use
+    (N×M lists of bools, :attr:`RunState.support`); None: every weight free."""
+    if fields is None:
+        return None
+    f = torch.tensor(fields, dtype=torch.bool).reshape(len(fields), -1)
+    return torch.cat([f, f, f.repeat_interleave(P, dim=1)], dim=1)
 
 
 # ------------------------------------------------------------------------------ the run
@@ -262,8 +275,9 @@ class Run:
         state.step += 1
         return state.step
 
-    def _em(self, basis, weights, tg, state: RunState, tag: str | None = None):
-        """EM refinement; ``tag``: log the summed torque cost at every step under it."""
+    def _em(self, basis, weights, tg, state: RunState, tag: str | None = None, support=None):
+        """EM refinement; ``tag``: log the summed torque cost at every step under it;
+        ``support``: the fields each motion may use (N×M lists of bools), None for all."""
         c = self.cfg.solver.em
 
         def cb(step, costs):
@@ -273,7 +287,8 @@ class Run:
                 self.log.scalar(tag, cost, state.step)
             self.log.busy(em_step=step + 1, cost=cost)
         return torque.em(basis, weights, tg, steps=c.steps, tol=c.tol,
-                         phases=self.cfg.model.phases == "variable", callback=cb, distributed=True)
+                         phases=self.cfg.model.phases == "variable", callback=cb, distributed=True,
+                         support=_weight_support(support, weights.P))
 
     def _each(self, state: RunState, tg: Targets):
         """One round: motions cursor, cursor + 1, … one per rank, each fitted alone
@@ -333,10 +348,21 @@ class Run:
         merge = self.cfg.solver.merge
         self.log.stage("pool", 1)
         basis, weights = search.pool(tg, state.fits, self.template(), self.cfg.model.windows)
+        if self.cfg.solver.pool.sharing == "own":       # each motion on its own fields
+            sizes = [len(f[0]) for f in state.fits]
+            state.support = [[sum(sizes[:j]) <= i < sum(sizes[:j + 1]) for i in range(basis.M)]
+                             for j in range(tg.N)]
         basis, weights, merged = search.merge_close(basis, weights, merge.distance, merge.stiffness)
+        if merged and state.support is not None:        # a merged pair: either motion may use it
+            drop = {k for _, k in merged}
+            for row in state.support:
+                for i, k in merged:
+                    row[i] = row[i] or row[k]
+            state.support = [[x for i, x in enumerate(row) if i not in drop] for row in state.support]
         if merged or self.cfg.model.phases == "variable":   # other motions' phases: default
-            self._em(basis, weights, tg, state, tag="torque_cost/pool")
-        cost = float(torque.solve_weights(basis, weights, tg).sum())
+            self._em(basis, weights, tg, state, tag="torque_cost/pool", support=state.support)
+        cost = float(torque.solve_weights(basis, weights, tg,
+                                          _weight_support(state.support, weights.P)).sum())
         scores, ok = self._check(basis, weights, tg)
         step = self._tick(state)
         self.log.scalar("torque_cost/pool", cost, step)
@@ -374,8 +400,10 @@ class Run:
         pos = state.ids.index(victim)
         keep = [i for i in range(basis.M) if i != pos]
         nb, nw = basis.select(keep), weights.select_fields(keep)
+        support = None if state.support is None else [        # who lost a field may use any
+            [True] * len(keep) if row[pos] else [row[i] for i in keep] for row in state.support]
         self.log.busy(M=basis.M, trying=victim)
-        cost = self._em(nb, nw, tg, state)[-1]
+        cost = self._em(nb, nw, tg, state, support=support)[-1]
         accept = True
         if not fixed:
             scores, ok = self._check(nb, nw, tg)
@@ -386,6 +414,7 @@ class Run:
         if accept:
             state.model = model_state(nb, nw)
             state.ids = [state.ids[i] for i in keep]
+            state.support = support
             self.log.model(nb, nw, step)
             if not fixed:
                 state.reference = _reference(scores, ok)
