@@ -208,6 +208,14 @@ def test_reach_class_is_straight_and_spread():
     line, = (goal_line(*g) for g in reaches.goals({"rows": [{}, {"rmse": [0.04]}]}))
     assert line == ("- goal: the held-out reach, played through the class's frozen basis, within "
                     "0.05 rad joint RMSE of its input; measured: 0.040 rad — met")
+    text = reaches.summary({"rows": [
+        {"motions": ["a", "b"], "M": 5, "success": [True, False], "rmse": [0.01, 0.07],
+         "tip": [0.005, 0.09]},
+        {"motions": ["held_out_reach"], "rmse": [0.061], "tip": [0.098],
+         "straightness_in": [0.0004], "straightness_out": [0.09]}]})
+    assert text.startswith("Basis learned on 2 reaches: M = 5, 1 of 2 reproduced (the worst, "
+                           "b: 0.0700 rad, 9.0 cm).")
+    assert "| held_out_reach | 0.0610 | 9.8 | 0.0% | 9.0% |" in text
 
 
 def test_report_from_quick_results(tmp_path):

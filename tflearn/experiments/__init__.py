@@ -4,7 +4,8 @@
     tflearn report                                      → docs/results.md + its figures
 
 :data:`EXPERIMENTS` maps each name to its module — :mod:`.basin` (§4.1), :mod:`.shared`
-(§4.2), :mod:`.keyframes` (§4.3), :mod:`.filtering` (§4.5.4) — each providing
+(§4.2), :mod:`.keyframes` (§4.3), :mod:`.filtering` (§4.5.4), :mod:`.reaches` (§4.5.4 by
+class) — each providing
 ``run(cfg)`` → {"rows", "summary"}, ``figures(cfg, result)`` → paths, ``summary(result)``
 (markdown), ``goals(result)`` → [(goal, measured, met)] (the report's "goal: …; measured: … —
 (not) met" lines) and ``thesis()`` (the thesis' outcome).

@@ -81,13 +81,18 @@ def figures(cfg: ExperimentConfig, result: dict) -> list:
     motions = crude_motions(body)
     q = common.resimulate(body, result["rows"][-1], prepare(body, motions), cfg)
     for j, m in enumerate(motions):
-        paths = {"input": m.q, "filtered": q[j, :len(m.t)]}
-        strip, hand = fig_dir / f"{m.name}.png", fig_dir / f"{m.name}_hand.png"
-        plots.save(plots.stick_strip(body, paths, title=f"{m.name}: crude input vs played through "
-                                                        f"the fields"), strip)
-        plots.save(plots.hand_paths(body, paths, title=f"{m.name}: hand path"), hand)
-        out += [strip, hand]
+        out += draw(body, m, q[j, :len(m.t)], fig_dir, "crude input vs played through the fields")
     return out
+
+
+def draw(body: Body, motion, q_filtered, fig_dir: Path, title: str) -> list:
+    """NAME.png (stick figures) and NAME_hand.png (hand paths) of a motion, input against
+    filtered."""
+    paths = {"input": motion.q, "filtered": q_filtered}
+    strip, hand = fig_dir / f"{motion.name}.png", fig_dir / f"{motion.name}_hand.png"
+    plots.save(plots.stick_strip(body, paths, title=f"{motion.name}: {title}"), strip)
+    plots.save(plots.hand_paths(body, paths, title=f"{motion.name}: hand path"), hand)
+    return [strip, hand]
 
 
 def summary(result: dict) -> str:
@@ -96,12 +101,17 @@ def summary(result: dict) -> str:
     base, row = result["rows"]
     head = (f"Basis learned on {', '.join(base['motions'])}: M = {base['M']}, all "
             f"reproduced: {all(base['success'])}.")
+    return head + "\n\n" + filtered_table(row, "crude motion")
+
+
+def filtered_table(row: dict, what: str) -> str:
+    """Per motion of a filter row: its distance to its input and both hand paths'
+    deviation from their chords (``what`` names the motions' column)."""
     rows = [[name, f"{row['rmse'][k]:.4f}", f"{100 * row['tip'][k]:.1f}",
              f"{100 * row['straightness_in'][k]:.1f}%", f"{100 * row['straightness_out'][k]:.1f}%"]
             for k, name in enumerate(row["motions"])]
-    return head + "\n\n" + common.table(["crude motion", "RMSE to input (rad)",
-                                         "max tip distance to input (cm)",
-                                         "hand-path deviation from chord: input", "filtered"], rows)
+    return common.table([what, "RMSE to input (rad)", "max tip distance to input (cm)",
+                         "hand-path deviation from chord: input", "filtered"], rows)
 
 
 def goals(result: dict) -> list:  # [(goal, measured, met)]

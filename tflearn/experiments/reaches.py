@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from .. import dynamics, plots
+from .. import dynamics
 from .. import simulate as sim_mod
 from ..body import Body, arm
 from ..evaluate import synthesize
@@ -26,7 +26,7 @@ from ..io import basis as basis_io
 from ..keyframes import straight_reach
 from . import common
 from .config import ExperimentConfig
-from .filtering import straightness
+from .filtering import draw, filtered_table, straightness
 
 TEXT = common.text("reaches")
 GOAL_RMSE = 0.05                          # rad, the held-out reach against its input
@@ -100,15 +100,11 @@ def figures(cfg: ExperimentConfig, result: dict) -> list:
     body, fig_dir = arm(), common.figure_dir(cfg)
     train, held = _class(cfg, body)
     q = common.resimulate(body, result["rows"][-1], prepare(body, [held]), cfg)
-    paths = {"input": held.q, "filtered": q[0, :len(held.t)]}
-    strip, hand = fig_dir / f"{held.name}.png", fig_dir / f"{held.name}_hand.png"
-    plots.save(plots.stick_strip(body, paths, title=f"{held.name}: input vs played through "
-                                                    f"the class's fields"), strip)
-    plots.save(plots.hand_paths(body, paths, title=f"{held.name}: hand path"), hand)
+    out = draw(body, held, q[0, :len(held.t)], fig_dir, "input vs played through the class's fields")
     run_dir = Path(cfg.out) / "pipeline" / f"s{cfg.seed0}" / "run"
     tg = prepare(body, train)
     sims = {"pipeline": common.pipeline_q(body, cfg, run_dir, tg)[0]}
-    return [strip, hand] + common.sheets(body, tg, sims, fig_dir)
+    return out + common.sheets(body, tg, sims, fig_dir)
 
 
 def summary(result: dict) -> str:
@@ -120,12 +116,7 @@ def summary(result: dict) -> str:
             f"{sum(base['success'])} of {len(base['success'])} reproduced (the worst, "
             f"{base['motions'][worst]}: {base['rmse'][worst]:.4f} rad, "
             f"{100 * base['tip'][worst]:.1f} cm).")
-    rows = [[name, f"{row['rmse'][k]:.4f}", f"{100 * row['tip'][k]:.1f}",
-             f"{100 * row['straightness_in'][k]:.1f}%", f"{100 * row['straightness_out'][k]:.1f}%"]
-            for k, name in enumerate(row["motions"])]
-    return head + "\n\n" + common.table(["held-out motion", "RMSE to input (rad)",
-                                         "max tip distance to input (cm)",
-                                         "hand-path deviation from chord: input", "filtered"], rows)
+    return head + "\n\n" + filtered_table(row, "held-out motion")
 
 
 def goals(result: dict) -> list:
