@@ -347,7 +347,7 @@ class Run:
     def _pool(self, state: RunState, tg: Targets):
         merge = self.cfg.solver.merge
         self.log.stage("pool", 1)
-        basis, weights = search.pool(tg, state.fits, self.template(), self.cfg.model.windows)
+        basis, weights = search.pool(tg, state.fits, self.template())
         if self.cfg.solver.pool.sharing == "own":       # each motion on its own fields
             sizes = [len(f[0]) for f in state.fits]
             state.support = [[sum(sizes[:j]) <= i < sum(sizes[:j + 1]) for i in range(basis.M)]

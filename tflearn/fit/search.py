@@ -256,20 +256,20 @@ def grow(tg: Targets, template: FieldBasis, max_fields: int, tol: float, candida
     return basis, weights, costs
 
 
-def pool(tg: Targets, fits: list, template: FieldBasis, P: int = 0):
+def pool(tg: Targets, fits: list, template: FieldBasis):
     """One basis like ``template`` (an empty basis: kind, blocks, damping) holding the
     fields of the per-motion fits [(η M_j×n, K M_j×n×n, timing)], fit j being motion
     j's, with every motion's weights solved over all of them.
 
     Motion j keeps the activation timing it learned on its own fields (``timing``, from
-    :meth:`MotionWeights.timing`) and its P sub-movement windows; on the other motions'
-    fields it starts at the default phases (step from t = 0, pulse over the whole
-    motion)."""
+    :meth:`MotionWeights.timing`) and its P sub-movement windows (P read from the
+    timings); on the other motions' fields it starts at the default phases (step from
+    t = 0, pulse over the whole motion)."""
     from .torque import solve_weights
     eta = torch.cat([fit[0] for fit in fits])
     K = torch.cat([fit[1] for fit in fits])
     basis = template.like(eta, K)
-    z = torch.zeros(tg.N, P, dtype=torch.float64)
+    z = torch.zeros(tg.N, len(fits[0][2]["window_onset"]), dtype=torch.float64)
     weights = MotionWeights.zeros(basis.M, tg.duration, tg.names, (z, z + 1))
     start = 0
     with torch.no_grad():
