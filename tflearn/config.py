@@ -74,6 +74,22 @@ class PathSection(Section):                     # simulation options and path ma
                           max_evals=self.max_evals, adjoint=self.adjoint)
 
 
+class ShootingSection(Section):
+    # multiple-shooting Levenberg–Marquardt on each motion's weights (and, with
+    # model.phases: variable, its activation timing), the basis fixed
+    # (tflearn.fit.shooting): first in the path stage, on the motions not reproduced,
+    # and in held-out synthesis; iterations per horizon, 0 = off
+    iterations: int = Field(6, ge=0)
+    horizon: float = Field(0.25, gt=0)           # the first segments' length (s), doubled to the whole motion
+    velocity_weight: float = Field(0.1, ge=0)
+
+    def options(self, phases: bool):
+        """These settings as :class:`tflearn.fit.shooting.ShootingOptions`."""
+        from .fit.shooting import ShootingOptions
+        return ShootingOptions(horizon=self.horizon, iterations=self.iterations, phases=phases,
+                               velocity_weight=self.velocity_weight)
+
+
 class PoolSection(Section):
     # joint: every motion's weights solved over every pooled field; own: each motion
     # starts on its own fields only (the union of the per-motion fits, each as it was
@@ -98,6 +114,7 @@ class SolverSection(Section):
     each: EachSection = EachSection()
     em: EMSection = EMSection()
     path: PathSection = PathSection()
+    shooting: ShootingSection = ShootingSection()
     pool: PoolSection = PoolSection()
     merge: MergeSection = MergeSection()
     slsqp: SlsqpSection = SlsqpSection()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Optional
 
 import torch
 
@@ -11,7 +12,7 @@ from . import config as config_mod
 from .config import Config
 from .data import check_resolution, load_motions
 from .fields import FieldProgram, MotionWeights
-from .fit import path as path_fit
+from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
 from .fit.torque import solve_weights
 from .io import basis as basis_io
@@ -29,21 +30,25 @@ def run_config(run) -> tuple:
     return cfg, cfg.solver.path.options()
 
 
-def synthesize(lb: basis_io.LearnedBasis, tg: Targets, path_steps: int = 20,
-               lr: float = 0.003, options: SimOptions = SimOptions(),
-               phases: bool = False) -> MotionWeights:
+def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
+               shooting: Optional[ShootingOptions] = ShootingOptions(),
+               options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02)) -> MotionWeights:
     """Held-out synthesis: with the basis frozen, fit new motions' weights by exact NNLS
-    on their torques, then refine the weights (and with ``phases`` their activation
-    timing) by path matching. The new motions get as many sub-movement windows as the
-    basis' own motions have, placed from their data (:func:`submovement_windows`)."""
+    on their torques; the motions that this does not reproduce (joint RMSE ≤
+    ``success[0]`` rad and hand-tip error ≤ ``success[1]`` m, as in training) then get
+    their weights (and with ``shooting.phases`` their activation timing) by
+    multiple-shooting path matching (:func:`tflearn.fit.shooting.shooting_match`; None:
+    NNLS only). The new motions get as many sub-movement windows as the basis' own
+    motions have, placed from their data (:func:`submovement_windows`)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P))
     solve_weights(lb.basis, weights, tg)
-    for p in lb.basis.parameters():
-        p.requires_grad_(False)
-    if path_steps:
-        path_fit.path_match(lb.body, lb.basis, weights, tg, steps=path_steps, lr=lr,
-                            fields=False, phases=phases, options=options)
+    if shooting is None or not shooting.iterations:
+        return weights
+    ok = score(lb.body, lb.basis, weights, tg, options).succeeded(*success)
+    todo = [j for j, x in enumerate(ok) if not x]
+    if todo:
+        shooting_match(lb.body, lb.basis, weights, tg, options=shooting, sim=options, motions=todo)
     return weights
 
 
@@ -74,8 +79,9 @@ def evaluate_run(run, data=None, out=None) -> dict:
         if not group:
             continue
         tg = prepare(lb.body, group)
-        p = cfg.solver.path
-        weights = synthesize(lb, tg, p.steps, p.lr, options) if synth else weights_for(lb, tg)
+        shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
+        weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip)) if synth
+                   else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
         summary = summarize(s, ok, tg, lb.basis.M, 0.0)

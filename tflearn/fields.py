@@ -351,55 +351,93 @@ class MotionWeights(nn.Module):
 
     def profiles(self, t: torch.Tensor):
         """ψ_ji(t), φ_ji(t): (N×M) each for a scalar t, or (T×N×M) for t (T)."""
-        t = torch.as_tensor(t, dtype=self.a_raw.dtype)
-        tt = t[..., None, None] if t.ndim else t
-        psi = step_profile((tt - self.step_onset) / self.step_duration)
-        phi = pulse_profile((tt - self.pulse_onset) / self.pulse_duration)
-        return psi, phi
+        return self.profiles_at(torch.as_tensor(t, dtype=self.a_raw.dtype)[..., None])
+
+    def profiles_at(self, t: torch.Tensor):
+        """ψ, φ at each motion's own time: t (...×N) → (...×N×M) each."""
+        tt = t[..., None]
+        return (step_profile((tt - self.step_onset) / self.step_duration),
+                pulse_profile((tt - self.pulse_onset) / self.pulse_duration))
 
     def profiles_per_motion(self, t: torch.Tensor):
         """ψ, φ at each motion's own times: t (N×T) → (N×T×M) each."""
-        tt = t.unsqueeze(-1)
-        psi = step_profile((tt - self.step_onset[:, None]) / self.step_duration[:, None])
-        phi = pulse_profile((tt - self.pulse_onset[:, None]) / self.pulse_duration[:, None])
-        return psi, phi
+        return tuple(x.transpose(0, 1) for x in self.profiles_at(t.transpose(0, 1)))
 
     def windows(self, t: torch.Tensor) -> torch.Tensor:
         """The window pulses φ((t − o_jk)/l_jk): (N×P) for a scalar t, (T×N×P) for t (T)."""
-        t = torch.as_tensor(t, dtype=self.a_raw.dtype)
-        tt = t[..., None, None] if t.ndim else t
-        return pulse_profile((tt - self.window_onset) / self.window_duration)
+        return self.windows_at(torch.as_tensor(t, dtype=self.a_raw.dtype)[..., None])
+
+    def windows_at(self, t: torch.Tensor) -> torch.Tensor:
+        """The window pulses at each motion's own time: t (...×N) → (...×N×P)."""
+        return pulse_profile((t[..., None] - self.window_onset) / self.window_duration)
 
     def windows_per_motion(self, t: torch.Tensor) -> torch.Tensor:
         """The window pulses at each motion's own times: t (N×T) → (N×T×P)."""
-        return pulse_profile((t.unsqueeze(-1) - self.window_onset[:, None])
-                             / self.window_duration[:, None])
+        return self.windows_at(t.transpose(0, 1)).transpose(0, 1)
 
     def activation(self, t: torch.Tensor) -> torch.Tensor:
         """w_ji(t) = a_ji ψ_ji(t) + b_ji φ_ji(t) + Σ_k c_jik φ_jk(t): (N×M), or (T×N×M) for
         t (T)."""
-        psi, phi = self.profiles(t)
+        return self.activation_at(torch.as_tensor(t, dtype=self.a_raw.dtype)[..., None])
+
+    def activation_at(self, t: torch.Tensor) -> torch.Tensor:
+        """The activations w_ji at each motion's own time: t (...×N) → (...×N×M)."""
+        psi, phi = self.profiles_at(t)
         w = self.a * psi + self.b * phi
         if self.P:
-            w = w + (self.c * self.windows(t).unsqueeze(-2)).sum(-1)
+            w = w + (self.c * self.windows_at(t).unsqueeze(-2)).sum(-1)
         return w
+
+    def flat(self, keys: Sequence[str]) -> torch.Tensor:
+        """The arrays ``keys`` (of :attr:`PER_FIELD` and :attr:`WINDOWS`) of each motion,
+        detached, flattened and concatenated: (N×D)."""
+        return torch.cat([getattr(self, k).detach().reshape(self.N, -1) for k in keys], dim=-1)
+
+    @torch.no_grad()
+    def set_flat(self, keys: Sequence[str], x: torch.Tensor, motions: Sequence[int]) -> None:
+        """Store x (len(motions)×D, the layout of :meth:`flat`) as the arrays ``keys`` of
+        motions ``motions``, in place."""
+        idx, k = torch.as_tensor(list(motions), dtype=torch.long), 0
+        for key in keys:
+            p = getattr(self, key)
+            d = math.prod(p.shape[1:])
+            p[idx] = x[:, k:k + d].reshape((len(idx),) + p.shape[1:]).to(p.dtype)
+            k += d
+
+    def with_flat(self, keys: Sequence[str], x: torch.Tensor, motions: Sequence[int]) -> MotionWeights:
+        """New weights (detached) with one row r per entry of ``motions``: motion
+        motions[r]'s, its arrays ``keys`` replaced by x[r] (the layout of :meth:`flat`;
+        x: len(motions)×D)."""
+        out = self.select_motions(motions)
+        arrays, k = out._arrays(), 0
+        for key in keys:
+            shape = arrays[key].shape
+            d = math.prod(shape[1:])
+            arrays[key] = x[:, k:k + d].reshape(shape)
+            k += d
+        return out._with(arrays)
 
 
 class FieldProgram(nn.Module):
     """The torque program of N motions: τ(t, ν, v) = Σ_i w_ji(t) χ_i(ν, v) for each motion j.
 
     Called as ``program(t, q, v)`` with q, v (...×N×n) — the motion index on the last batch
-    dimension — it returns τ (...×N×n). ``index`` restricts it to some motions.
+    dimension — it returns τ (...×N×n). ``index`` restricts it to some motions. ``start``
+    (N): each motion's own time at the simulation's t = 0, its program then run at
+    start + t (the segments of multiple shooting).
     """
 
     def __init__(self, basis: FieldBasis, weights: MotionWeights,
-                 index: Optional[Sequence[int]] = None):
+                 index: Optional[Sequence[int]] = None, start: Optional[torch.Tensor] = None):
         super().__init__()
-        self.basis, self.weights = basis, weights
+        self.basis, self.weights, self.start = basis, weights, start
         self.index = None if index is None else torch.as_tensor(index, dtype=torch.long)
 
     def forward(self, t, q, v=None):
-        w = self.weights.activation(t)
+        if self.start is not None:
+            w = self.weights.activation_at(self.start + t)
+        else:
+            w = self.weights.activation(t)
         if self.index is not None:
             w = w[..., self.index, :]
         chi = self.basis(q, v)

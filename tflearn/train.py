@@ -19,8 +19,13 @@ result:
                 (:func:`no_worse`) — the smallest M found is reported (one unit per
                 field tried); with ``sharing: own`` a motion that loses one of its
                 fields may then use every field left;
-4. ``path``   — path matching through ``odeint`` for motions not yet reproduced
-                (safeguarded Adam on the simulated path loss; one unit per step);
+4. ``path``   — path matching for motions not yet reproduced: first each one's
+                weights (and with ``model.phases: variable`` its timing) by multiple
+                shooting and Levenberg–Marquardt, the basis fixed
+                (``solver.shooting``, :mod:`tflearn.fit.shooting`; one unit, the
+                motions shared by the ranks), then, if some are still not
+                reproduced, safeguarded Adam on the simulated path loss of fields and
+                weights through ``odeint`` (one unit per step);
 5. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard.
 
 What the run shows and logs meanwhile (progress bars, TensorBoard) is :mod:`tflearn.log`.
@@ -63,7 +68,7 @@ from .data import check_resolution, load_motions
 from .errors import InputError
 from .fields import FieldBasis, MotionWeights, model_from_state, model_state
 from .fit import path as path_fit
-from .fit import search, slsqp, torque
+from .fit import search, shooting, slsqp, torque
 from .fit.targets import Targets, prepare, submovement_windows
 from .io import basis as basis_io
 from .io.files import replacing, write_text
@@ -432,12 +437,20 @@ class Run:
         p = self.cfg.solver.path
         basis, weights = model_from_state(state.model)
         self.log.stage("path", p.steps, state.cursor)
-        if state.cursor == 0:                # the model after reduce: logged with its figures
+        if state.path is None:               # the model after reduce: logged with its figures
             scores, ok = self._check(basis, weights, tg)
             self.log.scores(scores, tg, self._tick(state), figures=True)
+            shoot = not all(ok) and self.cfg.solver.shooting.iterations
+            if shoot:
+                self._shoot(basis, weights, tg, [j for j, x in enumerate(ok) if not x], state)
+                scores, ok = self._check(basis, weights, tg)
+                self.log.scores(scores, tg, self._tick(state))
+                state.model = model_state(basis, weights)
             state.path = {"needed": not all(ok), "lr": p.lr, "optimizer": None, "best": None}
             if not state.path["needed"]:
                 self.log.status(advance=0, total=0, skipped="every motion reproduced")
+            if shoot:                        # its own unit: a resumed run does not shoot again
+                self.save(state)
         if not state.path["needed"] or state.cursor >= p.steps:
             self.log.end_stage()
             return self._advance(state)
@@ -461,6 +474,26 @@ class Run:
         self.log.status(loss=res.loss, lr=res.lr)
         state.cursor += 1
         self.save(state)
+
+    def _shoot(self, basis, weights, tg: Targets, motions: list, state: RunState) -> None:
+        """Multiple-shooting path matching of ``motions``' weights, the basis fixed
+        (:func:`tflearn.fit.shooting.shooting_match`), the motions shared by the ranks;
+        ``weights`` changed in place."""
+        opts = self.cfg.solver.shooting.options(self.cfg.model.phases == "variable")
+        keys = shooting.keys_of(opts)
+        mine = [motions[i] for i in parallel.mine(len(motions))]
+        self.log.busy(shooting=len(motions))
+        rows = []
+        if mine:
+            res = shooting.shooting_match(self.body, basis, weights, tg, options=opts, sim=self.options,
+                                          motions=mine)
+            rows = [{"theta": x.tolist(), "loss": loss if loss < float("inf") else None,
+                     "failure": res.failures.get(tg.names[j])}
+                    for j, x, loss in zip(mine, weights.flat(keys)[mine], res.loss)]
+        rows = parallel.gather_motions(len(motions), rows)
+        weights.set_flat(keys, torch.tensor([r["theta"] for r in rows], dtype=torch.float64), motions)
+        state.history["shooting"] = {tg.names[j]: {k: r[k] for k in ("loss", "failure")}
+                                     for j, r in zip(motions, rows)}
 
     def _slsqp(self, state: RunState, tg: Targets):
         gen = self._gen(state)

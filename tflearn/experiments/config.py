@@ -43,8 +43,8 @@ class SlsqpSection(Section):
 
 class LocalSection(Section):
     """tflearn's local solver: EM steps, then path matching only where EM's relative
-    torque cost is ≤ ``path_gate`` (``path_steps`` and ``path_lr`` also serve the
-    weights-only path matching of ``filtering``)."""
+    torque cost is ≤ ``path_gate``. (Held-out synthesis in ``filtering`` and ``reaches``
+    takes ``train.solver.shooting``.)"""
 
     em_steps: int = Field(300, ge=0)
     em_tol: float = Field(1e-10, ge=0)

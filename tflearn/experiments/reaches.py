@@ -5,7 +5,7 @@ A basis is learned by the pipeline on a class of motions — minimum-jerk straig
 hand reaches from rest to targets spread over the space in front of the arm
 (:func:`reach_class`) — and a held-out reach of the same class is then played through
 it with the basis frozen: its weights by NNLS on its torques, then its weights and
-activation timing by path matching (:func:`tflearn.evaluate.synthesize`). Goal: the
+activation timing by multiple-shooting path matching (:func:`tflearn.evaluate.synthesize`). Goal: the
 held-out reach within 0.05 rad joint RMSE of its input. The hand paths' largest
 deviation from their chords (:func:`.filtering.straightness`) shows what the fields add.
 """
@@ -80,8 +80,8 @@ def run(cfg: ExperimentConfig) -> dict:
     lb = basis_io.load(learned["run"] / "basis.json")
     tg = prepare(body, [held])
     calls0, t0 = sim_mod.calls, time.perf_counter()
-    weights = synthesize(lb, tg, cfg.local.path_steps, cfg.local.path_lr, cfg.simulation.options(),
-                         phases=True)
+    weights = synthesize(lb, tg, cfg.train.solver.shooting.options(phases=True),
+                         cfg.simulation.options(), (cfg.success.rmse, cfg.success.tip))
     fit = {"basis": lb.basis, "weights": weights, "wall": time.perf_counter() - t0,
            "sims": sim_mod.calls - calls0}
     m = common.check(body, lb.basis, weights, tg, cfg)

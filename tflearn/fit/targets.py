@@ -56,11 +56,11 @@ class Targets:
         idx = torch.as_tensor(idx, dtype=torch.long)
         sub = {k: getattr(self, k)[idx] for k in ("t", "mask", "w", "wt", "q", "v", "tau", "duration",
                                                   "q0", "qd0")}
-        grid, index = _union_grid(sub["t"])
+        grid, index = union_grid(sub["t"])
         return Targets(names=[self.names[i] for i in idx.tolist()], grid=grid, index=index, **sub)
 
 
-def _union_grid(t: torch.Tensor):
+def union_grid(t: torch.Tensor):
     """The sorted union of all sample times (G) and each sample's index in it (N×T);
     times are compared to 1e-9 s."""
     return torch.unique(torch.round(t * 1e9) / 1e9, sorted=True, return_inverse=True)
@@ -140,7 +140,7 @@ def prepare(body: Body, motions: list, trim: int = 5) -> Targets:
         v[j, :k] = torch.as_tensor(m.qd, **z) if m.qd is not None else vel_j
         tau[j, :k] = tau_j
         q[j, k:], v[j, k:], tau[j, k:] = q[j, k - 1], v[j, k - 1], tau[j, k - 1]
-    grid, inverse = _union_grid(t)
+    grid, inverse = union_grid(t)
     duration = t.amax(-1)
     wt = w.clone()
     for j, m in enumerate(motions):

@@ -1,0 +1,160 @@
+"""Multiple-shooting Levenberg–Marquardt path matching (tflearn.fit.shooting).
+
+On a two-hinge chain driven by two known fields (one motion with a step and a pulse,
+one switched on in two windows): the segments tile every motion's samples; with one
+segment per motion the cost is the path loss of tflearn.fit.path; the batched
+forward-difference Jacobian gives the gradient that backpropagation through odeint
+gives; weights perturbed by up to 40 % are recovered to the generating values, and
+window onsets 50 ms late moved back; bounds hold; a motion that cannot be simulated stops alone and
+is named, while the others are fitted.
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from tflearn.body import chain
+from tflearn.fields import FieldBasis, FieldProgram, MotionWeights
+from tflearn.fit import path as path_fit
+from tflearn.fit import shooting, targets
+from tflearn.motion import Motion
+from tflearn.simulate import SimOptions, simulate
+
+DT = torch.float64
+TIGHT = SimOptions(rtol=1e-9, atol=1e-11, max_evals=50_000)
+
+
+def _truth():
+    eta = torch.tensor([[0.8, -0.5], [-0.4, 0.9]], dtype=DT)
+    basis = FieldBasis(eta, torch.stack([torch.diag(torch.tensor(k, dtype=DT))
+                                         for k in ([2.0, 1.5], [1.0, 2.5])]), kind="diag", damping=0.2)
+    weights = MotionWeights(torch.tensor([[3.0, 0.0], [0.0, 0.0]], dtype=DT),
+                            torch.tensor([[0.0, 2.0], [0.0, 0.0]], dtype=DT),
+                            torch.tensor([1.2, 1.0], dtype=DT), names=["step_pulse", "twice"],
+                            c=torch.tensor([[[0.0, 0.0], [0.0, 0.0]], [[4.0, 0.0], [0.0, 3.0]]], dtype=DT),
+                            window_onset=torch.tensor([[0.0, 0.6], [0.0, 0.45]], dtype=DT),
+                            window_duration=torch.tensor([[0.6, 0.6], [0.55, 0.55]], dtype=DT))
+    return basis, weights
+
+
+@pytest.fixture(scope="module")
+def problem():
+    """(body, basis, generating weights, targets): two motions of 1.2 s and 1.0 s at 50 Hz."""
+    body = chain(2, "hinge")
+    basis, weights = _truth()
+    for p in basis.parameters():
+        p.requires_grad_(False)
+    t = torch.arange(61, dtype=DT) / 50
+    q0 = torch.zeros(2, 2, dtype=DT)
+    with torch.no_grad():
+        tr = simulate(body, FieldProgram(basis, weights), q0, q0, t,
+                      SimOptions(method="dopri8", rtol=1e-12, atol=1e-12, solver_options={"step_t": t[1:]}))
+    motions = [Motion("step_pulse", t, tr.q[0], tr.v[0], body=body),
+               Motion("twice", t[:51], tr.q[1, :51], tr.v[1, :51], body=body)]
+    return body, basis, weights, targets.prepare(body, motions)
+
+
+def _perturbed(weights, scale=0.4, shift=0.0, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    w = weights.select_motions([0, 1])
+    with torch.no_grad():
+        for p in (w.a_raw, w.b_raw, w.c_raw):
+            p.mul_(1 + scale * (2 * torch.rand(p.shape, generator=g, dtype=DT) - 1))
+        w.window_onset.add_(shift)
+    return w
+
+
+def test_segments_tile_every_motion(problem):
+    body, basis, weights, tg = problem
+    for h in (0.1, 0.25, 0.5, 5.0):
+        seg = shooting.segments(tg, h)
+        for j in range(tg.N):
+            L = int(tg.mask[j].sum())
+            rows = seg.motion == j
+            assert int(rows.sum()) == (math.ceil((L - 1) / round(h * 50)) if h < 1 else 1)
+            # every sample but the first is a residual of exactly one segment, with its
+            # trapezoid weight over the duration
+            counted = torch.zeros(L, dtype=DT).index_add_(0, seg.sample[rows].flatten(),
+                                                         seg.weight[rows].flatten())
+            want = tg.w[j, :L] / tg.duration[j]
+            assert torch.allclose(counted[1:], want[1:], rtol=1e-14) and counted[0] == 0
+            # each segment starts on the target's own state at its first sample
+            assert torch.equal(seg.q0[rows], tg.q[j, seg.sample[rows, 0]])
+            assert torch.allclose(seg.t0[rows], tg.t[j, seg.sample[rows, 0]])
+
+
+def test_one_segment_per_motion_is_the_path_loss(problem):
+    body, basis, weights, tg = problem
+    w = _perturbed(weights)
+    prob = shooting._Problem(body, basis, w, tg, shooting.WEIGHTS, shooting.ShootingOptions(), TIGHT)
+    cost = prob.cost(w.flat(shooting.WEIGHTS), 10.0, [0, 1])
+    with torch.no_grad():
+        q, v = targets.simulate_targets(body, basis, w, tg, TIGHT)
+        loss = path_fit.path_loss(body, q, v, tg, velocity_weight=0.1)
+    print("costs", cost.tolist(), "path losses", loss.tolist())
+    assert float(loss.min()) > 1e-3
+    assert torch.allclose(cost, loss, rtol=1e-7)
+
+
+def test_jacobian_gives_the_backpropagated_gradient(problem):
+    """2 Jᵀr from the batched forward differences = ∂(Σ_j L_j)/∂(a, b, c) by
+    backpropagation through odeint, single shooting, to 1e-5 relative."""
+    body, basis, weights, tg = problem
+    w = _perturbed(weights, seed=1)
+    prob = shooting._Problem(body, basis, w, tg, shooting.WEIGHTS, shooting.ShootingOptions(), TIGHT)
+    _, Jtr = prob.normal_equations(w.flat(shooting.WEIGHTS), 10.0, [0, 1])
+    q, v = targets.simulate_targets(body, basis, w, tg, TIGHT)
+    path_fit.path_loss(body, q, v, tg, velocity_weight=0.1).sum().backward()
+    grad = torch.cat([p.grad.reshape(2, -1) for p in (w.a_raw, w.b_raw, w.c_raw)], dim=-1)
+    print("max |2Jᵀr − grad| / max |grad|:", float((2 * Jtr - grad).abs().max() / grad.abs().max()))
+    assert torch.allclose(2 * Jtr, grad, rtol=1e-5, atol=1e-5 * float(grad.abs().max()))
+
+
+def test_recovers_the_generating_weights(problem):
+    """From weights off by up to 40 %, the fit ends on the generating weights (to 1e-5)
+    with a path loss below 1e-9; the bounds a, b, c ≥ 0 hold (the zero weights stay
+    at or near zero)."""
+    body, basis, weights, tg = problem
+    w = _perturbed(weights)
+    start = path_fit.path_loss(body, *targets.simulate_targets(body, basis, w, tg), tg).detach()
+    res = shooting.shooting_match(body, basis, w, tg)
+    print("path loss", start.tolist(), "->", res.loss, "simulations", res.simulations)
+    assert float(start.min()) > 1e-3 and max(res.loss) < 1e-9 and not res.failures
+    for k in ("a", "b", "c"):
+        assert torch.allclose(getattr(w, k).detach(), getattr(weights, k).detach(), atol=1e-5), k
+    assert bool((w.a_raw >= 0).all() and (w.b_raw >= 0).all() and (w.c_raw >= 0).all())
+    assert [h["horizon"] for h in res.history][0] == 0.25 and res.history[-1]["horizon"] == 1.2
+
+
+def test_fits_the_timing_too(problem):
+    """With ``phases``, window onsets 50 ms late are moved back (to 2 ms) and the path
+    loss falls below 1e-9. (A step's weight and its duration trade off over a path this
+    short, so the weights are only matched to 1e-2 here.)"""
+    body, basis, weights, tg = problem
+    w = _perturbed(weights, shift=0.05)
+    res = shooting.shooting_match(body, basis, w, tg, options=shooting.ShootingOptions(
+        phases=True, iterations=8, horizon=0.2))
+    print("path loss", res.loss, "onsets", w.window_onset.tolist())
+    assert max(res.loss) < 1e-9 and not res.failures
+    assert torch.allclose(w.window_onset[1].detach(), weights.window_onset[1], atol=2e-3)
+    assert torch.allclose(w.c.detach(), weights.c.detach(), atol=1e-2)
+    assert bool((w.window_duration >= 1e-2).all() and (w.step_duration >= 1e-2).all())
+
+
+def test_a_motion_that_cannot_be_simulated_stops_alone(problem):
+    """A motion driven a million times harder runs past the simulation budget: it is
+    named in the failures with its reason and its weights are kept, and the other motion
+    is still fitted."""
+    body, basis, weights, tg = problem
+    w = _perturbed(weights)
+    with torch.no_grad():
+        w.a_raw[1] = 1e6
+    before = w.a_raw[1].detach().clone()
+    res = shooting.shooting_match(body, basis, w, tg, options=shooting.ShootingOptions(iterations=4),
+                                  sim=SimOptions(rtol=1e-8, atol=1e-10, max_evals=3000))
+    print(res.failures, res.loss)
+    assert list(res.failures) == ["twice"] and "simulated" in res.failures["twice"]
+    assert math.isinf(res.loss[1]) and res.loss[0] < 1e-8
+    assert torch.equal(w.a_raw[1].detach(), before)

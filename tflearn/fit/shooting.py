@@ -1,0 +1,328 @@
+"""Path matching of each motion's activations by multiple shooting and Levenberg–Marquardt.
+
+With the basis fixed, motion j's path depends on its own parameters θ_j only (its
+weights a, b, c and, optionally, its activation timing), so the problem splits into one
+small least-squares problem per motion.
+
+**Segments.** Motion j is cut every K_j = max(1, round(h·rate_j)) samples; segment s
+starts at the target's own state (q, v) at its first sample k_s and is simulated to
+sample k_s + K_j under the motion's program at the motion's own time t_{k_s} + τ
+(:class:`~tflearn.fields.FieldProgram`'s ``start``). Its residuals at every sample but
+its first are
+
+    r = √(w_t / λ_j) · [e_t ;  √β (v_sim,t − v_target,t)],    e_t = q_sim,t ⊖ q_target,t
+
+(w_t the trapezoid weights, λ_j the duration), so that Σ r² is the path loss of
+:func:`tflearn.fit.path.path_loss` with each segment restarted on the target. Drift
+cannot build up over a short segment, so the residuals stay nearly linear in θ.
+
+**Horizon.** Segments start at h = ``ShootingOptions.horizon`` and double, joining
+pairwise, until one segment spans each motion: the last stage minimises the path loss
+itself (single shooting) from a point found where the problem was well-conditioned.
+
+**Steps.** At each stage, Levenberg–Marquardt with Marquardt's scaling: δ solves
+(JᵀJ + μ diag(JᵀJ)) δ = −Jᵀr over the parameters not held at a bound (a, b, c ≥ 0,
+durations ≥ 10 ms; a parameter at its bound whose gradient points out stays there), the
+step is projected onto the bounds and kept if it lowers the motion's cost (μ ÷ 3), else
+μ × 4 and the step is tried again. Every motion has its own μ and its own decisions.
+
+**Jacobian.** Forward differences of D + 1 copies of every segment (D = len(θ_j)),
+simulated in one batch: the copies share every step of the adaptive solver, so their
+differences are those of one discrete map — no step-size noise — and agree with
+backpropagation through ``odeint`` (tests/test_shooting.py). One simulation per
+Jacobian, whatever the number of motions.
+
+**Never worse.** A motion whose path loss (single shooting) ends above where it started
+— the short horizons minimise a different cost — gets its starting parameters back.
+
+**Failures** are data: a simulation that fails rejects the step (as a larger μ) for the
+motions of its batch, which are then simulated one by one so that one motion's failure
+does not stop the others; a motion whose Jacobian cannot be simulated stops where it is,
+and :attr:`ShootingResult.failures` says why.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import torch
+
+from ..body import Body
+from ..configspace import difference
+from ..fields import FieldBasis, FieldProgram, MotionWeights
+from ..simulate import SimOptions, SimulationFailed, simulate
+from .targets import Targets, union_grid
+
+WEIGHTS = ("a_raw", "b_raw", "c_raw")
+TIMING = MotionWeights.TIMING + MotionWeights.WINDOWS
+_DURATIONS = ("step_duration", "pulse_duration", "window_duration")
+
+
+@dataclass(frozen=True)
+class ShootingOptions:
+    """horizon: the first segments' length h (s), doubled at each stage until one segment
+    spans each motion; iterations: Levenberg–Marquardt iterations per stage (a motion
+    leaves a stage sooner once its cost falls by less than ``tol`` relatively in an
+    iteration, or is below ``floor`` (rad²: a path RMSE of 1e-5 rad)); phases: also fit
+    each motion's activation timing (onsets and durations of its steps, pulses and
+    windows); velocity_weight: β; mu: the initial damping; step: the relative
+    forward-difference step."""
+
+    horizon: float = 0.25
+    iterations: int = 6
+    tol: float = 1e-3
+    floor: float = 1e-10
+    phases: bool = False
+    velocity_weight: float = 0.1
+    mu: float = 1e-3
+    step: float = 1e-6
+
+
+@dataclass
+class ShootingResult:
+    """loss: each motion's path loss at the end (single shooting, N; ∞ where it cannot be
+    simulated); history: one row per Levenberg–Marquardt iteration, {"horizon", "cost"
+    (N, the stage's multiple-shooting cost)}; failures: {motion name: why it stopped
+    early}; simulations: how many batched simulations were run."""
+
+    loss: list
+    history: list = field(default_factory=list)
+    failures: dict = field(default_factory=dict)
+    simulations: int = 0
+
+
+@dataclass
+class _Segments:
+    """The segments of one stage: motion (B), start time t0 (B), initial state q0, v0
+    (B×n), sample index (B×(K+1)) into the motion's samples, residual weight (B×(K+1):
+    0 at each segment's first sample and past the motion's end), local grid (G) and each
+    sample's position in it (B×(K+1))."""
+
+    motion: torch.Tensor
+    t0: torch.Tensor
+    q0: torch.Tensor
+    v0: torch.Tensor
+    sample: torch.Tensor
+    weight: torch.Tensor
+    grid: torch.Tensor
+    index: torch.Tensor
+
+
+def segments(tg: Targets, horizon: float, motions=None) -> _Segments:
+    """The multiple-shooting segments of length ``horizon`` (s) of ``motions`` (indices,
+    default all), see the module docstring."""
+    motions = range(tg.N) if motions is None else motions
+    rows = []
+    for j in motions:
+        L = int(tg.mask[j].sum())
+        K = max(1, min(L - 1, round(horizon * float(tg.rate[j]))))
+        rows += [(j, k0, K) for k0 in range(0, L - 1, K)]
+    K = max(r[2] for r in rows)
+    motion = torch.tensor([r[0] for r in rows])
+    k0 = torch.tensor([r[1] for r in rows])
+    offset = torch.arange(K + 1)
+    length = torch.tensor([min(r[2], int(tg.mask[r[0]].sum()) - 1 - r[1]) for r in rows])
+    sample = k0[:, None] + offset.clamp(max=length[:, None])           # B×(K+1), clamped at the end
+    inside = (offset > 0) & (offset <= length[:, None])
+    weight = torch.where(inside, tg.w[motion[:, None], sample], torch.zeros(()))
+    weight = weight / tg.duration[motion, None]
+    t0 = tg.t[motion, k0]
+    grid, index = union_grid(tg.t[motion[:, None], sample] - t0[:, None])
+    return _Segments(motion, t0, tg.q[motion, k0], tg.v[motion, k0], sample, weight, grid, index)
+
+
+def _simulate(body, basis, weights: MotionWeights, seg: _Segments, options: SimOptions,
+              copies: int = 1):
+    """(q, v) of every segment (copies·B × (K+1) × n) under ``weights``, whose rows are
+    copy c's motion of segment b at row c·B + b; raises SimulationFailed."""
+    rep = lambda x: x.repeat((copies,) + (1,) * (x.ndim - 1))
+    program = FieldProgram(basis, weights, start=rep(seg.t0))
+    tr = simulate(body, program, rep(seg.q0), rep(seg.v0), seg.grid, options)
+    idx = rep(seg.index).unsqueeze(-1).expand(-1, -1, body.nv)
+    return tr.q.gather(1, idx), tr.v.gather(1, idx)
+
+
+def _residuals(body, tg: Targets, seg: _Segments, q, v, beta: float) -> torch.Tensor:
+    """r (…×B×R) for simulated (q, v) of the segments (…×B×(K+1)×n), see the module
+    docstring."""
+    e = difference(body, tg.q[seg.motion[:, None], seg.sample], q)
+    ev = v - tg.v[seg.motion[:, None], seg.sample]
+    s = seg.weight.sqrt().unsqueeze(-1)
+    return torch.cat([(s * e).flatten(-2), (math.sqrt(beta) * s * ev).flatten(-2)], dim=-1)
+
+
+class _Problem:
+    """The motions' parameters θ (N×D, the layout of :meth:`MotionWeights.flat` over
+    ``keys``), their bounds, and the simulations of segments at one θ."""
+
+    def __init__(self, body, basis, weights, tg, keys, opts: ShootingOptions, sim: SimOptions):
+        self.body, self.basis, self.weights, self.tg = body, basis, weights, tg
+        self.keys, self.opts, self.sim = keys, opts, sim
+        self.simulations = 0
+        layout = [(k, math.prod(getattr(weights, k).shape[1:])) for k in keys]
+        self.lower = torch.cat([torch.full((d,), 1e-2 if k in _DURATIONS else
+                                           (0.0 if k in WEIGHTS else -math.inf), dtype=torch.float64)
+                                for k, d in layout])
+
+    def _run(self, theta, seg: _Segments, rows, copies: int = 1):
+        """Residuals (copies × B × R) of the segments, row b of copy c under θ[c, rows[b]]
+        (theta: copies × n_m × D). Raises SimulationFailed."""
+        B = len(seg.motion)
+        flat = theta[:, rows].reshape(copies * B, -1)
+        w = self.weights.with_flat(self.keys, flat, seg.motion.repeat(copies))
+        self.simulations += 1
+        q, v = _simulate(self.body, self.basis, w, seg, self.sim, copies)
+        q, v = (x.reshape(copies, B, -1, self.body.nv) for x in (q, v))
+        return _residuals(self.body, self.tg, seg, q, v, self.opts.velocity_weight)
+
+    def cost(self, theta: torch.Tensor, h: float, motions: list) -> torch.Tensor:
+        """Each of ``motions``' multiple-shooting cost Σ r² at horizon h and θ
+        (len(motions)×D); ∞ for one whose simulation fails (the batch is then simulated
+        motion by motion)."""
+        seg = segments(self.tg, h, motions)
+        try:
+            r = self._run(theta[None], seg, _rows(seg, motions))[0]
+            return torch.zeros(len(motions), dtype=r.dtype).index_add_(0, _rows(seg, motions),
+                                                                        (r ** 2).sum(-1))
+        except SimulationFailed:
+            if len(motions) == 1:
+                return torch.tensor([math.inf], dtype=torch.float64)
+        return torch.cat([self.cost(theta[i:i + 1], h, [j]) for i, j in enumerate(motions)])
+
+    def normal_equations(self, theta: torch.Tensor, h: float, motions: list):
+        """(JᵀJ (n_m×D×D), Jᵀr (n_m×D)) of each motion at θ (n_m×D), J by forward
+        differences of D + 1 copies simulated in one batch. Raises SimulationFailed."""
+        D = theta.shape[1]
+        eps = self.opts.step * theta.abs().clamp_min(1.0)                 # n_m × D
+        copies = theta.unsqueeze(0).repeat(D + 1, 1, 1)                   # (D+1) × n_m × D
+        copies[1:] += torch.eye(D, dtype=theta.dtype)[:, None, :] * eps[None]
+        seg = segments(self.tg, h, motions)
+        rows = _rows(seg, motions)
+        r = self._run(copies, seg, rows, D + 1)                           # (D+1) × B × R
+        J = ((r[1:] - r[:1]) / eps[rows].T[:, :, None]).permute(1, 2, 0)  # B × R × D
+        JtJ = torch.zeros(len(motions), D, D, dtype=J.dtype).index_add_(0, rows, J.transpose(1, 2) @ J)
+        Jtr = torch.zeros(len(motions), D, dtype=J.dtype).index_add_(
+            0, rows, (J.transpose(1, 2) @ r[0][..., None])[..., 0])
+        return JtJ, Jtr
+
+
+def _rows(seg: _Segments, motions: list) -> torch.Tensor:
+    """Each segment's position in ``motions`` (B)."""
+    where = {j: i for i, j in enumerate(motions)}
+    return torch.tensor([where[int(j)] for j in seg.motion])
+
+
+def _lm_step(JtJ, Jtr, mu, theta, lower):
+    """The projected, damped Gauss–Newton step of each motion (see the module docstring)."""
+    free = ~((theta <= lower) & (Jtr > 0))                               # held at a bound otherwise
+    d = torch.diagonal(JtJ, dim1=-2, dim2=-1)
+    scale = torch.maximum(d, 1e-12 * d.amax(-1, keepdim=True).clamp_min(1e-300))
+    A = JtJ + torch.diag_embed(mu[:, None] * scale)
+    mask = free[:, :, None] & free[:, None, :]
+    A = torch.where(mask, A, torch.diag_embed(torch.ones_like(d)))
+    delta = -torch.linalg.solve(A, torch.where(free, Jtr, torch.zeros_like(Jtr))[..., None])[..., 0]
+    return torch.maximum(theta + torch.where(free, delta, torch.zeros_like(delta)), lower)
+
+
+def keys_of(options: ShootingOptions) -> tuple:
+    """The :class:`~tflearn.fields.MotionWeights` arrays that ``options`` fits."""
+    return WEIGHTS + (TIMING if options.phases else ())
+
+
+@torch.no_grad()
+def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets, *,
+                   options: ShootingOptions = ShootingOptions(),
+                   sim: SimOptions = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000),
+                   motions: Optional[list] = None,
+                   callback: Optional[Callable] = None) -> ShootingResult:
+    """Fit every motion's weights (and with ``options.phases`` its timing) to its path,
+    the basis fixed, by multiple shooting and Levenberg–Marquardt (module docstring).
+    ``motions``: fit these only (indices; the others are left as they are, and the
+    result's rows are these motions'). ``weights`` is changed in place;
+    ``callback(horizon, iteration, cost (N))`` is called after each iteration. Returns
+    a :class:`ShootingResult`."""
+    if motions is not None:
+        sub = weights.select_motions(motions)
+        result = shooting_match(body, basis, sub, tg.select(motions), options=options, sim=sim,
+                                callback=callback)
+        weights.set_flat(keys_of(options), sub.flat(keys_of(options)), motions)
+        return result
+    keys = keys_of(options)
+    prob = _Problem(body, basis, weights, tg, keys, options, sim)
+    theta = weights.flat(keys)
+    start, everyone = theta.clone(), list(range(tg.N))
+    longest = float(tg.duration.max())
+    before = prob.cost(theta, 2 * longest, everyone)
+    mu = torch.full((tg.N,), options.mu, dtype=torch.float64)
+    result, active = ShootingResult(loss=[]), [j for j in everyone if math.isfinite(float(before[j]))]
+    for j in set(everyone) - set(active):
+        result.failures[tg.names[j]] = "cannot be simulated from its starting weights"
+    h = min(options.horizon, longest)
+    while active:
+        _stage(prob, theta, mu, h, active, result, callback)
+        if h >= longest:
+            break
+        h = min(2 * h, longest)
+    after = prob.cost(theta, 2 * longest, everyone)
+    worse = ~(after <= before)                         # never end further from the path
+    theta[worse], after[worse] = start[worse], before[worse]
+    weights.set_flat(keys, theta, everyone)
+    result.loss, result.simulations = after.tolist(), prob.simulations
+    return result
+
+
+def _normal_equations(prob: _Problem, theta, h, active: list, result: ShootingResult):
+    """JᵀJ, Jᵀr of the ``active`` motions; if their batch cannot be simulated, motion by
+    motion, and a motion that still cannot is removed from ``active`` with its reason."""
+    try:
+        return prob.normal_equations(theta[active], h, active)
+    except SimulationFailed as err:
+        if len(active) == 1:
+            result.failures[prob.tg.names[active.pop()]] = f"Jacobian not simulated: {err}"
+            return None
+    parts = []
+    for j in list(active):
+        try:
+            parts.append(prob.normal_equations(theta[[j]], h, [j]))
+        except SimulationFailed as err:
+            result.failures[prob.tg.names[j]] = f"Jacobian not simulated: {err}"
+            active.remove(j)
+    return (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])) if parts else None
+
+
+def _stage(prob: _Problem, theta, mu, h, active: list, result: ShootingResult, callback):
+    """The Levenberg–Marquardt iterations of one horizon on the ``active`` motions
+    (θ, μ and ``active`` are updated in place)."""
+    tg = prob.tg
+    cost = torch.full((tg.N,), math.inf, dtype=torch.float64)
+    cost[active] = prob.cost(theta[active], h, active)
+    for j in [j for j in active if not math.isfinite(float(cost[j]))]:
+        result.failures[tg.names[j]] = f"cannot be simulated at horizon {h:.3g} s"
+        active.remove(j)
+    todo_stage = [j for j in active if float(cost[j]) > prob.opts.floor]
+    for it in range(prob.opts.iterations):
+        normal = _normal_equations(prob, theta, h, todo_stage, result) if todo_stage else None
+        if normal is None:
+            break
+        JtJ, Jtr = normal
+        old = cost[todo_stage].clone()
+        todo = list(range(len(todo_stage)))
+        for _ in range(8):                       # μ × 4 for the motions not yet improved
+            idx = [todo_stage[i] for i in todo]
+            trial = _lm_step(JtJ[todo], Jtr[todo], mu[idx], theta[idx], prob.lower)
+            c = prob.cost(trial, h, idx)
+            for i, j, cj, th in zip(list(todo), idx, c.tolist(), trial):
+                if cj < float(cost[j]):
+                    theta[j], cost[j], mu[j] = th, cj, mu[j] / 3
+                    todo.remove(i)
+                else:
+                    mu[j] *= 4
+            if not todo:
+                break
+        result.history.append({"horizon": h, "cost": cost.tolist()})
+        if callback:
+            callback(h, it, cost.clone())
+        todo_stage = [j for j, o in zip(todo_stage, old.tolist())
+                      if o - float(cost[j]) > prob.opts.tol * o and float(cost[j]) > prob.opts.floor]
+    active[:] = [j for j in active if tg.names[j] not in result.failures]
