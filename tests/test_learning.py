@@ -16,9 +16,9 @@ import torch
 from torch.autograd import gradcheck
 from torch.func import functional_call
 
-from tflearn import config, data, evaluate, gestures, metrics, train
+from tflearn import config, data, gestures, metrics, train
 from tflearn import motion as motion_mod
-from tflearn.fields import FieldBasis, MotionWeights, model_from_state, model_state
+from tflearn.fields import FieldBasis, MotionWeights, model_from_state
 from tflearn.fit import path as path_fit
 from tflearn.fit import targets, torque
 from tflearn.io import basis as bio
@@ -373,42 +373,6 @@ def test_training_warns_of_an_unresolved_motion():
         eps = data.check_resolution(None, [twist("slow", 1.0), twist("fast", 25.0)])
     assert len(record) == 1
     assert eps[0] < motion_mod.RESOLVED < eps[1]
-
-
-def test_path_stage_starts_with_multiple_shooting(run_dir, tmp_path, monkeypatch):
-    """With a bar no fit meets (1e-6 rad, 1 µm), the path stage takes every motion
-    (one field per motion, no Adam steps): multiple shooting gets the model that
-    elimination left and lowers every motion's path loss (measured 0.65 → 0.061 and
-    0.00085 → 0.00061 in two iterations per horizon); history.shooting records the loss
-    that basis.json's weights give."""
-    seen = {}
-    shoot = train.Run._shoot
-
-    def spy(self, basis, weights, tg, motions, state):
-        seen.update(model=model_state(basis, weights), motions=list(motions), tg=tg)
-        return shoot(self, basis, weights, tg, motions, state)
-    monkeypatch.setattr(train.Run, "_shoot", spy)
-    cfg = small_config(run_dir["data"], tmp_path / "run", "success.rmse=1e-6", "success.tip=1e-6",
-                       "solver.each.max_fields=1",
-                       "solver.path.steps=0", "solver.shooting.iterations=2")
-    metrics = train.run(cfg)
-    lb, tg = bio.load(tmp_path / "run" / "basis.json"), seen["tg"]
-    basis, before_w = model_from_state(seen["model"])
-
-    def losses(weights):
-        with torch.no_grad():
-            q, v = targets.simulate_targets(lb.body, lb.basis, weights, tg, cfg.solver.path.options())
-            return path_fit.path_loss(lb.body, q, v, tg, cfg.solver.shooting.velocity_weight).tolist()
-    after = losses(evaluate.weights_for(lb, tg))
-    before = losses(before_w)
-    print("path loss before shooting", before, "after", after)
-    assert seen["motions"] == list(range(tg.N))
-    recorded = metrics["history"]["shooting"]
-    assert sorted(recorded) == sorted(tg.names)
-    for name, b, a in zip(tg.names, before, after):
-        assert a < 0.9 * b, name
-        assert recorded[name]["failure"] is None
-        assert recorded[name]["loss"] == pytest.approx(a, rel=1e-3), name
 
 
 def test_slsqp_baseline_run(run_dir, tmp_path):
