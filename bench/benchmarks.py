@@ -3,6 +3,8 @@
     python bench/benchmarks.py --ref 607d0dd --launcher "torchrun --standalone --nproc-per-node 2"
                                                         # run everything (~30 min on 2 cores)
     python bench/benchmarks.py --ref 607d0dd --reuse    # rewrite the page from docs/benchmarks/*.json
+    python bench/benchmarks.py --ref 607d0dd --only main_job,scale --variant solver.path.batch=shared
+                                                        # rerun two, reuse the others
 
 Runs ``bench/dynamics.py``, ``bench/main_job.py``, ``bench/path_step.py`` and
 ``bench/scale.py`` (each in its own process, one after another), keeps their JSON in
@@ -104,7 +106,8 @@ def main_job_section(d: dict) -> list:
     names = {"reference": f"at {d['ref']}", "current": f"at {d['commit']}",
              "launcher": f"at {d['commit']}, `{d.get('launcher')}`"}
     for key, r in d["runs"].items():
-        lines.append(f"| {names[key]} | {r['wall_s']:.1f} s | {r.get('speedup', 1.0):.2f}× | {r['M']} | "
+        name = names.get(key) or f"at {d['commit']}, `{key.removeprefix('variant ')}`"
+        lines.append(f"| {name} | {r['wall_s']:.1f} s | {r.get('speedup', 1.0):.2f}× | {r['M']} | "
                      f"{r['reproduced']}/{r['motions']} | {r['worst_rmse_rad']:.4f} | "
                      f"{100 * r['worst_tip_m']:.2f} | "
                      f"{'–' if key == 'reference' else format(r['basis_max_difference'], '.2g')} |")
@@ -130,21 +133,30 @@ def path_section(d: dict) -> list:
 
 def scale_section(d: dict) -> list:
     lines = heading("Pooled work against the number of motions",
-                    "`bench/scale.py`: N random supported programs, the model held at M = 7 fields; "
-                    "one EM step (NNLS weights of every motion and one Levenberg–Marquardt step on "
-                    "the shared fields) and one batched scoring simulation of all N motions.",
-                    ["motions N", "samples", "EM step", "scoring simulation", "peak memory"])
+                    "`bench/scale.py`: N random supported programs (made by one batch of per-motion "
+                    "steps), the model held at M = 7 fields; one EM step (NNLS weights of every "
+                    "motion and one Levenberg–Marquardt step on the shared fields) and one batched "
+                    "scoring simulation of all N motions, its batch stepped together (*shared*, "
+                    "torchdiffeq's dopri5) and each motion on its own steps (*each*, "
+                    "`tflearn.ode`), at the pipeline's default tolerances"
+                    + (f"; at commit {d['commit']}." if d.get("commit") else "."),
+                    ["motions N", "samples", "making the motions", "EM step", "scoring, shared",
+                     "scoring, each", "peak memory"])
     for r in d["rows"]:
         if "error" in r:
-            lines.append(f"| {r['motions']:,} | | not measured: making the motions (one batched "
-                         f"simulation of the programs) failed — {r['error']} | | |")
+            lines.append(f"| {r['motions']:,} | | not measured: {r['error']} | | | | |")
             continue
-        lines.append(f"| {r['motions']:,} | {r['samples']:,} | {r['em_step_s']:.2f} s | "
-                     f"{r['score_s']:.1f} s | {r['max_rss_mb'] / 1024:.1f} GiB |")
+        score = {b: (f"{r[f'score_{b}_s']:.1f} s" if f"score_{b}_s" in r else "–")
+                 + ("" if not r.get(f"failed_{b}") else f" ({r[f'failed_{b}']} failed)"
+                    if isinstance(r[f"failed_{b}"], int) else f" (failed: {r[f'failed_{b}']})")
+                 for b in ("shared", "each")}
+        lines.append(f"| {r['motions']:,} | {r['samples']:,} | {r['generate_s']:.1f} s | "
+                     f"{r['em_step_s']:.2f} s | {score['shared']} | {score['each']} | "
+                     f"{r['max_rss_mb'] / 1024:.1f} GiB |")
     if "exponents" in d:
         e = d["exponents"]
-        lines += ["", f"Fitted exponents (cost ∝ N^p): EM step p = {e['em_step_s']:.2f}, "
-                  f"scoring p = {e['score_s']:.2f}."]
+        lines += ["", "Fitted exponents (cost ∝ N^p): " + ", ".join(
+            f"{k.removesuffix('_s').replace('_', ' ')} p = {v:.2f}" for k, v in e.items()) + "."]
     return lines + [""]
 
 
@@ -157,15 +169,22 @@ def main(argv=None) -> int:
     p.add_argument("--path-methods", default="dopri5")
     p.add_argument("--path-timeout", default="300")
     p.add_argument("--scale-sizes", default="10,30,100")
+    p.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
+                   help="passed to bench/main_job.py")
+    p.add_argument("--only", help="rerun only these benchmarks (comma-separated of "
+                                  "dynamics,main_job,path_step,scale), reusing the others' JSON")
     args = p.parse_args(argv)
     DATA.mkdir(parents=True, exist_ok=True)
-    if not args.reuse:
-        run("dynamics.py", "--ref", args.ref, "--out", str(DATA / "dynamics.json"))
-        run("main_job.py", "--ref", args.ref, "--out", str(DATA / "main_job.json"),
-            *(["--launcher", args.launcher] if args.launcher else []))
-        run("path_step.py", "--sizes", args.path_sizes, "--methods", args.path_methods,
-            "--timeout", args.path_timeout, "--out", str(DATA / "path_step.json"))
-        run("scale.py", "--sizes", args.scale_sizes, "--out", str(DATA / "scale.json"))
+    benches = {
+        "dynamics": ("--ref", args.ref),
+        "main_job": ("--ref", args.ref, *(["--launcher", args.launcher] if args.launcher else []),
+                     *(x for v in args.variant for x in ("--variant", v))),
+        "path_step": ("--sizes", args.path_sizes, "--methods", args.path_methods,
+                      "--timeout", args.path_timeout),
+        "scale": ("--sizes", args.scale_sizes)}
+    chosen = [] if args.reuse else (args.only.split(",") if args.only else list(benches))
+    for name in chosen:
+        run(f"{name}.py", *benches[name], "--out", str(DATA / f"{name}.json"))
     dyn = json.loads((DATA / "dynamics.json").read_text())
     lines = ["# Benchmarks", "",
              "Measured by `python bench/benchmarks.py --ref " + args.ref + "` (raw results in "

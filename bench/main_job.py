@@ -6,7 +6,8 @@ agree.
 Each run is a fresh process in its own output folder (progress bars off); the earlier
 revision runs from a temporary git worktree with that tree first on the Python path.
 ``--launcher`` prefixes the current tree's command (e.g. ``"torchrun --nproc-per-node 2"``
-for a distributed run, when the package supports it) and adds that as a third run.
+for a distributed run, when the package supports it) and adds that as a third run;
+each ``--variant KEY=VALUE`` adds a run of the current tree with that config override.
 
     python bench/main_job.py --ref 607d0dd --out runs/bench/main_job.json
 """
@@ -25,11 +26,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_train(tree: Path, out: Path, prefix=()) -> dict:
-    """Run the main job of ``tree`` into ``out``; wall time and the run's metrics."""
+def run_train(tree: Path, out: Path, prefix=(), overrides=()) -> dict:
+    """Run the main job of ``tree`` into ``out`` (with config ``overrides``); wall time
+    and the run's metrics."""
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
     cmd = [*prefix, "-m", "tflearn.cli"] if prefix else [sys.executable, "-m", "tflearn.cli"]
-    cmd += ["train", "configs/gestures.yaml", f"out={out}", "log.progress=false"]
+    cmd += ["train", "configs/gestures.yaml", f"out={out}", "log.progress=false", *overrides]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, env=env, cwd=tree, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - t0
@@ -64,6 +66,8 @@ def main(argv=None) -> int:
     p.add_argument("--ref", required=True, help="the earlier git revision")
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--launcher", help="a command prefix for a third run of the current tree")
+    p.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
+                   help="one more run of the current tree with this config override (repeatable)")
     args = p.parse_args(argv)
     runs = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -76,6 +80,8 @@ def main(argv=None) -> int:
             runs["current"] = run_train(ROOT, tmp / "run-now")
             if args.launcher:
                 runs["launcher"] = run_train(ROOT, tmp / "run-launcher", shlex.split(args.launcher))
+            for i, v in enumerate(args.variant):
+                runs[f"variant {v}"] = run_train(ROOT, tmp / f"run-variant{i}", overrides=[v])
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(ref_tree)],
                            check=True, capture_output=True)

@@ -1,8 +1,10 @@
 """How the pipeline's pooled work grows with the number of motions N: the cost of one EM
 step (NNLS weights for every motion + one Levenberg–Marquardt step on the shared fields)
-and of scoring every motion by one batched simulation, for N random supported programs
-(:func:`tflearn.gestures.random_gestures`, sampled at 100 Hz), with the fitted exponent
-of each (cost ∝ N^p by least squares on log–log).
+and of scoring every motion by one batched simulation — its batch stepped together
+(``SimOptions.batch`` ``shared``, torchdiffeq) and each motion on its own steps
+(``each``) — for N random supported programs (:func:`tflearn.gestures.random_gestures`,
+made by one batch of per-motion steps at rtol = atol = 1e-10 and sampled at 100 Hz), with
+the fitted exponent of each (cost ∝ N^p by least squares on log–log).
 
 The model is held fixed in size — the gesture library's M = 7 fields — so that only N
 changes; the per-motion stage (``each``) fits every motion alone, so its cost is linear
@@ -16,16 +18,17 @@ import argparse
 import json
 import math
 import resource
+import subprocess
 import sys
 import time
 from pathlib import Path
 
 import torch
 
-from tflearn.simulate import SimulationFailed
+from tflearn.simulate import SimOptions, SimulationFailed
 
 
-def measure(n: int, seed: int) -> dict:
+def measure(n: int, seed: int, batches: list) -> dict:
     from tflearn import gestures
     from tflearn.body import arm
     from tflearn.fields import MotionWeights
@@ -36,7 +39,8 @@ def measure(n: int, seed: int) -> dict:
     body = arm()
     programs = gestures.random_gestures(n, seed=seed)
     t0 = time.perf_counter()
-    motions = [m for m, _ in gestures.generate(body, gestures=programs)]
+    making = SimOptions(rtol=1e-10, atol=1e-10, max_evals=None, batch="each")
+    motions = [m for m, _ in gestures.generate(body, gestures=programs, options=making)]
     generate = time.perf_counter() - t0
     tg = prepare(body, motions)
     basis, _, _ = gestures.library_model(body=body)
@@ -45,13 +49,17 @@ def measure(n: int, seed: int) -> dict:
     t0 = time.perf_counter()
     torque.em(basis, weights, tg, steps=1, tol=0.0)
     em_step = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    scores = score(body, basis, weights, tg)
-    scoring = time.perf_counter() - t0
-    return {"motions": n, "samples": int(tg.mask.sum()), "generate_s": generate,
-            "em_step_s": em_step, "score_s": scoring,
-            "failed_simulations": sum(f is not None for f in scores.failure),
-            "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    row = {"motions": n, "samples": int(tg.mask.sum()), "generate_s": generate, "em_step_s": em_step}
+    for batch in batches:
+        t0 = time.perf_counter()
+        try:
+            scores = score(body, basis, weights, tg, SimOptions(batch=batch))
+            row[f"failed_{batch}"] = sum(f is not None for f in scores.failure)
+        except SimulationFailed as err:
+            row[f"failed_{batch}"] = str(err)
+        row[f"score_{batch}_s"] = time.perf_counter() - t0
+    row["max_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return row
 
 
 def exponent(rows: list, key: str) -> float:
@@ -66,20 +74,25 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", default="10,30,100,300,1000")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch", default="shared,each",
+                   help="how the scoring simulation steps its batch (SimOptions.batch), each measured")
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     rows = []
     for n in (int(x) for x in args.sizes.split(",")):
         try:
-            rows.append(measure(n, args.seed))
+            rows.append(measure(n, args.seed, args.batch.split(",")))
         except SimulationFailed as err:            # one stiff program stops a whole batch
             rows.append({"motions": n, "error": str(err)})
         print(json.dumps(rows[-1]), flush=True)
-    doc = {"rows": rows}
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+    doc = {"commit": commit, "rows": rows}
     done = [r for r in rows if "error" not in r]
     if len(done) > 1:
-        doc["exponents"] = {k: exponent(done, k) for k in ("em_step_s", "score_s")}
+        keys = ["generate_s", "em_step_s"] + [k for k in done[0] if k.startswith("score_")]
+        doc["exponents"] = {k: exponent(done, k) for k in keys}
         print(json.dumps(doc["exponents"]))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -90,15 +90,21 @@ def test_select_simulates_on_its_own_grid(pair):
     assert torch.equal(one.grid[one.index[0]], one.t[0])
 
 
-def test_one_failing_motion_leaves_the_others_scored(pair):
-    """tuck's weights ×10⁴ make its simulation run past the budget; come_here is still
-    scored, exactly as it scores alone, and only tuck is reported failed."""
+@pytest.mark.parametrize("batch", ["shared", "each"])
+def test_one_failing_motion_leaves_the_others_scored(pair, batch):
+    """tuck's weights ×10⁴ make its simulation run past the budget (5000 right-hand
+    sides; come_here needs about 1600); come_here is still scored, exactly as it scores
+    alone, and only tuck is reported failed — with a batch stepped together (simulated
+    again motion by motion) and with each motion stepped alone in it (one simulation)."""
     body, basis, weights, tg = pair
     wild = weights.select_motions([0, 1])
     with torch.no_grad():
         wild.a_raw[1] *= 1e4
-    s = metrics.score(body, basis, wild, tg, OPTS)
-    alone = metrics.score(body, basis, weights.select_motions([0]), tg.select([0]), OPTS)
+    opts = S.SimOptions(rtol=1e-7, atol=1e-9, max_evals=5000, batch=batch)
+    calls = S.calls
+    s = metrics.score(body, basis, wild, tg, opts)
+    assert S.calls - calls == (3 if batch == "shared" else 1)
+    alone = metrics.score(body, basis, weights.select_motions([0]), tg.select([0]), opts)
     assert s.failure[0] is None and "budget" in s.failure[1]
     assert s.rmse[0] == alone.rmse[0] and s.tip[0] == alone.tip[0]
     assert s.rmse[0] < 1e-3 and s.rmse[1] == float("inf")

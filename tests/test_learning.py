@@ -49,16 +49,23 @@ def write_motions(folder: Path, programs, rate: float = 100.0, resolved: bool = 
     gestures.write(folder, rate=rate, plots=False, gestures=programs, resolved=resolved)
 
 
-def small_run(tmp_path_factory) -> dict:
-    """The shared small run: {"data", "out", "programs"} (trained on first use)."""
-    base = tmp_path_factory.getbasetemp() / "tflearn_small_run"
-    data, out = base / "data", base / "run"
+def small_data(tmp_path_factory) -> dict:
+    """The shared small run's motions: {"data", "programs"} (written on first use)."""
+    data = tmp_path_factory.getbasetemp() / "tflearn_small_run" / "data"
     programs = gestures.random_gestures(SMALL_GESTURES["count"], seed=SMALL_GESTURES["seed"],
                                         ranges=SMALL_GESTURES["ranges"])
-    if not (out / "metrics.json").exists():
+    if not data.exists():
         write_motions(data, programs)
-        train.run(small_config(data, out))
-    return {"data": data, "out": out, "programs": programs}
+    return {"data": data, "programs": programs}
+
+
+def small_run(tmp_path_factory) -> dict:
+    """The shared small run: {"data", "out", "programs"} (trained on first use)."""
+    run = small_data(tmp_path_factory)
+    out = run["data"].parent / "run"
+    if not (out / "metrics.json").exists():
+        train.run(small_config(run["data"], out))
+    return {**run, "out": out}
 
 
 @pytest.fixture(scope="module")

@@ -24,15 +24,15 @@ from tflearn.io import basis as bio
 from tflearn.motion import Motion
 from tflearn.simulate import SimOptions, simulate
 
-from test_learning import small_config, small_run
+from test_learning import small_config, small_data
 
 DT = torch.float64
 TIGHT = SimOptions(rtol=1e-9, atol=1e-11, max_evals=50_000)
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    return small_run(tmp_path_factory)       # the run shared with test_learning.py
+def small_motions(tmp_path_factory):
+    return small_data(tmp_path_factory)      # the motions of the run shared with test_learning.py
 
 
 def _truth():
@@ -169,11 +169,11 @@ def test_a_motion_that_cannot_be_simulated_stops_alone(problem):
     assert torch.equal(w.a_raw[1].detach(), before)
 
 
-def test_path_stage_starts_with_multiple_shooting(run_dir, tmp_path, monkeypatch):
+def test_path_stage_starts_with_multiple_shooting(small_motions, tmp_path, monkeypatch):
     """With a bar no fit meets (1e-6 rad, 1 µm), the path stage takes every motion
     (one field per motion, no Adam steps): multiple shooting gets the model that
-    elimination left and lowers every motion's path loss (measured 0.65 → 0.061 and
-    0.00085 → 0.00061 in two iterations per horizon); history.shooting records the loss
+    elimination left and lowers every motion's path loss (measured 0.65 → 0.063 and
+    0.00085 → 0.00063 in one iteration per horizon); history.shooting records the loss
     that basis.json's weights give."""
     seen = {}
     shoot = train.Run._shoot
@@ -182,9 +182,9 @@ def test_path_stage_starts_with_multiple_shooting(run_dir, tmp_path, monkeypatch
         seen.update(model=model_state(basis, weights), motions=list(motions), tg=tg)
         return shoot(self, basis, weights, tg, motions, state)
     monkeypatch.setattr(train.Run, "_shoot", spy)
-    cfg = small_config(run_dir["data"], tmp_path / "run", "success.rmse=1e-6", "success.tip=1e-6",
+    cfg = small_config(small_motions["data"], tmp_path / "run", "success.rmse=1e-6", "success.tip=1e-6",
                        "solver.each.max_fields=1",
-                       "solver.path.steps=0", "solver.shooting.iterations=2")
+                       "solver.path.steps=0", "solver.shooting.iterations=1")
     metrics = train.run(cfg)
     lb, tg = bio.load(tmp_path / "run" / "basis.json"), seen["tg"]
     basis, before_w = model_from_state(seen["model"])
@@ -203,3 +203,26 @@ def test_path_stage_starts_with_multiple_shooting(run_dir, tmp_path, monkeypatch
         assert a < 0.9 * b, name
         assert recorded[name]["failure"] is None
         assert recorded[name]["loss"] == pytest.approx(a, rel=1e-3), name
+
+
+def test_reduce_checks_trials_together_with_the_decisions_of_one_at_a_time(small_motions, tmp_path,
+                                                                            monkeypatch):
+    """With solver.path.batch: each, elimination checks several trials in one simulation;
+    every trial's scores are exactly those it gets checked alone, so the run decides as
+    one trial at a time would."""
+    sizes = []
+    checks = train.Run._checks
+
+    def spy(self, models, tg):
+        out = checks(self, models, tg)
+        sizes.append(len(models))
+        for model, (s, ok) in zip(models, out):
+            alone, ok_alone = self._check(*model, tg)
+            assert (s.rmse, s.tip, ok) == (alone.rmse, alone.tip, ok_alone)
+        return out
+    monkeypatch.setattr(train.Run, "_checks", spy)
+    cfg = small_config(small_motions["data"], tmp_path / "run", "solver.path.batch=each",
+                       "solver.path.steps=0", "solver.shooting.iterations=0")
+    metrics = train.run(cfg)
+    assert max(sizes) > 1 and sum(sizes) >= len(metrics["history"]["reduce"])
+    print("trials checked together:", sizes, metrics["history"]["reduce"])

@@ -66,12 +66,13 @@ class PathSection(Section):                     # simulation options and path ma
     max_evals: int = Field(20000, ge=1)          # right-hand-side evaluations; past it: failed
     adjoint: bool = False
     velocity_weight: float = Field(0.1, ge=0)
+    batch: Literal["shared", "each"] = "shared"  # each: every motion its own steps (dopri5)
 
     def options(self):
         """These settings as :class:`tflearn.simulate.SimOptions`."""
         from .simulate import SimOptions
         return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
-                          max_evals=self.max_evals, adjoint=self.adjoint)
+                          max_evals=self.max_evals, adjoint=self.adjoint, batch=self.batch)
 
 
 class ShootingSection(Section):
@@ -204,12 +205,13 @@ class SimulationSection(Section):
     rtol: float = Field(1e-6, gt=0)
     atol: float = Field(1e-8, gt=0)
     max_evals: int = Field(400_000, ge=1)
+    batch: Literal["shared", "each"] = "shared"  # each: every motion its own steps (dopri5)
 
     def options(self):
         """These settings as :class:`tflearn.simulate.SimOptions`."""
         from .simulate import SimOptions
         return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
-                          max_evals=self.max_evals)
+                          max_evals=self.max_evals, batch=self.batch)
 
 
 class PerturbConfig(Section):

@@ -424,7 +424,9 @@ class FieldProgram(nn.Module):
     Called as ``program(t, q, v)`` with q, v (...×N×n) — the motion index on the last batch
     dimension — it returns τ (...×N×n). ``index`` restricts it to some motions. ``start``
     (N): each motion's own time at the simulation's t = 0, its program then run at
-    start + t (the segments of multiple shooting).
+    start + t (the segments of multiple shooting). t is a scalar, sample times (T, with q
+    T×N×n), or a time per member (of q's batch shape, ...×N: the per-member steps of
+    :class:`~tflearn.simulate.SimOptions` batch ``each``).
     """
 
     def __init__(self, basis: FieldBasis, weights: MotionWeights,
@@ -434,10 +436,14 @@ class FieldProgram(nn.Module):
         self.index = None if index is None else torch.as_tensor(index, dtype=torch.long)
 
     def forward(self, t, q, v=None):
+        t = torch.as_tensor(t, dtype=q.dtype)
+        each = t.ndim and t.shape == q.shape[:-1]     # a time per member
+        if each and self.index is not None:          # ... of the indexed motions
+            t = t.new_zeros(t.shape[:-1] + (self.weights.N,)).index_copy(-1, self.index, t)
         if self.start is not None:
-            w = self.weights.activation_at(self.start + t)
-        else:
-            w = self.weights.activation(t)
+            t = self.start + (t if each else t[..., None])
+            each = True
+        w = self.weights.activation_at(t if each else t[..., None])
         if self.index is not None:
             w = w[..., self.index, :]
         chi = self.basis(q, v)

@@ -115,9 +115,11 @@ def library_model(gestures=None, body: Body | None = None):
 
 
 def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
-             rtol: float = 1e-10, atol: float = 1e-10) -> list:
-    """Simulate every gesture from rest (one batched ``dopri8`` run that steps onto every
-    sample time) and sample it at ``rate`` Hz over [0, λ].
+             options: sim.SimOptions | None = None) -> list:
+    """Simulate every gesture from rest and sample it at ``rate`` Hz over [0, λ]: one
+    batched run, by default ``dopri8`` at rtol = atol = 1e-10 stepping onto every sample
+    time, or with ``options`` (e.g. batch ``each`` for many programs, each then stepped
+    as finely as it alone needs).
 
     Returns a list of (Motion, LearnedBasis) pairs — the sampled motion and its own
     generating parameters (its fields only)."""
@@ -128,9 +130,9 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
     t = torch.arange(0, int(round(lam * rate)) + 1, dtype=torch.float64) / rate
     q0 = torch.zeros(len(gestures), body.nv, dtype=torch.float64)
     with torch.no_grad():
-        tr = sim.simulate(body, FieldProgram(basis, weights), q0, q0, t,
-                          sim.SimOptions(method="dopri8", rtol=rtol, atol=atol,
-                                         solver_options={"step_t": t[1:]}))
+        options = options or sim.SimOptions(method="dopri8", rtol=1e-10, atol=1e-10,
+                                            solver_options={"step_t": t[1:]})
+        tr = sim.simulate(body, FieldProgram(basis, weights), q0, q0, t, options)
     out = []
     for j, g in enumerate(gestures):
         T = int(round(g.duration * rate)) + 1

@@ -6,7 +6,9 @@ error of a sample is e = q_sim ⊖ q_target (:func:`tflearn.configspace.differen
 scores are the joint-angle RMSE sqrt(mean_{t,k} e²) (rad), the largest hand-tip distance
 (m) and the relative RMS torque error sqrt(C_j) (:mod:`tflearn.fit.torque`). A motion
 whose simulation fails (:class:`~tflearn.simulate.SimulationFailed`) scores rmse = tip =
-∞ with its reason in ``failure``; the others are still scored, each on its own grid.
+∞ with its reason in ``failure``; the others are still scored, each on its own grid
+(with ``SimOptions.batch`` ``each`` straight from the one batched simulation, which then
+also lets :func:`score_models` score several models in one batch, exactly as alone).
 
 In a run of many processes (:mod:`tflearn.parallel`) ``score(..., distributed=True)``
 simulates only this rank's motions (:func:`tflearn.parallel.mine`) and gathers the
@@ -16,17 +18,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import torch
 
 from . import dynamics, parallel
 from .body import Body
 from .configspace import difference
-from .fields import FieldBasis, MotionWeights
-from .fit.targets import Targets, simulate_targets
+from .fields import FieldBasis, FieldProgram, MotionWeights
+from .fit.targets import Targets, on_samples, simulate_targets
 from .fit.torque import relative_rms_torque_error
-from .simulate import SimOptions, SimulationFailed
+from .simulate import SimOptions, SimulationFailed, simulate
 
 
 @dataclass
@@ -59,7 +61,11 @@ def path_errors(body: Body, q_sim: torch.Tensor, tg: Targets):
 
 def _simulate_each(body, basis, weights, tg, options):
     """q_sim (N×T×n) and failures (N): the batch at once, and if it fails each motion
-    alone on its own grid, so that one failing motion costs only itself."""
+    alone on its own grid, so that one failing motion costs only itself — with batch
+    ``each`` in the same run, every motion stepped alone in it."""
+    if options.batch == "each":
+        tr = simulate(body, FieldProgram(basis, weights), tg.q0, tg.qd0, tg.grid, options, throw=False)
+        return on_samples(tg, tr.q), tr.failure
     try:
         return simulate_targets(body, basis, weights, tg, options)[0], [None] * tg.N
     except SimulationFailed as err:
@@ -98,6 +104,39 @@ def score(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
     if q_sim is None:
         simulate = _simulate_distributed if distributed else _simulate_each
         q_sim, failure = simulate(body, basis, weights, tg, options)
+    return _scores(body, basis, weights, tg, q_sim, failure)
+
+
+@torch.no_grad()
+def score_models(body: Body, models: Sequence[tuple], tg: Targets, options: SimOptions) -> list:
+    """:func:`score` of K models ((basis, weights) pairs, each for all of ``tg``'s motions)
+    simulated in one batch of K·N members. ``options.batch`` must be ``each``: every member
+    is then stepped as if alone, so each model's :class:`Scores` are exactly those that
+    :func:`score` gives it alone, at about the cost of one model's simulation where
+    per-call overhead dominates (small N)."""
+    if options.batch != "each":
+        raise ValueError("score_models: needs SimOptions(batch='each') (members stepped alone)")
+    K, N = len(models), tg.N
+    program = _Stacked([FieldProgram(b, w) for b, w in models])
+    tr = simulate(body, program, tg.q0.expand(K, -1, -1), tg.qd0.expand(K, -1, -1), tg.grid,
+                  options, throw=False)
+    return [_scores(body, b, w, tg, on_samples(tg, tr.q[k]), tr.failure[k * N:(k + 1) * N])
+            for k, (b, w) in enumerate(models)]
+
+
+class _Stacked(torch.nn.Module):
+    """K torque programs side by side: q, v (K×N×n) and t (K×N) → τ (K×N×n), program k on
+    slice k."""
+
+    def __init__(self, programs: list):
+        super().__init__()
+        self.programs = torch.nn.ModuleList(programs)
+
+    def forward(self, t, q, v):
+        return torch.stack([p(t[k], q[k], v[k]) for k, p in enumerate(self.programs)])
+
+
+def _scores(body, basis, weights, tg, q_sim, failure) -> Scores:
     rmse, tip = path_errors(body, q_sim, tg)
     inf = float("inf")
     rmse = [inf if f else float(r) for f, r in zip(failure, rmse)]

@@ -27,6 +27,7 @@ from torchdiffeq import odeint, odeint_adjoint
 from . import dynamics
 from .body import Body
 from .configspace import pack, position_rate, unpack
+from .ode import FAILURE_CODES, odeint_each
 
 TorqueProgram = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -60,7 +61,12 @@ class SimOptions:
     (``{"step_size": h}`` for fixed-step methods, ``{"step_t": t}``); max_evals: fail with
     reason ``budget`` past this many right-hand-side evaluations over the whole run
     (torchdiffeq's ``max_num_steps`` bounds the steps between two output times only);
-    adjoint: backpropagate with the adjoint method instead of through the solver."""
+    adjoint: backpropagate with the adjoint method instead of through the solver;
+    batch: how a batch is stepped — ``shared``: torchdiffeq's solver, one step size for
+    the whole batch from one error norm over all of it; ``each``: every member its own
+    steps and error control (:func:`tflearn.ode.odeint_each`, Dormand–Prince 5(4) only:
+    ``method`` must be ``dopri5``; ``max_evals`` then bounds each member; not with the
+    adjoint), the program then called with a time per member (t of the batch's shape)."""
 
     method: str = "dopri5"
     rtol: float = 1e-7
@@ -68,6 +74,14 @@ class SimOptions:
     max_evals: Optional[int] = 100_000
     adjoint: bool = False
     solver_options: Optional[dict] = None
+    batch: str = "shared"
+
+    def __post_init__(self):
+        if self.batch not in ("shared", "each"):
+            raise ValueError(f"SimOptions: batch must be 'shared' or 'each', not {self.batch!r}")
+        if self.batch == "each" and (self.method != "dopri5" or self.adjoint or self.solver_options):
+            raise ValueError("SimOptions: batch 'each' steps with its own dopri5: method must be "
+                             "'dopri5', without the adjoint or solver_options")
 
 
 def base_terms(body: Body, base, t, dtype=torch.float64):
@@ -82,12 +96,14 @@ class ArmODE(torch.nn.Module):
     """Right-hand side dy/dt for :func:`simulate` (an nn.Module so the adjoint can see
     the program's parameters). With ``track_work`` the state carries one more entry,
     W with dW/dt = τ_program · v (the work done by the program's torques). Raises
-    :class:`SimulationFailed` on evaluation max_evals + 1, and for a non-finite state."""
+    :class:`SimulationFailed` on evaluation max_evals + 1, and for a non-finite state
+    unless ``strict`` is off (the per-member integrator checks each member itself)."""
 
     def __init__(self, body: Body, program: TorqueProgram, track_work: bool = False,
-                 max_evals: Optional[int] = None, base=None):
+                 max_evals: Optional[int] = None, base=None, strict: bool = True):
         super().__init__()
         self.body, self.program, self.track_work, self.base = body, program, track_work, base
+        self.strict = strict
         self.max_evals, self.evals = max_evals, 0
         if isinstance(program, torch.nn.Module):
             self.program_module = program
@@ -96,7 +112,7 @@ class ArmODE(torch.nn.Module):
         self.evals += 1
         if self.max_evals is not None and self.evals > self.max_evals:
             raise SimulationFailed("budget", f"more than {self.max_evals} right-hand-side evaluations")
-        if not bool(torch.isfinite(y).all()):
+        if self.strict and not bool(torch.isfinite(y).all()):
             raise SimulationFailed("nonfinite", f"NaN or Inf in the state at t = {float(t.detach()):.4g} s")
         body = self.body
         if self.track_work:
@@ -120,12 +136,15 @@ class ArmODE(torch.nn.Module):
 
 @dataclass
 class Trajectory:
-    """A simulated path: t (T), q (...×T×nv), v (...×T×nv), work (...×T) or None."""
+    """A simulated path: t (T), q (...×T×nv), v (...×T×nv), work (...×T) or None, and
+    failure: per member (a list in the batch's row order, flattened) None or why its
+    simulation stopped — only with ``throw=False``; that member's path is then NaN."""
 
     t: torch.Tensor
     q: torch.Tensor
     v: torch.Tensor
     work: Optional[torch.Tensor] = None
+    failure: Optional[list] = None
 
 
 def zero_program(t, q, v):
@@ -135,31 +154,54 @@ def zero_program(t, q, v):
 
 def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Tensor,
              t: torch.Tensor, options: SimOptions = SimOptions(), *,
-             track_work: bool = False, base=None) -> Trajectory:
+             track_work: bool = False, base=None, throw: bool = True) -> Trajectory:
     """Integrate the body from (q0, v0) at t[0] under ``program(t, ν, v) → τ``.
 
     Args:
         q0, v0: initial coordinates and velocities (...×nv); any leading batch shape.
         t: increasing sample times (T).
-        options: :class:`SimOptions` (solver, tolerances, budget, adjoint).
+        options: :class:`SimOptions` (solver, tolerances, budget, adjoint, batch stepping).
         track_work: also integrate the work done by the program's torques.
         base: a moving base, :class:`tflearn.torso.BaseMotion` (or any callable
             t → (R, ω_b, ω̇_b, a_b)); the body's gravity is then a world vector, seen
-            from the base as Rᵀ g. None: the base is fixed (inertial).
+            from the base as Rᵀ g. None: the base is fixed (inertial). Not with batch
+            ``each``.
+        throw: raise when the simulation fails. ``False`` (batch ``each`` only): return
+            the members that failed in ``Trajectory.failure``, the others' paths intact.
     Returns:
         :class:`Trajectory` with ν and v sampled at t (time on dimension -2).
     Raises:
-        SimulationFailed: the integration cannot go on (see its ``reason``); a batch
-        fails as a whole (score its members one by one to tell which).
+        SimulationFailed: the integration cannot go on (see its ``reason``); with batch
+        ``shared`` a batch fails as a whole (score its members one by one to tell which),
+        with ``each`` the first failed member is named.
     """
     if t.ndim != 1 or t.numel() < 2 or not bool((t[1:] > t[:-1]).all()):
         raise ValueError("simulate: t must be a strictly increasing 1-D tensor of >= 2 times")
+    each = options.batch == "each"
+    if each and base is not None:
+        raise ValueError("simulate: batch 'each' does not take a moving base")
+    if not (throw or each):
+        raise ValueError("simulate: throw=False needs SimOptions(batch='each')")
     global calls
     calls += 1
-    func = ArmODE(body, program, track_work, options.max_evals, base)
     y0 = pack(body, q0, v0)
     if track_work:
         y0 = torch.cat([y0, torch.zeros_like(y0[..., :1])], dim=-1)
+    failure = None
+    if each:
+        ys, failure = _integrate_each(ArmODE(body, program, track_work, strict=False), y0, t, options, throw)
+    else:
+        ys = _integrate_shared(ArmODE(body, program, track_work, options.max_evals, base), y0, t, options)
+    ys = ys.movedim(0, -2)
+    work = None
+    if track_work:
+        work, ys = ys[..., -1], ys[..., :-1]
+    _, coords, _, v = unpack(body, ys)
+    return Trajectory(t=t, q=coords, v=v, work=work, failure=failure)
+
+
+def _integrate_shared(func: ArmODE, y0, t, options: SimOptions) -> torch.Tensor:
+    """torchdiffeq's ``odeint`` (or the adjoint): the states at t (T×...×D)."""
     kwargs = dict(method=options.method, rtol=options.rtol, atol=options.atol,
                   options=options.solver_options)
     try:
@@ -172,9 +214,21 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         raise SimulationFailed("solver", str(err) or "the integrator gave up") from None
     if not bool(torch.isfinite(ys).all()):
         raise SimulationFailed("nonfinite", "NaN or Inf in the simulated path")
-    ys = ys.movedim(0, -2)
-    work = None
-    if track_work:
-        work, ys = ys[..., -1], ys[..., :-1]
-    _, coords, _, v = unpack(body, ys)
-    return Trajectory(t=t, q=coords, v=v, work=work)
+    return ys
+
+
+_WHY = {"budget": "more than {} right-hand-side evaluations", "solver": "its step size underflowed",
+        "nonfinite": "NaN or Inf in its state"}
+
+
+def _integrate_each(func: ArmODE, y0, t, options: SimOptions, throw: bool):
+    """:func:`tflearn.ode.odeint_each`: the states at t (T×...×D) and each member's
+    failure (None or a message; members in row order), raising the first with ``throw``."""
+    sol = odeint_each(func, y0, t, rtol=options.rtol, atol=options.atol, max_evals=options.max_evals)
+    errors = [None if not c else SimulationFailed(FAILURE_CODES[c], f"batch member {b}: "
+                                                  + _WHY[FAILURE_CODES[c]].format(options.max_evals))
+              for b, c in enumerate(sol.failure.reshape(-1).tolist())]
+    first = next((e for e in errors if e), None)
+    if throw and first:
+        raise first
+    return sol.ys, [e and str(e) for e in errors]

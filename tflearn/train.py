@@ -56,6 +56,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Optional
 
 import torch
@@ -73,7 +74,7 @@ from .fit.targets import Targets, prepare, submovement_windows
 from .io import basis as basis_io
 from .io.files import replacing, write_text
 from .log import RunLog
-from .metrics import Scores, score, summarize
+from .metrics import Scores, score, score_models, summarize
 
 CHECKPOINT_FORMAT = "tflearn-checkpoint/5"
 SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "done"),
@@ -164,6 +165,7 @@ class Run:
         self.options = cfg.solver.path.options()
         self.stop_after = stop_after
         self.checkpoints = 0
+        self._window = 1                             # reduce: trials checked together
         self.progress = cfg.log.progress if progress is None else progress
         self.ckpt_path = self.out / "checkpoint.pt"
         self.log = RunLog(self.out, tensorboard=False, progress=False)
@@ -384,7 +386,12 @@ class Run:
     def _reduce(self, state: RunState, tg: Targets):
         """Backward elimination. With model.fields = 0 a field goes only if no motion gets
         worse (:func:`no_worse`); with model.fields = M the smallest-share fields go
-        until M remain."""
+        until M remain. With ``solver.path.batch: each`` (one process) the next trials
+        are checked together in one simulation (:func:`~tflearn.metrics.score_models`) and
+        applied in order up to the first removal, the rest dropped: the same decisions as
+        one at a time, since each motion's simulation is then independent of its batch;
+        the window doubles after trials that all keep their field, and starts again at one
+        after a removal."""
         fixed = self.cfg.model.fields
         basis, weights = model_from_state(state.model)
         if state.order is None:
@@ -400,38 +407,65 @@ class Run:
         if basis.M <= floor or k >= len(state.order):
             self.log.end_stage()
             return self._advance(state)
-        victim = state.order[k]
-        state.cursor = k + 1
+        together = not fixed and self.options.batch == "each" and parallel.size() == 1
+        window = self._window if together else 1
+        trials = [self._trial(basis, weights, tg, state, victim)
+                  for victim in state.order[k:total(basis.M)][:window]]
+        checks = self._checks([t["model"] for t in trials], tg) if not fixed else [None] * len(trials)
+        for trial, check in zip(trials, checks):
+            if self._apply_trial(state, trial, check, tg, total):
+                self._window = 1
+                return
+        self._window = 2 * window
+
+    def _trial(self, basis, weights, tg: Targets, state: RunState, victim: int) -> dict:
+        """The basis without field ``victim``, refitted by EM (its EM steps counted, to
+        be logged when the trial is applied)."""
         pos = state.ids.index(victim)
         keep = [i for i in range(basis.M) if i != pos]
         nb, nw = basis.select(keep), weights.select_fields(keep)
         support = None if state.support is None else [        # who lost a field may use any
             [True] * len(keep) if row[pos] else [row[i] for i in keep] for row in state.support]
         self.log.busy(M=basis.M, trying=victim)
-        cost = self._em(nb, nw, tg, state, support=support)[-1]
-        accept = True
-        if not fixed:
-            scores, ok = self._check(nb, nw, tg)
-            accept = no_worse(state.reference, scores, ok)
+        steps = SimpleNamespace(step=0)          # _em ticks it; the run's step when applied
+        cost = self._em(nb, nw, tg, steps, support=support)[-1]
+        return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support,
+                "cost": cost, "em_steps": steps.step}
+
+    def _checks(self, models: list, tg: Targets) -> list:
+        """(scores, success) of each model: one batch for several, else :meth:`_check`."""
+        if len(models) == 1:
+            return [self._check(*models[0], tg)]
+        return [(s, s.succeeded(self.cfg.success.rmse, self.cfg.success.tip))
+                for s in score_models(self.body, models, tg, self.options)]
+
+    def _apply_trial(self, state: RunState, trial: dict, check, tg: Targets, total) -> bool:
+        """Decide a trial (accepted without a check at a fixed M), log it, record it and
+        save; whether the field was removed."""
+        state.step += trial["em_steps"]
+        state.cursor += 1
+        accept = check is None or no_worse(state.reference, *check)
+        nb, nw = trial["model"]
+        cost, victim = trial["cost"], trial["victim"]
         step = self._tick(state)
         self.log.scalar("torque_cost/reduce", cost, step)
         self.log.scalar("reduce/removed", float(accept), step)
         if accept:
             state.model = model_state(nb, nw)
-            state.ids = [state.ids[i] for i in keep]
-            state.support = support
+            state.ids = [state.ids[i] for i in trial["keep"]]
+            state.support = trial["support"]
             self.log.model(nb, nw, step)
-            if not fixed:
-                state.reference = _reference(scores, ok)
-                self.log.scores(scores, tg, step)
+            if check is not None:
+                state.reference = _reference(*check)
+                self.log.scores(check[0], tg, step)
             else:
                 self.log.scalar("0_overview/torque_cost", cost, step)
-        k += 1
         self.log.status(total=total(len(state.ids)), M=len(state.ids), field=victim,
                         removed=bool(accept), cost=cost)
         state.history.setdefault("reduce", []).append(
             {"field": victim, "removed": bool(accept), "M_after": len(state.ids)})
         self.save(state)
+        return accept
 
     def _path(self, state: RunState, tg: Targets):
         p = self.cfg.solver.path

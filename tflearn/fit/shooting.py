@@ -43,7 +43,7 @@ and :attr:`ShootingResult.failures` says why.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Optional
 
 import torch
@@ -158,7 +158,8 @@ class _Problem:
 
     def __init__(self, body, basis, weights, tg, keys, opts: ShootingOptions, sim: SimOptions):
         self.body, self.basis, self.weights, self.tg = body, basis, weights, tg
-        self.keys, self.opts, self.sim = keys, opts, sim
+        # the copies of a segment must share every step (one discrete map): batch shared
+        self.keys, self.opts, self.sim = keys, opts, replace(sim, batch="shared")
         self.simulations = 0
         layout = [(k, math.prod(getattr(weights, k).shape[1:])) for k in keys]
         self.lower = torch.cat([torch.full((d,), 1e-2 if k in _DURATIONS else
@@ -241,7 +242,8 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     ``motions``: fit these only (indices; the others are left as they are, and the
     result's rows are these motions'). ``weights`` is changed in place;
     ``callback(horizon, iteration, cost (N))`` is called after each iteration. Returns
-    a :class:`ShootingResult`."""
+    a :class:`ShootingResult`. Whatever ``sim.batch`` says, a batch is stepped together
+    (``shared``: the differences need one discrete map)."""
     if motions is not None:
         sub = weights.select_motions(motions)
         result = shooting_match(body, basis, sub, tg.select(motions), options=options, sim=sim,

@@ -75,8 +75,12 @@ def simulate_targets(body: Body, basis: FieldBasis, weights: MotionWeights, tg: 
     gradients reach the whole ``weights``.
     Raises :class:`~tflearn.simulate.SimulationFailed` when the batch cannot go on."""
     tr = simulate(body, FieldProgram(basis, weights, index=motions), tg.q0, tg.qd0, tg.grid, options)
-    idx = tg.index.unsqueeze(-1).expand(-1, -1, body.nv)
-    return tr.q.gather(1, idx), tr.v.gather(1, idx)
+    return on_samples(tg, tr.q), on_samples(tg, tr.v)
+
+
+def on_samples(tg: Targets, x: torch.Tensor) -> torch.Tensor:
+    """Each motion's own samples (N×T×k) of a path on the union grid (N×G×k)."""
+    return x.gather(1, tg.index.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
 
 
 def submovement_windows(tg: Targets, P: int, spread: float = 0.25):
