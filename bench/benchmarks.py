@@ -97,6 +97,10 @@ def heading(title: str, intro: str, columns: list) -> list:
     return [f"## {title}", "", intro, "", "| " + " | ".join(columns) + " |", "|---" * len(columns) + "|"]
 
 
+def _difference(x: float) -> str:
+    return "formats differ" if x == float("inf") else format(x, ".2g")
+
+
 def main_job_section(d: dict) -> list:
     lines = heading("The main job",
                     f"`train configs/gestures.yaml`, each run a fresh process, one after another "
@@ -111,7 +115,7 @@ def main_job_section(d: dict) -> list:
         lines.append(f"| {name} | {r['wall_s']:.1f} s | {r.get('speedup', 1.0):.2f}× | {r['M']} | "
                      f"{r['reproduced']}/{r['motions']} | {r['worst_rmse_rad']:.4f} | "
                      f"{100 * r['worst_tip_m']:.2f} | "
-                     f"{'–' if key == 'reference' else format(r['basis_max_difference'], '.2g')} | "
+                     f"{_difference(r['basis_max_difference']) if key != 'reference' else '–'} | "
                      f"{format(r['basis_vs_current'], '.2g') if 'basis_vs_current' in r else '–'} |")
     return lines + [""]
 
