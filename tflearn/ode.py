@@ -105,7 +105,7 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
     steps = torch.zeros(B, dtype=torch.long, device=dev)
     nxt = torch.ones(B, dtype=torch.long, device=dev)        # next sample to fill
     pieces = [(torch.arange(B, device=dev), torch.zeros(B, dtype=torch.long, device=dev), y)]
-    end, rows = t[-1], torch.arange(B, device=dev)
+    end = t[-1]
     while True:
         live = (failure == 0) & (nxt < T)
         if not bool(live.any()):
@@ -121,18 +121,8 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
         finite = torch.isfinite(y1).all(-1) & torch.isfinite(k[-1]).all(-1) & torch.isfinite(ratio)
         evals = evals + 6 * live
         acc = live & finite & (ratio <= 1)
-        # the dense output of the accepted steps, at every sample they pass
         t1 = torch.where(acc, tb + h, tb)
-        ymid = y + h[:, None] * sum(m * ki for m, ki in zip(_MID, k) if m)
-        while True:
-            emit = acc & (nxt < T)
-            emit = emit & (t[nxt.clamp(max=T - 1)] <= t1 + 1e-12 * (1 + t1.abs()))
-            if not bool(emit.any()):
-                break
-            b, j = rows[emit], nxt[emit]
-            x = ((t[j] - tb[b]) / h[b]).clamp(0, 1)[:, None]
-            pieces.append((b, j, _dense(y[b], y1[b], ymid[b], k[0][b], k[-1][b], h[b, None], x)))
-            nxt = nxt + emit
+        nxt = _emit(pieces, t, nxt, acc, tb, t1, h, y, y1, k)
         steps = steps + acc
         y = torch.where(acc[:, None], y1, y)
         f = torch.where(acc[:, None], k[-1], f)
@@ -149,6 +139,22 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
         h = torch.where(live, h_new, h)
     return EachSolution(_assemble(pieces, B, T, D, y0).reshape(T, *shape, D),
                         failure.reshape(shape), evals.reshape(shape), steps.reshape(shape))
+
+
+def _emit(pieces: list, t, nxt, acc, tb, t1, h, y, y1, k) -> torch.Tensor:
+    """Append the dense output of the accepted steps (tb → t1) at every sample they pass
+    to ``pieces`` as (members, sample indices, states); the next sample of each member."""
+    T = t.numel()
+    ymid = y + h[:, None] * sum(m * ki for m, ki in zip(_MID, k) if m)
+    rows = torch.arange(y.shape[0], device=y.device)
+    while True:
+        emit = acc & (nxt < T) & (t[nxt.clamp(max=T - 1)] <= t1 + 1e-12 * (1 + t1.abs()))
+        if not bool(emit.any()):
+            return nxt
+        b, j = rows[emit], nxt[emit]
+        x = ((t[j] - tb[b]) / h[b]).clamp(0, 1)[:, None]
+        pieces.append((b, j, _dense(y[b], y1[b], ymid[b], k[0][b], k[-1][b], h[b, None], x)))
+        nxt = nxt + emit
 
 
 def _assemble(pieces, B, T, D, like):
