@@ -437,7 +437,7 @@ class FieldProgram(nn.Module):
 
     def forward(self, t, q, v=None):
         t = torch.as_tensor(t, dtype=q.dtype)
-        each = t.ndim and t.shape == q.shape[:-1]     # a time per member
+        each = t.ndim > 0 and t.shape == q.shape[:-1]  # a time per member
         if each and self.index is not None:          # ... of the indexed motions
             t = t.new_zeros(t.shape[:-1] + (self.weights.N,)).index_copy(-1, self.index, t)
         if self.start is not None:

@@ -64,8 +64,7 @@ def _simulate_each(body, basis, weights, tg, options):
     alone on its own grid, so that one failing motion costs only itself — with batch
     ``each`` in the same run, every motion stepped alone in it."""
     if options.batch == "each":
-        tr = simulate(body, FieldProgram(basis, weights), tg.q0, tg.qd0, tg.grid, options, throw=False)
-        return on_samples(tg, tr.q), tr.failure
+        return _simulate_models(body, [(basis, weights)], tg, options)[0]
     try:
         return simulate_targets(body, basis, weights, tg, options)[0], [None] * tg.N
     except SimulationFailed as err:
@@ -116,12 +115,18 @@ def score_models(body: Body, models: Sequence[tuple], tg: Targets, options: SimO
     per-call overhead dominates (small N)."""
     if options.batch != "each":
         raise ValueError("score_models: needs SimOptions(batch='each') (members stepped alone)")
+    return [_scores(body, b, w, tg, *sim) for (b, w), sim in
+            zip(models, _simulate_models(body, models, tg, options))]
+
+
+def _simulate_models(body, models, tg, options):
+    """(q_sim (N×T×n), failures (N)) of each of K models, one batch of K·N members stepped
+    each alone (batch ``each``)."""
     K, N = len(models), tg.N
     program = _Stacked([FieldProgram(b, w) for b, w in models])
     tr = simulate(body, program, tg.q0.expand(K, -1, -1), tg.qd0.expand(K, -1, -1), tg.grid,
                   options, throw=False)
-    return [_scores(body, b, w, tg, on_samples(tg, tr.q[k]), tr.failure[k * N:(k + 1) * N])
-            for k, (b, w) in enumerate(models)]
+    return [(on_samples(tg, tr.q[k]), tr.failure[k * N:(k + 1) * N]) for k in range(K)]
 
 
 class _Stacked(torch.nn.Module):
