@@ -36,6 +36,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import revision
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -296,15 +297,8 @@ def parse(argv=None):
 
 def _git_head() -> str:
     """The checked-out commit, "+dirty" if tflearn/ has uncommitted changes ("" without git)."""
-    import subprocess
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, text=True,
-                              capture_output=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "tflearn"], cwd=ROOT,
-                               text=True, capture_output=True, check=True).stdout.strip()
-        return head + ("+dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return ""
+    head = revision.head()
+    return head + ("+dirty" if head and revision.dirty() else "")
 
 
 def main(argv=None) -> dict:

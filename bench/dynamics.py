@@ -36,6 +36,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+import revision
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -200,9 +201,7 @@ def main(argv=None) -> int:
         import pinocchio as pin
         doc["pinocchio"] = {"version": pin.__version__,
                             **pinocchio_figures(args.max_batch, args.min_time)}
-        commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                                capture_output=True, text=True).stdout.strip()
-        doc["commit"] = commit
+        doc["commit"] = revision.head()
         if args.ref:
             doc["reference"] = {"rev": args.ref, "tflearn": at_revision(args.ref, args)}
     args.out.parent.mkdir(parents=True, exist_ok=True)

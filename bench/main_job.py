@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import revision
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -91,9 +93,7 @@ def main(argv=None) -> int:
             r["speedup"] = runs["reference"]["wall_s"] / r["wall_s"]
         if name not in ("reference", "current"):
             r["basis_vs_current"] = max_difference(bases["current"], bases[name])
-    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
-                            capture_output=True, text=True).stdout.strip()
-    doc = {"ref": args.ref, "commit": commit, "launcher": args.launcher, "runs": runs,
+    doc = {"ref": args.ref, "commit": revision.head(), "launcher": args.launcher, "runs": runs,
            "cores": os.cpu_count()}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1))

@@ -18,11 +18,11 @@ import argparse
 import json
 import math
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
 
+import revision
 import torch
 
 from tflearn.simulate import SimOptions, SimulationFailed
@@ -83,12 +83,10 @@ def main(argv=None) -> int:
     for n in (int(x) for x in args.sizes.split(",")):
         try:
             rows.append(measure(n, args.seed, args.batch.split(",")))
-        except SimulationFailed as err:            # one stiff program stops a whole batch
+        except SimulationFailed as err:            # a program that cannot be made stops its size
             rows.append({"motions": n, "error": str(err)})
         print(json.dumps(rows[-1]), flush=True)
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).resolve().parents[1]).stdout.strip()
-    doc = {"commit": commit, "rows": rows}
+    doc = {"commit": revision.head(), "rows": rows}
     done = [r for r in rows if "error" not in r]
     if len(done) > 1:
         keys = ["generate_s", "em_step_s"] + [k for k in done[0] if k.startswith("score_")]
