@@ -6,10 +6,11 @@
     python bench/benchmarks.py --ref 607d0dd --only main_job,scale --variant solver.path.batch=shared
                                                         # rerun two, reuse the others
 
-Runs ``bench/dynamics.py``, ``bench/main_job.py``, ``bench/path_step.py`` and
-``bench/scale.py`` (each in its own process, one after another), keeps their JSON in
-docs/benchmarks/ and writes docs/benchmarks.md from it: every figure with the reference it
-is a ratio to, measured in the same invocation, and the machine beside it.
+Runs ``bench/dynamics.py``, ``bench/main_job.py``, ``bench/path_step.py``,
+``bench/scale.py`` and ``bench/learn_many.py`` (each in its own process, one after
+another), keeps their JSON in docs/benchmarks/ and writes docs/benchmarks.md from it:
+every figure with the reference it is a ratio to, measured in the same invocation, and
+the machine beside it.
 """
 from __future__ import annotations
 
@@ -166,6 +167,33 @@ def scale_section(d: dict) -> list:
     return lines + [""]
 
 
+def learn_many_section(d: dict) -> list:
+    lines = heading("Many motions learned end to end",
+                    "`bench/learn_many.py`: N random supported programs (made by one batch of "
+                    "per-motion steps, written as .npz), then `train configs/gestures.yaml "
+                    "data=DIR` in a fresh process; each stage's time from its progress bar"
+                    + (f"; at commit {d['commit']}" if d.get("commit") else "")
+                    + (f", overrides {' '.join(d['overrides'])}." if d.get("overrides") else "."),
+                    ["motions N", "making them", "training", "each motion alone", "pool and merge",
+                     "reduce", "path matching", "M", "reproduced", "worst RMSE (rad)",
+                     "worst tip (cm)"])
+    stages = ("each motion alone", "pool and merge", "reduce: try dropping fields", "path matching")
+    for r in d["rows"]:
+        if "error" in r:
+            lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | failed: {r['error']} |"
+                         + " |" * 8)
+            continue
+        st = r["stages_s"]
+        cells = [f"{st[k]} s" if k in st else "–" for k in stages]
+        lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | {r['train_s']:.0f} s | "
+                     + " | ".join(cells) + f" | {r['M']} | {r['reproduced']}/{r['motions']} | "
+                     f"{r['worst_rmse_rad']:.4f} | {100 * r['worst_tip_m']:.2f} |")
+    if "exponents" in d:
+        lines += ["", "Fitted exponents (time ∝ N^p): " + ", ".join(
+            f"{k.removesuffix('_s')} p = {v:.2f}" for k, v in d["exponents"].items()) + "."]
+    return lines + [""]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ref", required=True, help="the revision before the performance work")
@@ -175,10 +203,12 @@ def main(argv=None) -> int:
     p.add_argument("--path-methods", default="dopri5")
     p.add_argument("--path-timeout", default="300")
     p.add_argument("--scale-sizes", default="10,30,100")
+    p.add_argument("--learn-sizes", default="10,30")
     p.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
                    help="passed to bench/main_job.py")
     p.add_argument("--only", help="rerun only these benchmarks (comma-separated of "
-                                  "dynamics,main_job,path_step,scale), reusing the others' JSON")
+                                  "dynamics,main_job,path_step,scale,learn_many), reusing the "
+                                  "others' JSON")
     args = p.parse_args(argv)
     DATA.mkdir(parents=True, exist_ok=True)
     benches = {
@@ -187,7 +217,8 @@ def main(argv=None) -> int:
                      *(x for v in args.variant for x in ("--variant", v))),
         "path_step": ("--sizes", args.path_sizes, "--methods", args.path_methods,
                       "--timeout", args.path_timeout),
-        "scale": ("--sizes", args.scale_sizes)}
+        "scale": ("--sizes", args.scale_sizes),
+        "learn_many": ("--sizes", args.learn_sizes)}
     chosen = [] if args.reuse else (args.only.split(",") if args.only else list(benches))
     for name in chosen:
         run(f"{name}.py", *benches[name], "--out", str(DATA / f"{name}.json"))
@@ -201,7 +232,7 @@ def main(argv=None) -> int:
              "the performance work).", ""]
     lines += dynamics_section(dyn) + latency_section(dyn)
     for name, section in (("main_job.json", main_job_section), ("path_step.json", path_section),
-                          ("scale.json", scale_section)):
+                          ("scale.json", scale_section), ("learn_many.json", learn_many_section)):
         if (DATA / name).exists():
             lines += section(json.loads((DATA / name).read_text()))
     notes = ROOT / "bench" / "benchmarks_notes.md"

@@ -276,3 +276,21 @@ def test_project_bounds_stiffness_and_centres(kind):
     assert torch.allclose(torch.diagonal(basis.K().detach(), dim1=-2, dim2=-1)[0],
                           torch.full((7,), hi, dtype=torch.float64))
     assert float(basis.eta.detach().abs().max()) == pytest.approx(F.ETA_MAX)
+
+
+def test_own_fields_program_gives_the_library_programs_torques():
+    """gestures.own_fields_program evaluates each motion's own fields only; its torques are
+    the whole library program's, bit for bit, at a scalar time, sample times and a time
+    per member."""
+    from tflearn import gestures
+    programs = gestures.random_gestures(5, seed=11)
+    basis, weights, spans = gestures.library_model(programs)
+    assert basis.M == sum(hi - lo for lo, hi in spans) > max(hi - lo for lo, hi in spans)
+    whole, own = F.FieldProgram(basis, weights), gestures.own_fields_program(basis, weights, spans)
+    gen = torch.Generator().manual_seed(0)
+    q = torch.randn(4, 5, basis.n, generator=gen, dtype=torch.float64)
+    v = torch.randn(4, 5, basis.n, generator=gen, dtype=torch.float64)
+    for t in (torch.tensor(0.4, dtype=torch.float64), torch.linspace(0, 1, 4, dtype=torch.float64),
+              torch.rand(4, 5, generator=gen, dtype=torch.float64)):
+        ref = whole(t, q, v)
+        assert ref.abs().max() > 1e-3 and torch.equal(own(t, q, v), ref)

@@ -8,9 +8,10 @@ from torchdiffeq import odeint
 
 from tflearn import gestures
 from tflearn.body import arm
+from tflearn.configspace import pack
 from tflearn.fields import FieldProgram
 from tflearn.ode import odeint_each
-from tflearn.simulate import SimOptions, SimulationFailed, simulate
+from tflearn.simulate import ArmODE, SimOptions, SimulationFailed, simulate
 
 T = torch.linspace(0, 2, 41, dtype=torch.float64)
 
@@ -19,8 +20,9 @@ def oscillators(omega):
     """ẍ = −ω² x per member: y = (x, ẋ), x(0) = 1, so x = cos ωt."""
     w2 = torch.as_tensor(omega, dtype=torch.float64) ** 2
 
-    def f(t, y):
+    def f(t, y, live=None):
         assert t.shape == y.shape[:-1]                 # a time per member
+        assert live is None or live.shape == t.shape
         return torch.stack([y[..., 1], -w2 * y[..., 0]], dim=-1)
     y0 = torch.zeros(len(omega), 2, dtype=torch.float64)
     y0[:, 0] = 1
@@ -47,6 +49,30 @@ def test_a_member_is_stepped_as_if_alone():
         assert alone.steps[0] == both.steps[j]
 
 
+def test_the_right_hand_side_is_told_which_members_are_live():
+    """ω = 1 finishes long before ω = 40: from then on live is False for it alone, and
+    the calls after it finished are the right-hand sides ω = 40 takes beyond ω = 1's."""
+    f, y0 = oscillators([1.0, 40.0])
+    seen = []
+    sol = odeint_each(lambda t, y, live: seen.append(live) or f(t, y), y0, T)
+    after = [s for s in seen if s is not None]
+    assert after and all(s.tolist() == [False, True] for s in after)
+    assert len(after) == sol.evals[1] - sol.evals[0] > 0
+
+
+def test_the_simulators_right_hand_side_on_live_rows_equals_its_whole_batch():
+    body = arm()
+    basis, weights, _ = gestures.library_model(body=body)
+    torch.manual_seed(1)
+    q = 0.5 * torch.randn(3, weights.N, body.nv, dtype=torch.float64)
+    y = pack(body, q, torch.randn_like(q))
+    t = torch.rand(3, weights.N, dtype=torch.float64)
+    f = ArmODE(body, FieldProgram(basis, weights), track_work=False, strict=False)
+    live = torch.rand(3, weights.N) < 0.5
+    whole, rows = f(t, y), f(t, y, live)
+    assert torch.equal(rows[live], whole[live]) and not rows[~live].any()
+
+
 def test_agrees_with_torchdiffeq_dopri5_on_one_member():
     f, y0 = oscillators([7.0])
     ours = odeint_each(f, y0, T, rtol=1e-7, atol=1e-9).ys
@@ -58,7 +84,7 @@ def test_agrees_with_torchdiffeq_dopri5_on_one_member():
 def test_a_failing_member_stops_alone():
     """ẏ = y² from y = 1 blows up at t = 1; ẏ = −y beside it goes on undisturbed; a third
     member past the budget stops with code 1."""
-    def f(t, y):
+    def f(t, y, live):
         return torch.stack([y[:, 0] ** 2, -y[:, 1]], dim=-1)
     y0 = torch.tensor([[1.0, 1.0], [0.0, 1.0]], dtype=torch.float64)
     sol = odeint_each(f, y0, T)
@@ -75,7 +101,7 @@ def test_gradients_through_the_steps():
     y0 = torch.tensor([[1.0], [0.5]], dtype=torch.float64, requires_grad=True)
 
     def run(r, y):
-        return odeint_each(lambda t, x: -r[:, None] * x, y, T[:9], rtol=1e-10, atol=1e-12).ys
+        return odeint_each(lambda t, x, live: -r[:, None] * x, y, T[:9], rtol=1e-10, atol=1e-12).ys
     assert torch.autograd.gradcheck(run, (rate, y0))
     # and the value of the gradient: d/dr y0 e^{−rt} = −t y0 e^{−rt}
     (g,) = torch.autograd.grad(run(rate, y0)[-1].sum(), rate)
@@ -88,6 +114,25 @@ def library():
     body = arm()
     basis, weights, _ = gestures.library_model(body=body)
     return body, basis, weights
+
+
+def test_gradients_through_the_live_rows_of_the_simulator(library):
+    """Two gestures whose steps differ, so that the dynamics run on the live row alone
+    for a while: gradcheck of (a mix of) each end state through those steps, with respect
+    to a scale of each member's torques."""
+    body, basis, weights = library
+    program = FieldProgram(basis, weights, index=[2, 4])
+    t = torch.linspace(0, 0.12, 4, dtype=torch.float64)
+    y0 = pack(body, *(torch.zeros(2, body.nv, dtype=torch.float64),) * 2)
+
+    def run(s):
+        f = ArmODE(body, lambda t, q, v: s[:, None] * program(t, q, v), strict=False)
+        return odeint_each(f, y0, t, rtol=1e-10, atol=1e-10)
+    s = torch.tensor([1.0, 1.3], dtype=torch.float64, requires_grad=True)
+    steps = run(s).steps
+    assert steps[0] != steps[1]
+    mix = torch.linspace(-1, 1, y0.shape[-1], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda s: run(s).ys[-1] @ mix, (s,))
 
 
 def test_simulate_each_member_alone_equals_in_batch(library):

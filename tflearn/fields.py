@@ -201,15 +201,21 @@ class FieldBasis(nn.Module):
         self.stiffness.project_()
 
     def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """χ_i(q, v) = −K_i (d + ζ v) exp(−½ dᵀK_i d), d = q − η_i; q, v (...×n) →
-        (...×M×n). Without v, or with ζ = 0, χ_i(q) = −K_i d exp(−½ dᵀK_i d)."""
-        d = q.unsqueeze(-2) - self.eta
-        K = self.K()
-        Kd = (K * d.unsqueeze(-2)).sum(-1)                  # few ops: small M×n×n
-        g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
-        if self.damping and v is not None:
-            return -(Kd + self.damping * (K * v[..., None, None, :]).sum(-1)) * g
-        return -Kd * g
+        """χ_i(q, v) for every field (:func:`field_torques`): q, v (...×n) → (...×M×n)."""
+        return field_torques(q, v, self.eta, self.K(), self.damping)
+
+
+def field_torques(q: torch.Tensor, v: Optional[torch.Tensor], eta: torch.Tensor, K: torch.Tensor,
+                  damping: float = 0.0) -> torch.Tensor:
+    """χ_i(q, v) = −K_i (d + ζ v) exp(−½ dᵀK_i d), d = q − η_i, for fields η (...×M×n) and
+    K (...×M×n×n) that broadcast against q, v (...×n) → (...×M×n). Without v, or with
+    ζ = 0, χ_i(q) = −K_i d exp(−½ dᵀK_i d)."""
+    d = q.unsqueeze(-2) - eta
+    Kd = (K * d.unsqueeze(-2)).sum(-1)                  # few ops: small M×n×n
+    g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
+    if damping and v is not None:
+        return -(Kd + damping * (K * v[..., None, None, :]).sum(-1)) * g
+    return -Kd * g
 
 
 class MotionWeights(nn.Module):

@@ -23,7 +23,7 @@ import torch
 
 from . import simulate as sim
 from .body import Body, arm
-from .fields import FieldBasis, FieldProgram, MotionWeights
+from .fields import FieldBasis, FieldProgram, MotionWeights, field_torques
 from .io import basis as basis_io
 from .motion import RESOLVED, Motion, torque_resolution
 from .motion import save as save_motion
@@ -114,6 +114,32 @@ def library_model(gestures=None, body: Body | None = None):
     return basis, MotionWeights(a, b, lam, names=[g.name for g in gestures]), spans
 
 
+class _OwnFields(torch.nn.Module):
+    """Each motion's own fields, η (N×m×n) and K (N×m×n×n), as a basis for
+    :class:`FieldProgram`: χ(q, v) for q (...×N×n) → (...×N×m×n), motion j's fields only."""
+
+    def __init__(self, eta: torch.Tensor, K: torch.Tensor):
+        super().__init__()
+        self.eta, self.K = eta, K
+
+    def forward(self, q, v=None):
+        return field_torques(q, v, self.eta, self.K)
+
+
+def own_fields_program(basis: FieldBasis, weights: MotionWeights, spans: list) -> FieldProgram:
+    """:func:`library_model`'s program with each motion evaluating only its own fields
+    (``spans``), padded with zero weights to the most any motion has: the same torques,
+    at a cost linear in the number of motions instead of quadratic. Timing is the
+    library's default (onsets 0, durations λ)."""
+    m = max(hi - lo for lo, hi in spans)
+    idx = torch.tensor([[min(lo + i, hi - 1) for i in range(m)] for lo, hi in spans])
+    mask = torch.tensor([[i < hi - lo for i in range(m)] for lo, hi in spans], dtype=torch.float64)
+    with torch.no_grad():
+        own = MotionWeights(weights.a.gather(1, idx) * mask, weights.b.gather(1, idx) * mask,
+                            weights.duration, names=weights.names)
+        return FieldProgram(_OwnFields(basis.eta[idx], basis.K()[idx]), own)
+
+
 def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
              options: sim.SimOptions | None = None) -> list:
     """Simulate every gesture from rest and sample it at ``rate`` Hz over [0, λ]: one
@@ -132,7 +158,7 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
     with torch.no_grad():
         options = options or sim.SimOptions(method="dopri8", rtol=1e-10, atol=1e-10,
                                             solver_options={"step_t": t[1:]})
-        tr = sim.simulate(body, FieldProgram(basis, weights), q0, q0, t, options)
+        tr = sim.simulate(body, own_fields_program(basis, weights, spans), q0, q0, t, options)
     out = []
     for j, g in enumerate(gestures):
         T = int(round(g.duration * rate)) + 1

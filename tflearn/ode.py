@@ -14,7 +14,10 @@ with the Dormand–Prince–Shampine tableau, the initial step of Hairer, Nørse
 (§II.4), the fourth-order dense output at the sample times and the safety factors of
 torchdiffeq's ``dopri5`` — the same solver, one per member, advanced together so that
 every right-hand-side call is one batched evaluation (its time t is per member, the
-batch's shape). Steps are clipped to land on the last sample. A member that fails stops
+batch's shape), told which members are still live: a member that has finished or failed
+keeps its row but its derivative is not used, so the right-hand side may skip it (the
+simulator's does, for the dynamics — the work of a batch then shrinks as its members
+finish). Steps are clipped to land on the last sample. A member that fails stops
 alone and is reported by code (:data:`FAILURE_CODES`); the others go on.
 
 Gradients flow through the accepted steps and the dense output, with the step sizes and
@@ -67,7 +70,7 @@ def _initial_step(func, t0, y0, f0, rtol, atol):
     scale = atol + y0.abs() * rtol
     d0, d1 = _rms(y0 / scale), _rms(f0 / scale)
     h0 = torch.where((d0 < 1e-5) | (d1 < 1e-5), torch.full_like(d0, 1e-6), 0.01 * d0 / d1)
-    f1 = func(t0 + h0, y0 + h0[:, None] * f0)
+    f1 = func(t0 + h0, y0 + h0[:, None] * f0, None)
     d2 = _rms((f1 - f0) / scale) / h0
     big = torch.maximum(d1, d2)
     h1 = torch.where(big <= 1e-15, torch.clamp(h0 * 1e-3, min=1e-6), (0.01 / big) ** 0.2)
@@ -86,7 +89,9 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
                 atol: float = 1e-9, max_evals: Optional[int] = None) -> EachSolution:
     """Integrate dy/dt = func(t, y) from y0 (...×D) at t[0], each member with its own steps.
 
-    ``func(t, y)`` gets t (...) — every member's own time — and y (...×D). ``t``: the
+    ``func(t, y, live)`` gets t (...) — every member's own time —, y (...×D) and live
+    (... bool, or None for all): the members whose derivative will be used; the rows of
+    the others may hold anything, finite or not. ``t``: the
     increasing sample times (T), shared. ``max_evals``: a member that needs more
     right-hand sides than this stops with code 1 (budget). A member stops with code 2
     when its step underflows (t + h = t) and code 3 when its state or derivative is not
@@ -95,9 +100,11 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
     y = y0.reshape(-1, D)
     B, T, dev, dt = y.shape[0], t.numel(), y.device, y.dtype
     t = t.to(dt)
-    call = lambda tb, yb: func(tb.reshape(shape), yb.reshape(*shape, D)).reshape(B, D)
+    def call(tb, yb, live):
+        live = None if live is None or bool(live.all()) else live.reshape(shape)
+        return func(tb.reshape(shape), yb.reshape(*shape, D), live).reshape(B, D)
     tb = t[0].expand(B).clone()
-    f = call(tb, y)
+    f = call(tb, y, None)
     h = _initial_step(call, tb, y.detach(), f.detach(), rtol, atol).detach()
     failure = torch.zeros(B, dtype=torch.long, device=dev)
     failure[~torch.isfinite(f).all(-1) | ~torch.isfinite(y).all(-1)] = 3
@@ -114,7 +121,7 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
         k = [f]
         for c, a in zip(_C, _A):
             ys = y + h[:, None] * sum(ai * ki for ai, ki in zip(a, k) if ai)
-            k.append(call(tb + c * h, ys))
+            k.append(call(tb + c * h, ys, live))
         y1 = ys                                         # the last stage is the 5th-order solution
         err = h[:, None] * sum(e * ki for e, ki in zip(_ERROR, k) if e)
         ratio = _rms(err / (atol + rtol * torch.maximum(y.abs(), y1.abs()))).detach()

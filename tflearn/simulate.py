@@ -108,7 +108,10 @@ class ArmODE(torch.nn.Module):
         if isinstance(program, torch.nn.Module):
             self.program_module = program
 
-    def forward(self, t, y):
+    def forward(self, t, y, live=None):
+        """dy/dt at t, y (...×D); ``live`` (... bool, from the per-member integrator):
+        the members whose derivative is wanted — the program still sees the whole batch
+        (its shape is its motion index), the dynamics only these rows, the others get 0."""
         self.evals += 1
         if self.max_evals is not None and self.evals > self.max_evals:
             raise SimulationFailed("budget", f"more than {self.max_evals} right-hand-side evaluations")
@@ -120,6 +123,16 @@ class ArmODE(torch.nn.Module):
         rots, coords, quats, v = unpack(body, y)
         tau = self.program(t, coords, v)
         tau = tau.expand(v.shape) if tau.shape != v.shape else tau
+        state = (rots, coords, quats, v, tau)
+        if live is None:
+            return self._rate(t, *state)
+        rows = live.reshape(-1).nonzero().squeeze(-1)
+        out = self._rate(t, *_rows(state, v.shape[:-1], rows))
+        return out.new_zeros(live.numel(), out.shape[-1]).index_copy(0, rows, out).reshape(
+            live.shape + out.shape[-1:])
+
+    def _rate(self, t, rots, coords, quats, v, tau):
+        body = self.body
         total = tau - body.damping * v if body.damping else tau
         moving = {} if self.base is None else dict(zip(("gravity", "base"),
                                                        base_terms(body, self.base, t, v.dtype)))
@@ -132,6 +145,16 @@ class ArmODE(torch.nn.Module):
         if self.track_work:
             out.append((tau * v).sum(-1, keepdim=True))
         return torch.cat(out, dim=-1)
+
+
+def _rows(state: tuple, batch: torch.Size, rows: torch.Tensor) -> tuple:
+    """The rows (R) of the flattened batch of every tensor in ``state`` (lists entry by
+    entry, None kept): ...×X → R×X."""
+    def take(x):
+        if isinstance(x, list):
+            return [take(e) for e in x]
+        return None if x is None else x.reshape(-1, *x.shape[len(batch):])[rows]
+    return tuple(take(x) for x in state)
 
 
 @dataclass

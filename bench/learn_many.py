@@ -1,0 +1,108 @@
+"""Many motions learned end to end: N random supported programs
+(:func:`tflearn.gestures.random_gestures`, made by one batch of per-motion steps at
+rtol = atol = 1e-10, sampled at 100 Hz, written as NAME.npz), then the main job's
+configuration on them, ``train configs/gestures.yaml data=DIR``, in a fresh process: the
+wall time of making them and of training, each stage's share (from the progress bars),
+M, how many motions simulation reproduces, the worst joint RMSE and tip error, the
+training process' peak memory, and the fitted exponent of each time (cost ∝ N^p, least
+squares on log–log). One torch thread.
+
+    python bench/learn_many.py --sizes 10,30,100 --out runs/bench/learn_many.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import revision
+from scale import exponent
+
+ROOT = Path(__file__).resolve().parents[1]
+_BAR = re.compile(r"\[\d+/\d+\] (.+?): .*?\[(?:(\d+):)?(\d+):(\d+)<")
+
+
+def make(n: int, seed: int, folder: Path) -> float:
+    """Write n random programs' motions into ``folder``; the seconds it took."""
+    import torch
+
+    from tflearn import gestures
+    from tflearn.body import arm
+    from tflearn.motion import save
+    from tflearn.simulate import SimOptions
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    making = SimOptions(rtol=1e-10, atol=1e-10, max_evals=None, batch="each")
+    for motion, _ in gestures.generate(arm(), gestures=gestures.random_gestures(n, seed=seed),
+                                       options=making):
+        save(motion, folder / f"{motion.name}.npz")
+    return time.perf_counter() - t0
+
+
+def stage_seconds(stderr: str) -> dict:
+    """Each stage's elapsed time (s) from the last state of its progress bar."""
+    out = {}
+    for line in re.split(r"[\r\n]", stderr):
+        m = _BAR.search(line)
+        if m:
+            h, mnt, s = (int(x) if x else 0 for x in m.groups()[1:])
+            out[m.group(1)] = 3600 * h + 60 * mnt + s
+    return out
+
+
+def learn(data: Path, out: Path, overrides=()) -> dict:
+    """``train configs/gestures.yaml data=DATA`` in a fresh process; what it found."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "tflearn.cli", "train", "configs/gestures.yaml", f"data={data}",
+           f"out={out}", "log.progress=true", *overrides]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          text=True)
+    wall = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    if proc.returncode:
+        return {"train_s": wall, "error": proc.stderr.strip().splitlines()[-1:]}
+    m = json.loads((out / "metrics.json").read_text())
+    motions = m["motions"].values()
+    return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
+            "reproduced": sum(bool(x["success"]) for x in motions),
+            "worst_rmse_rad": max(x["rmse"] for x in motions),
+            "worst_tip_m": max(x["tip"] for x in motions), "max_rss_mb_so_far": peak}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sizes", default="10,30,100")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path)
+    p.add_argument("overrides", nargs="*", help="config overrides for train (KEY=VALUE)")
+    args = p.parse_args(argv)
+    rows = []
+    for n in (int(x) for x in args.sizes.split(",")):
+        with tempfile.TemporaryDirectory() as tmp:
+            data, out = Path(tmp) / "data", Path(tmp) / "run"
+            data.mkdir()
+            row = {"motions": n, "make_s": make(n, args.seed, data)}
+            row.update(learn(data, out, args.overrides))
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    doc = {"commit": revision.head(), "overrides": args.overrides, "rows": rows}
+    done = [r for r in rows if "error" not in r]
+    if len(done) > 1:
+        doc["exponents"] = {k: exponent(done, k) for k in ("make_s", "train_s")}
+        print(json.dumps(doc["exponents"]))
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(doc, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
