@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -346,8 +347,11 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
                        A_i = a'_i + S_i q̈_i,
     from A_0 = (0, −g) (``gravity``: ...×3, default the body's) or a moving ``base``
     (see :func:`rnea_rot`). D_i (SPD) is inverted in closed form (:func:`_spd_inverse`);
-    a state that blew up gives non-finite accelerations.
+    a state that blew up gives non-finite accelerations. Without a gradient to carry, on
+    float64 CPU tensors, the recursions run compiled (:func:`tflearn.kernels.aba`).
     """
+    if _compiled(*rots, q, v, tau, gravity, *(base or ())):
+        return _aba_compiled(body, rots, q, v, tau, True if gravity is None else gravity, base)
     C = _constants(body, q.dtype, q.device)
     batch, X, v, tau, V0, A0 = _prepare(body, rots, q, v, tau,
                                         True if gravity is None else gravity, base)
@@ -378,6 +382,58 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
             a = a + qdd[-1] @ C["S"][i].T
         A.append(a)
     return torch.cat(qdd, dim=-1).reshape(batch + (body.nv,))
+
+
+def _compiled(*xs) -> bool:
+    """Whether the compiled recursions apply: float64 on the CPU, no gradient to carry."""
+    xs = [x for x in xs if isinstance(x, torch.Tensor)]
+    return (xs[0].dtype == torch.float64 and xs[0].device.type == "cpu"
+            and not (torch.is_grad_enabled() and any(x.requires_grad for x in xs)))
+
+
+_KIND = {"fixed": 0, "hinge": 1, "ball": 2, "free": 3}
+
+
+@lru_cache(maxsize=64)
+def _kernel_tables(body: Body) -> tuple:
+    """The body's constants for :func:`tflearn.kernels.aba`, per link: joint kind, index
+    among the rotation joints (−1 for none), R0, origin, axis, S padded to 6 columns, dof,
+    first coordinate, parent, spatial inertia."""
+    C = _constants(body, torch.float64, torch.device("cpu"))
+    L = len(body.links)
+    S = np.zeros((L, 6, 6))
+    for i, Si in enumerate(C["S"]):
+        S[i, :, :Si.shape[1]] = Si.numpy()
+    kind = np.array([_KIND[l.joint] for l in body.links], dtype=np.int64)
+    rot = np.cumsum(kind >= 2) - 1
+    rot[kind < 2] = -1
+    dof = np.array([l.dof for l in body.links], dtype=np.int64)
+    offset = np.concatenate([[0], np.cumsum(dof)[:-1]]).astype(np.int64)
+    parent = np.array([l.parent for l in body.links], dtype=np.int64)
+    stack = lambda xs: np.ascontiguousarray(np.stack([x.numpy() for x in xs]))
+    return (kind, rot.astype(np.int64), stack(C["R0"]), stack(C["origin"]), stack(C["axis"]), S,
+            dof, offset, parent, stack(C["inertia6"]))
+
+
+def _aba_compiled(body: Body, rots: list, q, v, tau, gravity, base) -> torch.Tensor:
+    """q̈ (...×nv) by :func:`tflearn.kernels.aba`."""
+    from .kernels import aba
+    if v.shape == q.shape == tau.shape and all(R is None or R.shape[:-2] == q.shape[:-1] for R in rots):
+        batch = q.shape[:-1]                             # nothing to broadcast (the simulator)
+        rots = [None if R is None else R.reshape(-1, 3, 3) for R in rots]
+        q, v, tau = (x.reshape(-1, x.shape[-1]) for x in (q, v, tau))
+    else:
+        batch, rots, q, v, tau = _flatten(rots, q, v, tau)
+    B = q.shape[0]
+    V0, A0 = _root_motion(B, _per_sample(_gravity(body, q, gravity), batch, B),
+                          None if base is None else tuple(_per_sample(b, batch, B) for b in base))
+    R = [x for x in rots if x is not None]
+    R = torch.stack(R, 1) if R else q.new_zeros(B, 0, 3, 3)
+    arrays = [np.ascontiguousarray(x.detach().numpy()) for x in
+              (R, q, q.new_zeros(B, 6) if V0 is None else V0, A0, v, tau)]
+    qdd = np.empty((B, body.nv))
+    aba(*_kernel_tables(body), *arrays, qdd)
+    return torch.from_numpy(qdd).reshape(batch + (body.nv,))
 
 
 def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):

@@ -1,0 +1,104 @@
+"""tflearn.kernels: the compiled articulated-body algorithm against the torch recursions
+of tflearn.dynamics (which tests/test_dynamics.py and tests/test_free_joint.py hold to
+Pinocchio), on every test body, with and without gravity, a moving base and free joints;
+when each path is taken; and a blown-up state coming out non-finite."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tflearn import dynamics as D
+from tflearn.configspace import joint_rotations
+
+from conftest import BODY_NAMES, DT, GRAVITY, free_tree, make_body, random_coords, random_states
+
+BODIES = [(name, g) for name in BODY_NAMES for g in ((0.0, 0.0, 0.0), GRAVITY)]
+
+
+def _both(body, q, v, tau, **kw):
+    """(compiled, torch) accelerations of the same call: the torch path is the one taken
+    when an input needs a gradient."""
+    with torch.no_grad():
+        fast = D.forward_dynamics(body, q, v, tau, **kw)
+    slow = D.forward_dynamics(body, q.clone().requires_grad_(), v, tau, **kw).detach()
+    return fast, slow
+
+
+def _close(fast, slow):
+    assert fast.shape == slow.shape and fast.dtype == torch.float64
+    assert ((fast - slow).abs() / (1 + slow.abs())).max() < 1e-12
+
+
+@pytest.mark.parametrize("name,g", BODIES)
+def test_compiled_equals_the_torch_recursions(name, g, rng):
+    body = make_body(name, g)
+    q = torch.as_tensor(random_coords(body, rng, 16), dtype=DT)
+    v, tau = (torch.as_tensor(3.0 * rng.normal(size=q.shape), dtype=DT) for _ in range(2))
+    _close(*_both(body, q, v, tau))
+    _close(*_both(body, q, v, tau, gravity=torch.as_tensor(rng.normal(size=(16, 3)), dtype=DT)))
+
+
+@pytest.mark.parametrize("where", [0, 3])
+def test_compiled_free_joints_and_a_moving_base(where, rng):
+    body = free_tree(where, GRAVITY)
+    q = torch.as_tensor(random_states(body, rng, 12), dtype=DT)
+    v, tau = (torch.as_tensor(2.0 * rng.normal(size=q.shape), dtype=DT) for _ in range(2))
+    _close(*_both(body, q, v, tau))
+    base = tuple(torch.as_tensor(rng.normal(size=(12, 3)), dtype=DT) for _ in range(3))
+    _close(*_both(body, q, v, tau, base=base))
+
+
+def test_batch_shapes_and_broadcasting(rng):
+    body = make_body("arm", GRAVITY)
+    q = torch.as_tensor(random_coords(body, rng, 6), dtype=DT).reshape(2, 3, -1)
+    v = torch.as_tensor(rng.normal(size=body.nv), dtype=DT)           # broadcast
+    tau = torch.zeros(2, 3, body.nv, dtype=DT)
+    fast, slow = _both(body, q, v, tau)
+    assert fast.shape == (2, 3, body.nv)
+    _close(fast, slow)
+    with torch.no_grad():
+        one = D.forward_dynamics(body, q[1, 2], v, tau[1, 2])
+    assert one.shape == (body.nv,) and torch.allclose(one, fast[1, 2], rtol=1e-13, atol=1e-13)
+
+
+def test_which_path_is_taken(monkeypatch, rng):
+    """The compiled path without a gradient on float64 CPU tensors, the torch path with
+    one, in float32 — and gradients still flow."""
+    body = make_body("arm", GRAVITY)
+    calls = []
+    real = D._aba_compiled
+    monkeypatch.setattr(D, "_aba_compiled", lambda *a: calls.append(1) or real(*a))
+    q = torch.as_tensor(random_coords(body, rng, 3), dtype=DT)
+    v = torch.as_tensor(rng.normal(size=q.shape), dtype=DT)
+    D.forward_dynamics(body, q, v, v)
+    assert len(calls) == 1
+    qg = q.clone().requires_grad_()
+    D.forward_dynamics(body, qg, v, v).sum().backward()
+    assert len(calls) == 1 and qg.grad is not None and qg.grad.abs().sum() > 0
+    D.forward_dynamics(body, q.float(), v.float(), v.float())
+    assert len(calls) == 1
+
+
+def test_a_blown_up_state_gives_non_finite_accelerations(rng):
+    body = make_body("arm")
+    q = torch.as_tensor(random_coords(body, rng, 3), dtype=DT)
+    v = torch.zeros_like(q)
+    v[1, 0] = float("nan")
+    with torch.no_grad():
+        a = D.forward_dynamics(body, q, v, v)
+    assert not torch.isfinite(a[1]).all() and torch.isfinite(a[[0, 2]]).all()
+
+
+def test_joint_rotations_are_read_as_given(rng):
+    """forward_dynamics_rot takes the rotations from the caller (the simulator's
+    quaternions): the compiled path reads the same ones."""
+    body = make_body("arm")
+    q = torch.as_tensor(random_coords(body, rng, 4), dtype=DT)
+    rots = joint_rotations(body, q)
+    v, tau = (torch.as_tensor(rng.normal(size=q.shape), dtype=DT) for _ in range(2))
+    with torch.no_grad():
+        fast = D.forward_dynamics_rot(body, rots, q, v, tau)
+    slow = D.forward_dynamics_rot(body, rots, q.clone().requires_grad_(), v, tau).detach()
+    _close(fast, slow)
+    assert np.isfinite(fast.numpy()).all()

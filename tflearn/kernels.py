@@ -1,0 +1,289 @@
+"""Compiled (numba) loops of the articulated-body algorithm, for evaluations that need no
+gradient: one call per batch instead of hundreds of small tensor operations.
+
+:func:`tflearn.dynamics.forward_dynamics_rot` hands its recursions to :func:`aba` when
+no input needs a gradient and the tensors are float64 on the CPU; with a gradient, on
+another device or dtype, it runs its own torch recursions (the two agree to 1e-12,
+tests/test_kernels.py). The maths is the same, per sample b, with the parent → link
+motion transform X_i = [[E, 0], [−E [r]×, E]] (E = (R0 R_joint)ᵀ, r the joint origin)
+applied by its blocks rather than as a 6×6 matrix:
+
+    V_i = X_i V_p + S_i q̇_i,   c_i = V_i ×ₘ S_i q̇_i,   Iᴬ_i = I_i,   pᴬ_i = V_i ×* I_i V_i;
+    leaves → root: U = Iᴬ_i S_i, D = S_iᵀ U, u = τ_i − S_iᵀ pᴬ_i,
+                   Iᵃ = Iᴬ_i − U D⁻¹ Uᵀ, pᵃ = pᴬ_i + Iᵃ c_i + U D⁻¹ u,
+                   Iᴬ_p += X_iᵀ Iᵃ X_i, pᴬ_p += X_iᵀ pᵃ;
+    root → leaves: a' = X_i A_p + c_i, q̈_i = D⁻¹ (u − Uᵀ a'), A_i = a' + S_i q̈_i,
+
+from V_0, A_0 (B×6: the root's parent). S_i is stored padded to 6 columns with its
+joint's dof d_i; D (d×d, symmetric positive definite) is inverted by Cholesky, and a D
+that is not positive definite gives NaN accelerations (the state blew up).
+
+Compiled once per machine and kept in numba's on-disk cache (``cache=True``): the first
+call in a fresh checkout takes several seconds, later processes load it.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+#: LLVM may contract and reorder floating-point arithmetic, but not assume away NaN/Inf
+#: (a blown-up state must still come out non-finite).
+_FAST = {"contract", "reassoc", "nsz", "arcp"}
+
+
+@njit(cache=True, fastmath=_FAST)
+def _cholesky_inverse(D, d, out, L, Linv):
+    """out[:d, :d] = D[:d, :d]⁻¹ (SPD, by Cholesky; L, Linv: 6×6 scratch); NaN where D is
+    not positive definite."""
+    for j in range(d):
+        s = D[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            out[:d, :d] = np.nan
+            return
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, d):
+            s = D[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / L[j, j]
+    for j in range(d):
+        Linv[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, d):
+            s = 0.0
+            for k in range(j, i):
+                s -= L[i, k] * Linv[k, j]
+            Linv[i, j] = s / L[i, i]
+    for i in range(d):
+        for j in range(d):
+            s = 0.0
+            for k in range(max(i, j), d):
+                s += Linv[k, i] * Linv[k, j]
+            out[i, j] = s
+
+
+@njit(cache=True, fastmath=_FAST)
+def _cross_motion(V, s, out):
+    """out = V ×ₘ s = (ω × s_ω, ω × s_v + v × s_ω) for V = (ω, v)."""
+    w0, w1, w2, v0, v1, v2 = V[0], V[1], V[2], V[3], V[4], V[5]
+    out[0] = w1 * s[2] - w2 * s[1]
+    out[1] = w2 * s[0] - w0 * s[2]
+    out[2] = w0 * s[1] - w1 * s[0]
+    out[3] = w1 * s[5] - w2 * s[4] + v1 * s[2] - v2 * s[1]
+    out[4] = w2 * s[3] - w0 * s[5] + v2 * s[0] - v0 * s[2]
+    out[5] = w0 * s[4] - w1 * s[3] + v0 * s[1] - v1 * s[0]
+
+
+@njit(cache=True, fastmath=_FAST)
+def _cross_force(V, P, out):
+    """out = V ×* P = (ω × n + v × f, ω × f) for V = (ω, v), P = (n, f)."""
+    w0, w1, w2, v0, v1, v2 = V[0], V[1], V[2], V[3], V[4], V[5]
+    out[0] = w1 * P[2] - w2 * P[1] + v1 * P[5] - v2 * P[4]
+    out[1] = w2 * P[0] - w0 * P[2] + v2 * P[3] - v0 * P[5]
+    out[2] = w0 * P[1] - w1 * P[0] + v0 * P[4] - v1 * P[3]
+    out[3] = w1 * P[5] - w2 * P[4]
+    out[4] = w2 * P[3] - w0 * P[5]
+    out[5] = w0 * P[4] - w1 * P[3]
+
+
+@njit(cache=True, fastmath=_FAST)
+def _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E, r, Rj):
+    """Link i's E = (R0 R_joint)ᵀ and origin r in its parent (the motion transform
+    X = [[E, 0], [−E [r]×, E]]) at sample b (Rj: 3×3 scratch)."""
+    o = offset[i]
+    if kind[i] == 1:                                    # hinge: Rodrigues on the angle
+        a = axis[i]
+        sn, cs = np.sin(q[b, o]), 1.0 - np.cos(q[b, o])
+        for m in range(3):
+            for n in range(3):
+                K2 = a[m] * a[n] - (1.0 if m == n else 0.0)
+                Rj[m, n] = (1.0 if m == n else 0.0) + cs * K2
+        Rj[0, 1] -= sn * a[2]
+        Rj[0, 2] += sn * a[1]
+        Rj[1, 0] += sn * a[2]
+        Rj[1, 2] -= sn * a[0]
+        Rj[2, 0] -= sn * a[1]
+        Rj[2, 1] += sn * a[0]
+    elif kind[i] >= 2:                                  # ball, free: the rotation given
+        Rj[:, :] = R[b, rot[i]]
+    else:
+        for m in range(3):
+            for n in range(3):
+                Rj[m, n] = 1.0 if m == n else 0.0
+    for m in range(3):
+        r[m] = origin[i, m]
+        for n in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += R0[i, n, k] * Rj[k, m]
+            E[m, n] = acc                               # (R0 Rj)ᵀ
+    if kind[i] == 3:                                    # free: the origin moves, r + R0 t
+        for m in range(3):
+            for k in range(3):
+                r[m] += R0[i, m, k] * q[b, o + 3 + k]
+
+
+@njit(cache=True, fastmath=_FAST)
+def _motion(E, r, x, out):
+    """out = X x for a motion vector x = (ω, v): (E ω, E (v − r × ω))."""
+    w0 = x[3] - (r[1] * x[2] - r[2] * x[1])
+    w1 = x[4] - (r[2] * x[0] - r[0] * x[2])
+    w2 = x[5] - (r[0] * x[1] - r[1] * x[0])
+    for m in range(3):
+        out[m] = E[m, 0] * x[0] + E[m, 1] * x[1] + E[m, 2] * x[2]
+        out[3 + m] = E[m, 0] * w0 + E[m, 1] * w1 + E[m, 2] * w2
+
+
+@njit(cache=True, fastmath=_FAST)
+def _force_back(E, r, f, out):
+    """out += Xᵀ f for a force f = (n, f): (Eᵀ n + r × Eᵀ f, Eᵀ f)."""
+    g0 = E[0, 0] * f[3] + E[1, 0] * f[4] + E[2, 0] * f[5]
+    g1 = E[0, 1] * f[3] + E[1, 1] * f[4] + E[2, 1] * f[5]
+    g2 = E[0, 2] * f[3] + E[1, 2] * f[4] + E[2, 2] * f[5]
+    out[0] += E[0, 0] * f[0] + E[1, 0] * f[1] + E[2, 0] * f[2] + r[1] * g2 - r[2] * g1
+    out[1] += E[0, 1] * f[0] + E[1, 1] * f[1] + E[2, 1] * f[2] + r[2] * g0 - r[0] * g2
+    out[2] += E[0, 2] * f[0] + E[1, 2] * f[1] + E[2, 2] * f[2] + r[0] * g1 - r[1] * g0
+    out[3] += g0
+    out[4] += g1
+    out[5] += g2
+
+
+@njit(cache=True, fastmath=_FAST)
+def _inertia_back(E, r, Ia, out, Xk, F):
+    """out += Xᵀ Iᵃ X (6×6), column by column: X e_k, Iᵃ of it, sent back by Xᵀ (Xk, F:
+    scratch 6-vectors; the unit vectors' zeros are skipped)."""
+    for k in range(6):
+        for m in range(6):
+            Xk[m] = 0.0
+        Xk[k] = 1.0
+        _motion(E, r, Xk, F)
+        for m in range(6):
+            acc = 0.0
+            for n in range(6):
+                acc += Ia[m, n] * F[n]
+            Xk[m] = acc
+        for m in range(6):
+            F[m] = 0.0
+        _force_back(E, r, Xk, F)
+        for m in range(6):
+            out[m, k] += F[m]
+
+
+@njit(cache=True, fastmath=_FAST)
+def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, A0, v, tau, qdd):
+    """The articulated-body algorithm (module docstring) for every sample b. Per link i:
+    kind (0 fixed, 1 hinge, 2 ball, 3 free), rot (its index in R, −1 for none), R0
+    (L×3×3) and origin (L×3) of the joint, axis (L×3, hinges), S (L×6×6, the first
+    dof[i] columns used), dof, offset (first coordinate), parent (−1 for the root),
+    inertia (L×6×6, spatial, about the link origin); R (B×nr×3×3) the rotation joints'
+    rotations, q, v, tau (B×nv), V0, A0 (B×6) → qdd (B×nv), written in place."""
+    B, L = q.shape[0], kind.shape[0]
+    E = np.zeros((L, 3, 3))
+    r = np.zeros((L, 3))
+    V = np.zeros((L, 6))
+    c = np.zeros((L, 6))
+    IA = np.zeros((L, 6, 6))
+    pA = np.zeros((L, 6))
+    U = np.zeros((L, 6, 6))
+    KU = np.zeros((L, 6, 6))                            # D⁻¹ Uᵀ (d×6)
+    Dinv = np.zeros((L, 6, 6))
+    u = np.zeros((L, 6))
+    A = np.zeros((L, 6))
+    s = np.zeros(6)
+    x = np.zeros(6)
+    IV = np.zeros(6)
+    pa = np.zeros(6)
+    Du = np.zeros(6)
+    D = np.zeros((6, 6))
+    Rj = np.zeros((3, 3))
+    Lc = np.zeros((6, 6))
+    Lci = np.zeros((6, 6))
+    for b in range(B):
+        for i in range(L):
+            d, o, p = dof[i], offset[i], parent[i]
+            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
+            for m in range(6):
+                acc = 0.0
+                for k in range(d):
+                    acc += S[i, m, k] * v[b, o + k]
+                s[m] = acc
+            _motion(E[i], r[i], V0[b] if p < 0 else V[p], V[i])
+            for m in range(6):
+                V[i, m] += s[m]
+            _cross_motion(V[i], s, c[i])
+            for m in range(6):
+                acc = 0.0
+                for k in range(6):
+                    IA[i, m, k] = inertia[i, m, k]
+                    acc += inertia[i, m, k] * V[i, k]
+                IV[m] = acc
+            _cross_force(V[i], IV, pA[i])
+        for i in range(L - 1, -1, -1):
+            d, o, p = dof[i], offset[i], parent[i]
+            for m in range(6):
+                acc = pA[i, m]
+                for k in range(6):
+                    acc += IA[i, m, k] * c[i, k]
+                pa[m] = acc
+            if d > 0:
+                for m in range(6):
+                    for k in range(d):
+                        acc = 0.0
+                        for n in range(6):
+                            acc += IA[i, m, n] * S[i, n, k]
+                        U[i, m, k] = acc
+                for m in range(d):
+                    for k in range(d):
+                        acc = 0.0
+                        for n in range(6):
+                            acc += S[i, n, m] * U[i, n, k]
+                        D[m, k] = acc
+                    acc = tau[b, o + m]
+                    for n in range(6):
+                        acc -= S[i, n, m] * pA[i, n]
+                    u[i, m] = acc
+                _cholesky_inverse(D, d, Dinv[i], Lc, Lci)
+                for m in range(d):
+                    for k in range(6):
+                        acc = 0.0
+                        for n in range(d):
+                            acc += Dinv[i, m, n] * U[i, k, n]
+                        KU[i, m, k] = acc
+                for m in range(d):                        # Du = D⁻¹ u − D⁻¹Uᵀ c
+                    acc = 0.0
+                    for n in range(d):
+                        acc += Dinv[i, m, n] * u[i, n]
+                    for n in range(6):
+                        acc -= KU[i, m, n] * c[i, n]
+                    Du[m] = acc
+                for m in range(6):
+                    for k in range(6):
+                        acc = 0.0
+                        for n in range(d):
+                            acc += U[i, m, n] * KU[i, n, k]
+                        IA[i, m, k] -= acc               # Iᵃ = Iᴬ − U D⁻¹ Uᵀ
+                    acc = 0.0
+                    for n in range(d):
+                        acc += U[i, m, n] * Du[n]
+                    pa[m] += acc
+            if p >= 0:
+                _inertia_back(E[i], r[i], IA[i], IA[p], IV, s)
+                _force_back(E[i], r[i], pa, pA[p])
+        for i in range(L):
+            d, o, p = dof[i], offset[i], parent[i]
+            _motion(E[i], r[i], A0[b] if p < 0 else A[p], x)
+            for m in range(6):
+                x[m] += c[i, m]
+            for m in range(d):
+                acc = 0.0
+                for n in range(d):
+                    acc += Dinv[i, m, n] * u[i, n]
+                for n in range(6):
+                    acc -= KU[i, m, n] * x[n]
+                qdd[b, o + m] = acc
+            for m in range(6):
+                acc = x[m]
+                for k in range(d):
+                    acc += S[i, m, k] * qdd[b, o + k]
+                A[i, m] = acc
