@@ -84,6 +84,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path)
     p.add_argument("overrides", nargs="*", help="config overrides for train (KEY=VALUE)")
     args = p.parse_args(argv)
+    commit = revision.head()                  # the code this process runs
     rows = []
     for n in (int(x) for x in args.sizes.split(",")):
         with tempfile.TemporaryDirectory() as tmp:
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
             row.update(learn(data, out, args.overrides))
         rows.append(row)
         print(json.dumps(row), flush=True)
-    doc = {"commit": revision.head(), "overrides": args.overrides, "rows": rows}
+    doc = {"commit": commit, "overrides": args.overrides, "rows": rows}
     done = [r for r in rows if "error" not in r]
     if len(done) > 1:
         doc["exponents"] = {k: exponent(done, k) for k in ("make_s", "train_s")}

@@ -78,6 +78,7 @@ def main(argv=None) -> int:
                    help="how the scoring simulation steps its batch (SimOptions.batch), each measured")
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
+    commit = revision.head()                  # the code this process runs
     torch.set_num_threads(1)
     rows = []
     for n in (int(x) for x in args.sizes.split(",")):
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
         except SimulationFailed as err:            # a program that cannot be made stops its size
             rows.append({"motions": n, "error": str(err)})
         print(json.dumps(rows[-1]), flush=True)
-    doc = {"commit": revision.head(), "rows": rows}
+    doc = {"commit": commit, "rows": rows}
     done = [r for r in rows if "error" not in r]
     if len(done) > 1:
         keys = ["generate_s", "em_step_s"] + [k for k in done[0] if k.startswith("score_")]

@@ -1,4 +1,4 @@
-"""tflearn.kernels: the compiled articulated-body algorithm against the torch recursions
+"""tflearn.kernels: the compiled articulated-body algorithm and RNEA against the torch recursions
 of tflearn.dynamics (which tests/test_dynamics.py and tests/test_free_joint.py hold to
 Pinocchio), on every test body, with and without gravity, a moving base and free joints;
 when each path is taken; and a blown-up state coming out non-finite."""
@@ -25,6 +25,12 @@ def _both(body, q, v, tau, **kw):
     return fast, slow
 
 
+def _both_rnea(body, q, v, a, **kw):
+    with torch.no_grad():
+        fast = D.rnea(body, q, v, a, **kw)
+    return fast, D.rnea(body, q.clone().requires_grad_(), v, a, **kw).detach()
+
+
 def _close(fast, slow):
     assert fast.shape == slow.shape and fast.dtype == torch.float64
     assert ((fast - slow).abs() / (1 + slow.abs())).max() < 1e-12
@@ -36,7 +42,11 @@ def test_compiled_equals_the_torch_recursions(name, g, rng):
     q = torch.as_tensor(random_coords(body, rng, 16), dtype=DT)
     v, tau = (torch.as_tensor(3.0 * rng.normal(size=q.shape), dtype=DT) for _ in range(2))
     _close(*_both(body, q, v, tau))
-    _close(*_both(body, q, v, tau, gravity=torch.as_tensor(rng.normal(size=(16, 3)), dtype=DT)))
+    g16 = torch.as_tensor(rng.normal(size=(16, 3)), dtype=DT)
+    _close(*_both(body, q, v, tau, gravity=g16))
+    _close(*_both_rnea(body, q, v, tau))
+    _close(*_both_rnea(body, q, v, tau, gravity=g16))
+    _close(*_both_rnea(body, q, v, tau, gravity=False))
 
 
 @pytest.mark.parametrize("where", [0, 3])
@@ -47,6 +57,8 @@ def test_compiled_free_joints_and_a_moving_base(where, rng):
     _close(*_both(body, q, v, tau))
     base = tuple(torch.as_tensor(rng.normal(size=(12, 3)), dtype=DT) for _ in range(3))
     _close(*_both(body, q, v, tau, base=base))
+    _close(*_both_rnea(body, q, v, tau))
+    _close(*_both_rnea(body, q, v, tau, base=base))
 
 
 def test_batch_shapes_and_broadcasting(rng):
@@ -67,17 +79,19 @@ def test_which_path_is_taken(monkeypatch, rng):
     one, in float32 — and gradients still flow."""
     body = make_body("arm", GRAVITY)
     calls = []
-    real = D._aba_compiled
-    monkeypatch.setattr(D, "_aba_compiled", lambda *a: calls.append(1) or real(*a))
+    real = D._compiled_call
+    monkeypatch.setattr(D, "_compiled_call", lambda *a: calls.append(a[0]) or real(*a))
     q = torch.as_tensor(random_coords(body, rng, 3), dtype=DT)
     v = torch.as_tensor(rng.normal(size=q.shape), dtype=DT)
     D.forward_dynamics(body, q, v, v)
-    assert len(calls) == 1
+    assert calls == ["aba"]
     qg = q.clone().requires_grad_()
     D.forward_dynamics(body, qg, v, v).sum().backward()
     assert len(calls) == 1 and qg.grad is not None and qg.grad.abs().sum() > 0
     D.forward_dynamics(body, q.float(), v.float(), v.float())
     assert len(calls) == 1
+    D.rnea(body, q, v, v)
+    assert calls == ["aba", "rnea"]
 
 
 def test_a_blown_up_state_gives_non_finite_accelerations(rng):

@@ -282,8 +282,11 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
     in the base frame: its angular velocity, angular acceleration and the classical
     acceleration of its origin) enters as V_0 = (ω_b, 0), A_0 = (ω̇_b, a_b − g): the
     torques seen in the inertial frame moving with the base origin's velocity at that
-    instant (Galilean invariance).
+    instant (Galilean invariance). Without a gradient to carry, on float64 CPU tensors,
+    the recursions run compiled (:func:`tflearn.kernels.rnea`).
     """
+    if _compiled(*rots, q, v, a, gravity, *(base or ())):
+        return _compiled_call("rnea", body, rots, q, v, a, gravity, base)
     C = _constants(body, q.dtype, q.device)
     batch, X, v, a, V0, A0 = _prepare(body, rots, q, v, a, gravity, base)
     V, s = _velocities(body, X, v, V0)
@@ -351,7 +354,7 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
     float64 CPU tensors, the recursions run compiled (:func:`tflearn.kernels.aba`).
     """
     if _compiled(*rots, q, v, tau, gravity, *(base or ())):
-        return _aba_compiled(body, rots, q, v, tau, True if gravity is None else gravity, base)
+        return _compiled_call("aba", body, rots, q, v, tau, True if gravity is None else gravity, base)
     C = _constants(body, q.dtype, q.device)
     batch, X, v, tau, V0, A0 = _prepare(body, rots, q, v, tau,
                                         True if gravity is None else gravity, base)
@@ -415,25 +418,26 @@ def _kernel_tables(body: Body) -> tuple:
             dof, offset, parent, stack(C["inertia6"]))
 
 
-def _aba_compiled(body: Body, rots: list, q, v, tau, gravity, base) -> torch.Tensor:
-    """q̈ (...×nv) by :func:`tflearn.kernels.aba`."""
-    from .kernels import aba
-    if v.shape == q.shape == tau.shape and all(R is None or R.shape[:-2] == q.shape[:-1] for R in rots):
+def _compiled_call(name: str, body: Body, rots: list, q, v, x, gravity, base) -> torch.Tensor:
+    """:func:`tflearn.kernels.aba` (x = τ → q̈) or :func:`tflearn.kernels.rnea` (x = q̈ → τ),
+    (...×nv)."""
+    from . import kernels
+    if v.shape == q.shape == x.shape and all(R is None or R.shape[:-2] == q.shape[:-1] for R in rots):
         batch = q.shape[:-1]                             # nothing to broadcast (the simulator)
         rots = [None if R is None else R.reshape(-1, 3, 3) for R in rots]
-        q, v, tau = (x.reshape(-1, x.shape[-1]) for x in (q, v, tau))
+        q, v, x = (y.reshape(-1, y.shape[-1]) for y in (q, v, x))
     else:
-        batch, rots, q, v, tau = _flatten(rots, q, v, tau)
+        batch, rots, q, v, x = _flatten(rots, q, v, x)
     B = q.shape[0]
     V0, A0 = _root_motion(B, _per_sample(_gravity(body, q, gravity), batch, B),
                           None if base is None else tuple(_per_sample(b, batch, B) for b in base))
-    R = [x for x in rots if x is not None]
+    R = [y for y in rots if y is not None]
     R = torch.stack(R, 1) if R else q.new_zeros(B, 0, 3, 3)
-    arrays = [np.ascontiguousarray(x.detach().numpy()) for x in
-              (R, q, q.new_zeros(B, 6) if V0 is None else V0, A0, v, tau)]
-    qdd = np.empty((B, body.nv))
-    aba(*_kernel_tables(body), *arrays, qdd)
-    return torch.from_numpy(qdd).reshape(batch + (body.nv,))
+    arrays = [np.ascontiguousarray(y.detach().numpy()) for y in
+              (R, q, q.new_zeros(B, 6) if V0 is None else V0, A0, v, x)]
+    out = np.empty((B, body.nv))
+    getattr(kernels, name)(*_kernel_tables(body), *arrays, out)
+    return torch.from_numpy(out).reshape(batch + (body.nv,))
 
 
 def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):

@@ -150,24 +150,56 @@ def _force_back(E, r, f, out):
 
 
 @njit(cache=True, fastmath=_FAST)
-def _inertia_back(E, r, Ia, out, Xk, F):
-    """out += Xᵀ Iᵃ X (6×6), column by column: X e_k, Iᵃ of it, sent back by Xᵀ (Xk, F:
-    scratch 6-vectors; the unit vectors' zeros are skipped)."""
-    for k in range(6):
-        for m in range(6):
-            Xk[m] = 0.0
-        Xk[k] = 1.0
-        _motion(E, r, Xk, F)
-        for m in range(6):
-            acc = 0.0
-            for n in range(6):
-                acc += Ia[m, n] * F[n]
-            Xk[m] = acc
-        for m in range(6):
-            F[m] = 0.0
-        _force_back(E, r, Xk, F)
-        for m in range(6):
-            out[m, k] += F[m]
+def _inertia_back(E, r, Ia, out, W, Z):
+    """out += Xᵀ Iᵃ X (6×6) by blocks: with Iᵃ = [[A, B], [Bᵀ, C]] turned into the parent's
+    axes, A' = Eᵀ A E (B', C' alike), and [r]× = Rx,
+        Xᵀ Iᵃ X = [[A' − B'Rx − (B'Rx)ᵀ − Rx C' Rx, B' + Rx C'], [(B' + Rx C')ᵀ, C']]
+    (W, Z: 3×3 scratch)."""
+    for blk in range(3):                          # A, B, C → A', B', C' into out's blocks
+        ro, co = (0, 0) if blk == 0 else ((0, 3) if blk == 1 else (3, 3))
+        for m in range(3):                        # W = M E
+            for n in range(3):
+                W[m, n] = (Ia[ro + m, co] * E[0, n] + Ia[ro + m, co + 1] * E[1, n]
+                           + Ia[ro + m, co + 2] * E[2, n])
+        for m in range(3):                        # Z = Eᵀ W
+            for n in range(3):
+                Z[m, n] = E[0, m] * W[0, n] + E[1, m] * W[1, n] + E[2, m] * W[2, n]
+        if blk == 0:
+            for m in range(3):
+                for n in range(3):
+                    out[m, n] += Z[m, n]
+        elif blk == 1:                            # B' (and a copy in W)
+            for m in range(3):
+                for n in range(3):
+                    out[m, 3 + n] += Z[m, n]
+                    out[3 + n, m] += Z[m, n]
+                    W[m, n] = Z[m, n]
+            for m in range(3):                    # −B'Rx − (B'Rx)ᵀ into the top-left block
+                t0 = W[m, 1] * r[2] - W[m, 2] * r[1]     # (B' Rx)[m, 0]
+                t1 = W[m, 2] * r[0] - W[m, 0] * r[2]
+                t2 = W[m, 0] * r[1] - W[m, 1] * r[0]
+                out[m, 0] -= t0
+                out[0, m] -= t0
+                out[m, 1] -= t1
+                out[1, m] -= t1
+                out[m, 2] -= t2
+                out[2, m] -= t2
+        else:
+            for m in range(3):
+                for n in range(3):
+                    out[3 + m, 3 + n] += Z[m, n]
+            for n in range(3):                    # W = Rx C'
+                W[0, n] = r[1] * Z[2, n] - r[2] * Z[1, n]
+                W[1, n] = r[2] * Z[0, n] - r[0] * Z[2, n]
+                W[2, n] = r[0] * Z[1, n] - r[1] * Z[0, n]
+            for m in range(3):
+                for n in range(3):
+                    out[m, 3 + n] += W[m, n]
+                    out[3 + n, m] += W[m, n]
+            for m in range(3):                    # − (Rx C') Rx
+                out[m, 0] -= W[m, 1] * r[2] - W[m, 2] * r[1]
+                out[m, 1] -= W[m, 2] * r[0] - W[m, 0] * r[2]
+                out[m, 2] -= W[m, 0] * r[1] - W[m, 1] * r[0]
 
 
 @njit(cache=True, fastmath=_FAST)
@@ -226,7 +258,15 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
                 for k in range(6):
                     acc += IA[i, m, k] * c[i, k]
                 pa[m] = acc
-            if d > 0:
+            if d > 0 and kind[i] >= 2:                   # S = the first d unit columns
+                for m in range(6):
+                    for k in range(d):
+                        U[i, m, k] = IA[i, m, k]
+                for m in range(d):
+                    for k in range(d):
+                        D[m, k] = IA[i, m, k]
+                    u[i, m] = tau[b, o + m] - pA[i, m]
+            elif d > 0:
                 for m in range(6):
                     for k in range(d):
                         acc = 0.0
@@ -243,6 +283,7 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
                     for n in range(6):
                         acc -= S[i, n, m] * pA[i, n]
                     u[i, m] = acc
+            if d > 0:
                 _cholesky_inverse(D, d, Dinv[i], Lc, Lci)
                 for m in range(d):
                     for k in range(6):
@@ -268,7 +309,7 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
                         acc += U[i, m, n] * Du[n]
                     pa[m] += acc
             if p >= 0:
-                _inertia_back(E[i], r[i], IA[i], IA[p], IV, s)
+                _inertia_back(E[i], r[i], IA[i], IA[p], Rj, Lc)
                 _force_back(E[i], r[i], pa, pA[p])
         for i in range(L):
             d, o, p = dof[i], offset[i], parent[i]
@@ -287,3 +328,61 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
                 for k in range(d):
                     acc += S[i, m, k] * qdd[b, o + k]
                 A[i, m] = acc
+
+
+@njit(cache=True, fastmath=_FAST)
+def rnea(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, A0, v, a, tau):
+    """Recursive Newton–Euler inverse dynamics for every sample b (the arguments of
+    :func:`aba`, with accelerations a in place of torques; tau (B×nv) written in place):
+
+        V_i = X_i V_p + S_i q̇_i,  A_i = X_i A_p + S_i q̈_i + V_i ×ₘ S_i q̇_i,
+        F_i = I_i A_i + V_i ×* I_i V_i;   leaves → root: τ_i = S_iᵀ F_i, F_p += X_iᵀ F_i."""
+    B, L = q.shape[0], kind.shape[0]
+    E = np.zeros((L, 3, 3))
+    r = np.zeros((L, 3))
+    V = np.zeros((L, 6))
+    A = np.zeros((L, 6))
+    F = np.zeros((L, 6))
+    s = np.zeros(6)
+    x = np.zeros(6)
+    IV = np.zeros(6)
+    Rj = np.zeros((3, 3))
+    for b in range(B):
+        for i in range(L):
+            d, o, p = dof[i], offset[i], parent[i]
+            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
+            for m in range(6):
+                acc = 0.0
+                for k in range(d):
+                    acc += S[i, m, k] * v[b, o + k]
+                s[m] = acc
+            _motion(E[i], r[i], V0[b] if p < 0 else V[p], V[i])
+            for m in range(6):
+                V[i, m] += s[m]
+            _motion(E[i], r[i], A0[b] if p < 0 else A[p], A[i])
+            _cross_motion(V[i], s, x)
+            for m in range(6):
+                acc = x[m]
+                for k in range(d):
+                    acc += S[i, m, k] * a[b, o + k]
+                A[i, m] += acc
+            for m in range(6):
+                acc = 0.0
+                acc2 = 0.0
+                for k in range(6):
+                    acc += inertia[i, m, k] * V[i, k]
+                    acc2 += inertia[i, m, k] * A[i, k]
+                IV[m] = acc
+                F[i, m] = acc2
+            _cross_force(V[i], IV, x)
+            for m in range(6):
+                F[i, m] += x[m]
+        for i in range(L - 1, -1, -1):
+            d, o, p = dof[i], offset[i], parent[i]
+            for k in range(d):
+                acc = 0.0
+                for m in range(6):
+                    acc += S[i, m, k] * F[i, m]
+                tau[b, o + k] = acc
+            if p >= 0:
+                _force_back(E[i], r[i], F[i], F[p])
