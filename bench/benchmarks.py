@@ -45,11 +45,15 @@ def dynamics_section(d: dict) -> list:
         "sample (per call ÷ batch). *Pinocchio Python* is one `pin.rnea` / `pin.aba` / "
         "`pin.crba` call from Python; *Pinocchio C++* is its compiled batch loop "
         "(`rneaInParallel`, `abaInParallel`, one thread), the cost of the algorithm "
-        "without Python. *ratio* = tflearn ÷ Pinocchio Python call.", "",
+        "without Python. *ratio* = tflearn ÷ Pinocchio Python call. tflearn's RNEA and "
+        "forward dynamics without a gradient to carry run compiled (`tflearn.kernels`); "
+        "*with gradient* is the same call with q requiring grad (torch's recursions, the "
+        "forward pass only).", "",
         "| batch | RNEA | ratio | Pinocchio C++ | forward dynamics (ABA) | ratio | Pinocchio C++ | "
-        "mass matrix | ratio |" + (f" RNEA at {rev} | forward at {rev} | mass matrix at {rev} |"
-                                   if ref else ""),
-        "|---" * (9 + (3 if ref else 0)) + "|"]
+        "mass matrix | ratio | RNEA with gradient | forward with gradient |"
+        + (f" RNEA at {rev} | forward at {rev} | mass matrix at {rev} |" if ref else ""),
+        "|---" * (11 + (3 if ref else 0)) + "|"]
+    grad = tf.get("grad", {"rnea": {}, "forward": {}})
     py = pin["python"]
     for B in tf["rnea"]:
         b = int(B)
@@ -58,6 +62,7 @@ def dynamics_section(d: dict) -> list:
         row = [f"{b:,}", us(r), f"{r / py['rnea']:.2f}", us(pin["batch"]["rnea"][B]),
                us(f), f"{f / py['aba']:.2f}", us(pin["batch"]["aba"][B]),
                us(mm / b) if mm else "–", f"{mm / b / py['crba']:.2f}" if mm else "–"]
+        row += [us(grad[k][B] / b) if B in grad[k] else "–" for k in ("rnea", "forward")]
         if ref:
             row += [us(ref[k][B] / b) if B in ref[k] else "–" for k in ("rnea", "forward", "mass")]
         lines.append("| " + " | ".join(row) + " |")

@@ -7,6 +7,8 @@ For the 7-DOF arm (float64, one torch thread), per sample:
   at batches 1 … 10⁶, against a Pinocchio call from Python (a loop over states) and
   Pinocchio's C++ batch loops ``rneaInParallel`` / ``abaInParallel`` on one thread (the
   cost of the compiled algorithm itself, without Python);
+* the same two with a gradient to carry (q requires grad: torch's recursions, what path
+  matching differentiates; without one, tflearn runs them compiled, :mod:`tflearn.kernels`);
 * one right-hand side of the arm's ODE (:class:`tflearn.simulate.ArmODE`, batch 1, a
   gesture's field program, no gradient) and a 3 s gesture simulated at the default
   tolerances (:class:`tflearn.simulate.SimOptions`);
@@ -120,6 +122,12 @@ def tflearn_figures(max_batch: int, min_time: float) -> dict:
         sim.ArmODE.forward = orig
         out["gesture"] = {"name": motion.name, "duration_s": float(motion.t[-1]),
                           "rhs_evals": len(evals), "seconds": best_time(gesture, min_time)}
+    out["grad"] = {"rnea": {}, "forward": {}}            # q needs a gradient: torch's recursions
+    for B in (b for b in BATCHES if b <= max_batch // 10):
+        q, v, a = states(body.nv, B)
+        q.requires_grad_()
+        out["grad"]["rnea"][B] = best_time(partial(dynamics.rnea, body, q, v, a), min_time)
+        out["grad"]["forward"][B] = best_time(partial(dynamics.forward_dynamics, body, q, v, a), min_time)
     return out
 
 
