@@ -420,7 +420,8 @@ def _kernel_tables(body: Body) -> tuple:
 
 def _compiled_call(name: str, body: Body, rots: list, q, v, x, gravity, base) -> torch.Tensor:
     """:func:`tflearn.kernels.aba` (x = τ → q̈) or :func:`tflearn.kernels.rnea` (x = q̈ → τ),
-    (...×nv)."""
+    (...×nv). The arrays go to the kernel as numpy views, with few torch operations: a
+    call at batch 1 is then mostly the kernel itself."""
     from . import kernels
     if v.shape == q.shape == x.shape and all(R is None or R.shape[:-2] == q.shape[:-1] for R in rots):
         batch = q.shape[:-1]                             # nothing to broadcast (the simulator)
@@ -429,15 +430,29 @@ def _compiled_call(name: str, body: Body, rots: list, q, v, x, gravity, base) ->
     else:
         batch, rots, q, v, x = _flatten(rots, q, v, x)
     B = q.shape[0]
-    V0, A0 = _root_motion(B, _per_sample(_gravity(body, q, gravity), batch, B),
-                          None if base is None else tuple(_per_sample(b, batch, B) for b in base))
-    R = [y for y in rots if y is not None]
-    R = torch.stack(R, 1) if R else q.new_zeros(B, 0, 3, 3)
-    arrays = [np.ascontiguousarray(y.detach().numpy()) for y in
-              (R, q, q.new_zeros(B, 6) if V0 is None else V0, A0, v, x)]
+    if base is None and not isinstance(gravity, torch.Tensor):
+        root = _kernel_root(body, bool(gravity))         # the same V_0, A_0 for every sample
+    else:
+        V0, A0 = _root_motion(B, _per_sample(_gravity(body, q, gravity), batch, B),
+                              None if base is None else tuple(_per_sample(b, batch, B) for b in base))
+        root = (np.zeros((1, 6)) if V0 is None else _numpy(V0), _numpy(A0))
+    R = [_numpy(y) for y in rots if y is not None]
+    R = np.ascontiguousarray(np.stack(R, 1)) if R else np.zeros((B, 0, 3, 3))
     out = np.empty((B, body.nv))
-    getattr(kernels, name)(*_kernel_tables(body), *arrays, out)
+    getattr(kernels, name)(*_kernel_tables(body), R, _numpy(q), *root, _numpy(v), _numpy(x), out)
     return torch.from_numpy(out).reshape(batch + (body.nv,))
+
+
+def _numpy(x: torch.Tensor) -> np.ndarray:
+    """A C-contiguous float64 numpy view (or copy) of a CPU tensor."""
+    return np.ascontiguousarray((x.detach() if x.requires_grad else x).numpy())
+
+
+@lru_cache(maxsize=128)
+def _kernel_root(body: Body, gravity: bool) -> tuple:
+    """V_0 = 0 and A_0 = (0, −g) (1×6 each) of a fixed base, g the body's or none."""
+    g = np.asarray(body.gravity, dtype=np.float64) if gravity else np.zeros(3)
+    return np.zeros((1, 6)), np.concatenate([np.zeros(3), -g])[None]
 
 
 def forward_kinematics_rot(body: Body, rots: list, q: torch.Tensor):

@@ -209,7 +209,8 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
     (L×3×3) and origin (L×3) of the joint, axis (L×3, hinges), S (L×6×6, the first
     dof[i] columns used), dof, offset (first coordinate), parent (−1 for the root),
     inertia (L×6×6, spatial, about the link origin); R (B×nr×3×3) the rotation joints'
-    rotations, q, v, tau (B×nv), V0, A0 (B×6) → qdd (B×nv), written in place."""
+    rotations, q, v, tau (B×nv), V0, A0 (B×6, or 1×6 for all samples) → qdd (B×nv),
+    written in place."""
     B, L = q.shape[0], kind.shape[0]
     E = np.zeros((L, 3, 3))
     r = np.zeros((L, 3))
@@ -240,7 +241,7 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
                 for k in range(d):
                     acc += S[i, m, k] * v[b, o + k]
                 s[m] = acc
-            _motion(E[i], r[i], V0[b] if p < 0 else V[p], V[i])
+            _motion(E[i], r[i], V0[b % V0.shape[0]] if p < 0 else V[p], V[i])
             for m in range(6):
                 V[i, m] += s[m]
             _cross_motion(V[i], s, c[i])
@@ -313,7 +314,7 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
                 _force_back(E[i], r[i], pa, pA[p])
         for i in range(L):
             d, o, p = dof[i], offset[i], parent[i]
-            _motion(E[i], r[i], A0[b] if p < 0 else A[p], x)
+            _motion(E[i], r[i], A0[b % A0.shape[0]] if p < 0 else A[p], x)
             for m in range(6):
                 x[m] += c[i, m]
             for m in range(d):
@@ -356,10 +357,10 @@ def rnea(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0,
                 for k in range(d):
                     acc += S[i, m, k] * v[b, o + k]
                 s[m] = acc
-            _motion(E[i], r[i], V0[b] if p < 0 else V[p], V[i])
+            _motion(E[i], r[i], V0[b % V0.shape[0]] if p < 0 else V[p], V[i])
             for m in range(6):
                 V[i, m] += s[m]
-            _motion(E[i], r[i], A0[b] if p < 0 else A[p], A[i])
+            _motion(E[i], r[i], A0[b % A0.shape[0]] if p < 0 else A[p], A[i])
             _cross_motion(V[i], s, x)
             for m in range(6):
                 acc = x[m]
