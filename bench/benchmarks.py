@@ -208,7 +208,7 @@ def main(argv=None) -> int:
     p.add_argument("--path-methods", default="dopri5")
     p.add_argument("--path-timeout", default="300")
     p.add_argument("--scale-sizes", default="10,30,100")
-    p.add_argument("--learn-sizes", default="10,30")
+    p.add_argument("--learn-sizes", default="5,10")
     p.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
                    help="passed to bench/main_job.py")
     p.add_argument("--only", help="rerun only these benchmarks (comma-separated of "

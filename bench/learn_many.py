@@ -7,7 +7,7 @@ M, how many motions simulation reproduces, the worst joint RMSE and tip error, t
 training process' peak memory, and the fitted exponent of each time (cost ∝ N^p, least
 squares on log–log). One torch thread.
 
-    python bench/learn_many.py --sizes 10,30,100 --out runs/bench/learn_many.json
+    python bench/learn_many.py --sizes 5,10 --out runs/bench/learn_many.json
 """
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ def learn(data: Path, out: Path, overrides=()) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--sizes", default="10,30,100")
+    p.add_argument("--sizes", default="5,10")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path)
     p.add_argument("overrides", nargs="*", help="config overrides for train (KEY=VALUE)")
@@ -94,15 +94,18 @@ def main(argv=None) -> int:
             row.update(learn(data, out, args.overrides))
         rows.append(row)
         print(json.dumps(row), flush=True)
-    doc = {"commit": commit, "overrides": args.overrides, "rows": rows}
+        write(args.out, commit, args.overrides, rows)       # after every size: a long run keeps its rows
+    return 0
+
+
+def write(path: Path | None, commit: str, overrides: list, rows: list) -> None:
+    doc = {"commit": commit, "overrides": overrides, "rows": rows}
     done = [r for r in rows if "error" not in r]
     if len(done) > 1:
         doc["exponents"] = {k: exponent(done, k) for k in ("make_s", "train_s")}
-        print(json.dumps(doc["exponents"]))
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(doc, indent=1))
-    return 0
+    if path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(doc, indent=1))
 
 
 if __name__ == "__main__":
