@@ -182,7 +182,7 @@ def learn_many_section(d: dict) -> list:
                     ["motions N", "making them", "training", "each motion alone", "pool and merge",
                      "reduce", "path matching", "M", "reproduced", "worst RMSE (rad)",
                      "worst tip (cm)"])
-    stages = ("each motion alone", "pool and merge", "reduce: try dropping fields", "path matching")
+    stages = ("each motion alone", "pool and merge", "reduce", "path matching")
     for r in d["rows"]:
         if "error" in r:
             lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | failed: {r['error']} |"

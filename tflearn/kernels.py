@@ -203,6 +203,22 @@ def _inertia_back(E, r, Ia, out, W, Z):
 
 
 @njit(cache=True, fastmath=_FAST)
+def _velocity(i, b, kind, rot, R0, origin, axis, S, dof, offset, parent, R, q, V0, v, E, r, V, s, Rj):
+    """The outward pass at link i, sample b: its frame (E[i], r[i]), joint motion
+    s = S_i q̇_i and velocity V[i] = X_i V_p + s (the arguments of :func:`aba`)."""
+    d, o, p = dof[i], offset[i], parent[i]
+    _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
+    for m in range(6):
+        acc = 0.0
+        for k in range(d):
+            acc += S[i, m, k] * v[b, o + k]
+        s[m] = acc
+    _motion(E[i], r[i], V0[b % V0.shape[0]] if p < 0 else V[p], V[i])
+    for m in range(6):
+        V[i, m] += s[m]
+
+
+@njit(cache=True, fastmath=_FAST)
 def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, A0, v, tau, qdd):
     """The articulated-body algorithm (module docstring) for every sample b. Per link i:
     kind (0 fixed, 1 hinge, 2 ball, 3 free), rot (its index in R, −1 for none), R0
@@ -234,16 +250,8 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
     Lci = np.zeros((6, 6))
     for b in range(B):
         for i in range(L):
-            d, o, p = dof[i], offset[i], parent[i]
-            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
-            for m in range(6):
-                acc = 0.0
-                for k in range(d):
-                    acc += S[i, m, k] * v[b, o + k]
-                s[m] = acc
-            _motion(E[i], r[i], V0[b % V0.shape[0]] if p < 0 else V[p], V[i])
-            for m in range(6):
-                V[i, m] += s[m]
+            _velocity(i, b, kind, rot, R0, origin, axis, S, dof, offset, parent, R, q, V0, v,
+                      E, r, V, s, Rj)
             _cross_motion(V[i], s, c[i])
             for m in range(6):
                 acc = 0.0
@@ -351,15 +359,8 @@ def rnea(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0,
     for b in range(B):
         for i in range(L):
             d, o, p = dof[i], offset[i], parent[i]
-            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
-            for m in range(6):
-                acc = 0.0
-                for k in range(d):
-                    acc += S[i, m, k] * v[b, o + k]
-                s[m] = acc
-            _motion(E[i], r[i], V0[b % V0.shape[0]] if p < 0 else V[p], V[i])
-            for m in range(6):
-                V[i, m] += s[m]
+            _velocity(i, b, kind, rot, R0, origin, axis, S, dof, offset, parent, R, q, V0, v,
+                      E, r, V, s, Rj)
             _motion(E[i], r[i], A0[b % A0.shape[0]] if p < 0 else A[p], A[i])
             _cross_motion(V[i], s, x)
             for m in range(6):
