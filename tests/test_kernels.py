@@ -116,3 +116,27 @@ def test_joint_rotations_are_read_as_given(rng):
     slow = D.forward_dynamics_rot(body, rots, q.clone().requires_grad_(), v, tau).detach()
     _close(fast, slow)
     assert np.isfinite(fast.numpy()).all()
+
+
+@pytest.mark.parametrize("name", BODY_NAMES + ["free0", "free3"])
+def test_compiled_state_reading_equals_torchs(name, rng):
+    """configspace.unpack and position_rate, compiled (no gradient) and in torch: the same
+    rotations, principal coordinates (special angles included: π, near π, near 0),
+    quaternions and rates; the quaternions' sign and norm as stored."""
+    from tflearn.configspace import pack, position_rate, unpack
+    body = free_tree(int(name[-1]), GRAVITY) if name.startswith("free") else make_body(name)
+    q = torch.as_tensor((random_states if name.startswith("free") else random_coords)(body, rng, 12),
+                        dtype=DT)
+    v = torch.as_tensor(rng.normal(size=q.shape), dtype=DT)
+    y = pack(body, q, v).reshape(3, 4, -1)
+    y[0, 0] *= -1.7                                      # the other sign, another norm
+    with torch.no_grad():
+        fast = unpack(body, y)
+        fast_rate = position_rate(body, fast[0], fast[2], fast[3])
+    yg = y.clone().requires_grad_()
+    slow = unpack(body, yg)
+    slow_rate = position_rate(body, slow[0], slow[2], slow[3])
+    near = lambda a, b: a.shape == b.shape and torch.allclose(a, b.detach(), rtol=0, atol=1e-13)
+    assert all(near(a, b) for a, b in zip(fast[1:], slow[1:]))
+    assert all((a is None) == (b is None) and (a is None or near(a, b)) for a, b in zip(fast[0], slow[0]))
+    assert near(fast_rate, slow_rate) and fast[1].abs().max() > 0.5

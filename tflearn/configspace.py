@@ -21,9 +21,11 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
+import numpy as np
 import roma
 import torch
 
+from . import kernels
 from .body import Body
 
 TAYLOR_THETA2 = 0.25  # below θ² = 0.25 the J_r coefficients use their Taylor series
@@ -306,9 +308,25 @@ def _layout(body: Body, device: torch.device) -> dict:
 
     def order(src, width):
         return tensor([m if kind == "rot" else width * len(rot) + m for kind, m in src])
-    return {"rot": rot, "n_pos": k, "quat": tensor(quat, (len(rot), 4)),
-            "rate": tensor(rate, (len(rot), 3)), "other": tensor(other),
-            "coords": order(coords, 3), "position": order(position, 4)}
+    out = {"rot": rot, "n_pos": k, "quat": tensor(quat, (len(rot), 4)),
+           "rate": tensor(rate, (len(rot), 3)), "other": tensor(other),
+           "coords": order(coords, 3), "position": order(position, 4)}
+    out["numpy"] = {key: np.ascontiguousarray(out[key].cpu().numpy().astype(np.int64))
+                    for key in ("quat", "other", "coords", "position")}   # for tflearn.kernels
+    return out
+
+
+def _unpack_compiled(body: Body, L: dict, y: torch.Tensor):
+    """:func:`unpack` by :func:`tflearn.kernels.read_state` (no gradient, float64 CPU)."""
+    batch, nr = y.shape[:-1], L["quat"].shape[0]
+    flat = kernels.as_numpy(y.reshape(-1, y.shape[-1]))
+    B = flat.shape[0]
+    coords, quats, R = np.empty((B, body.nv)), np.empty((B, nr, 4)), np.empty((B, nr, 3, 3))
+    N = L["numpy"]
+    kernels.read_state(flat, N["quat"], N["other"], N["coords"], coords, quats, R)
+    R = torch.from_numpy(R).reshape(batch + (nr, 3, 3))
+    return (_per_link(body, L, R), torch.from_numpy(coords).reshape(batch + (body.nv,)),
+            torch.from_numpy(quats).reshape(batch + (nr, 4)), y[..., L["n_pos"]:])
 
 
 def _per_link(body: Body, L: dict, x: torch.Tensor) -> list:
@@ -335,6 +353,8 @@ def unpack(body: Body, y: torch.Tensor):
     link order, normalised as they are read. A free joint's coordinates are its principal
     rotation vector and its translation."""
     L = _layout(body, y.device)
+    if kernels.applies(y):
+        return _unpack_compiled(body, L, y)
     quats = y[..., L["quat"]]
     quats = quats / quats.norm(dim=-1, keepdim=True)
     coords = torch.cat([quat_to_rotvec(quats).flatten(-2), y[..., L["other"]]], -1)
@@ -347,6 +367,16 @@ def position_rate(body: Body, rots: list, quats: torch.Tensor, v: torch.Tensor) 
     quaternions and the velocities v: q̇ = ½ q ⊗ (ω, 0) per rotation joint (ω its
     child-frame angular velocity), θ̇ = v per hinge, ṫ = R u per free joint."""
     L = _layout(body, v.device)
+    if kernels.applies(quats, v, *rots) and v.shape[:-1] == quats.shape[:-2]:
+        B, nr = v[..., 0].numel(), quats.shape[-2]
+        kind, rot, offset, dof, _ = kernels.link_tables(body)
+        R = [r for r in rots if r is not None]             # read for free joints only
+        R = (kernels.as_numpy(torch.stack(R, -3).reshape(B, nr, 3, 3)) if (kind == 3).any()
+             else np.zeros((1, 0, 3, 3)))
+        out = np.empty((B, L["position"].numel()))
+        kernels.position_rate(kind, rot, offset, dof, R, kernels.as_numpy(quats.reshape(B, nr, 4)),
+                              kernels.as_numpy(v.reshape(B, -1)), L["numpy"]["position"], out)
+        return torch.from_numpy(out).reshape(v.shape[:-1] + out.shape[-1:])
     rates = [quat_rate(quats, v[..., L["rate"]]).flatten(-2)]
     for i, link in enumerate(body.links):
         vi = v[..., body.slice(i)]

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from . import kernels
 from .body import Body
 from .configspace import hat, joint_rotations, rotvec_to_rotmat
 
@@ -285,7 +286,7 @@ def rnea_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tensor, a: torch.
     instant (Galilean invariance). Without a gradient to carry, on float64 CPU tensors,
     the recursions run compiled (:func:`tflearn.kernels.rnea`).
     """
-    if _compiled(*rots, q, v, a, gravity, *(base or ())):
+    if kernels.applies(*rots, q, v, a, gravity, *(base or ())):
         return _compiled_call("rnea", body, rots, q, v, a, gravity, base)
     C = _constants(body, q.dtype, q.device)
     batch, X, v, a, V0, A0 = _prepare(body, rots, q, v, a, gravity, base)
@@ -353,7 +354,7 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
     a state that blew up gives non-finite accelerations. Without a gradient to carry, on
     float64 CPU tensors, the recursions run compiled (:func:`tflearn.kernels.aba`).
     """
-    if _compiled(*rots, q, v, tau, gravity, *(base or ())):
+    if kernels.applies(*rots, q, v, tau, gravity, *(base or ())):
         return _compiled_call("aba", body, rots, q, v, tau, True if gravity is None else gravity, base)
     C = _constants(body, q.dtype, q.device)
     batch, X, v, tau, V0, A0 = _prepare(body, rots, q, v, tau,
@@ -387,42 +388,25 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
     return torch.cat(qdd, dim=-1).reshape(batch + (body.nv,))
 
 
-def _compiled(*xs) -> bool:
-    """Whether the compiled recursions apply: float64 on the CPU, no gradient to carry."""
-    xs = [x for x in xs if isinstance(x, torch.Tensor)]
-    return (xs[0].dtype == torch.float64 and xs[0].device.type == "cpu"
-            and not (torch.is_grad_enabled() and any(x.requires_grad for x in xs)))
-
-
-_KIND = {"fixed": 0, "hinge": 1, "ball": 2, "free": 3}
-
-
 @lru_cache(maxsize=64)
 def _kernel_tables(body: Body) -> tuple:
     """The body's constants for :func:`tflearn.kernels.aba`, per link: joint kind, index
-    among the rotation joints (−1 for none), R0, origin, axis, S padded to 6 columns, dof,
-    first coordinate, parent, spatial inertia."""
+    among the rotation joints, R0, origin, axis, S padded to 6 columns, dof, first
+    coordinate, parent, spatial inertia."""
     C = _constants(body, torch.float64, torch.device("cpu"))
-    L = len(body.links)
-    S = np.zeros((L, 6, 6))
+    S = np.zeros((len(body.links), 6, 6))
     for i, Si in enumerate(C["S"]):
         S[i, :, :Si.shape[1]] = Si.numpy()
-    kind = np.array([_KIND[l.joint] for l in body.links], dtype=np.int64)
-    rot = np.cumsum(kind >= 2) - 1
-    rot[kind < 2] = -1
-    dof = np.array([l.dof for l in body.links], dtype=np.int64)
-    offset = np.concatenate([[0], np.cumsum(dof)[:-1]]).astype(np.int64)
-    parent = np.array([l.parent for l in body.links], dtype=np.int64)
+    kind, rot, offset, dof, parent = kernels.link_tables(body)
     stack = lambda xs: np.ascontiguousarray(np.stack([x.numpy() for x in xs]))
-    return (kind, rot.astype(np.int64), stack(C["R0"]), stack(C["origin"]), stack(C["axis"]), S,
-            dof, offset, parent, stack(C["inertia6"]))
+    return (kind, rot, stack(C["R0"]), stack(C["origin"]), stack(C["axis"]), S, dof, offset,
+            parent, stack(C["inertia6"]))
 
 
 def _compiled_call(name: str, body: Body, rots: list, q, v, x, gravity, base) -> torch.Tensor:
     """:func:`tflearn.kernels.aba` (x = τ → q̈) or :func:`tflearn.kernels.rnea` (x = q̈ → τ),
     (...×nv). The arrays go to the kernel as numpy views, with few torch operations: a
     call at batch 1 is then mostly the kernel itself."""
-    from . import kernels
     if v.shape == q.shape == x.shape and all(R is None or R.shape[:-2] == q.shape[:-1] for R in rots):
         batch = q.shape[:-1]                             # nothing to broadcast (the simulator)
         rots = [None if R is None else R.reshape(-1, 3, 3) for R in rots]
@@ -435,17 +419,13 @@ def _compiled_call(name: str, body: Body, rots: list, q, v, x, gravity, base) ->
     else:
         V0, A0 = _root_motion(B, _per_sample(_gravity(body, q, gravity), batch, B),
                               None if base is None else tuple(_per_sample(b, batch, B) for b in base))
-        root = (np.zeros((1, 6)) if V0 is None else _numpy(V0), _numpy(A0))
-    R = [_numpy(y) for y in rots if y is not None]
+        root = (np.zeros((1, 6)) if V0 is None else kernels.as_numpy(V0), kernels.as_numpy(A0))
+    R = [kernels.as_numpy(y) for y in rots if y is not None]
     R = np.ascontiguousarray(np.stack(R, 1)) if R else np.zeros((B, 0, 3, 3))
     out = np.empty((B, body.nv))
-    getattr(kernels, name)(*_kernel_tables(body), R, _numpy(q), *root, _numpy(v), _numpy(x), out)
+    q, v, x = (kernels.as_numpy(y) for y in (q, v, x))
+    getattr(kernels, name)(*_kernel_tables(body), R, q, *root, v, x, out)
     return torch.from_numpy(out).reshape(batch + (body.nv,))
-
-
-def _numpy(x: torch.Tensor) -> np.ndarray:
-    """A C-contiguous float64 numpy view (or copy) of a CPU tensor."""
-    return np.ascontiguousarray((x.detach() if x.requires_grad else x).numpy())
 
 
 @lru_cache(maxsize=128)

@@ -1,12 +1,15 @@
-"""Compiled (numba) loops of the articulated-body algorithm, for evaluations that need no
-gradient: one call per batch instead of hundreds of small tensor operations.
+"""Compiled (numba) loops of the rigid-body algorithms and of the simulator's state, for
+evaluations that need no gradient: one call per batch instead of hundreds of small
+tensor operations.
 
-:func:`tflearn.dynamics.forward_dynamics_rot` hands its recursions to :func:`aba` when
-no input needs a gradient and the tensors are float64 on the CPU; with a gradient, on
-another device or dtype, it runs its own torch recursions (the two agree to 1e-12,
-tests/test_kernels.py). The maths is the same, per sample b, with the parent → link
-motion transform X_i = [[E, 0], [−E [r]×, E]] (E = (R0 R_joint)ᵀ, r the joint origin)
-applied by its blocks rather than as a 6×6 matrix:
+:func:`tflearn.dynamics.forward_dynamics_rot` and ``rnea_rot`` hand their recursions to
+:func:`aba` and :func:`rnea`, and :func:`tflearn.configspace.unpack` and
+``position_rate`` the simulator's state to :func:`read_state` and :func:`position_rate`,
+when no input needs a gradient and the tensors are float64 on the CPU (:func:`applies`);
+with a gradient, on another device or dtype, they run their own torch code (the two
+agree to 1e-12, tests/test_kernels.py). The maths is the same, per sample b, with the
+parent → link motion transform X_i = [[E, 0], [−E [r]×, E]] (E = (R0 R_joint)ᵀ, r the
+joint origin) applied by its blocks rather than as a 6×6 matrix:
 
     V_i = X_i V_p + S_i q̇_i,   c_i = V_i ×ₘ S_i q̇_i,   Iᴬ_i = I_i,   pᴬ_i = V_i ×* I_i V_i;
     leaves → root: U = Iᴬ_i S_i, D = S_iᵀ U, u = τ_i − S_iᵀ pᴬ_i,
@@ -23,8 +26,42 @@ call in a fresh checkout takes several seconds, later processes load it.
 """
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
+import torch
 from numba import njit
+
+from .body import Body
+
+
+def applies(*xs) -> bool:
+    """Whether the compiled loops apply to these arguments (tensors among them): float64
+    on the CPU, no gradient to carry."""
+    xs = [x for x in xs if isinstance(x, torch.Tensor)]
+    return (xs[0].dtype == torch.float64 and xs[0].device.type == "cpu"
+            and not (torch.is_grad_enabled() and any(x.requires_grad for x in xs)))
+
+
+def as_numpy(x: torch.Tensor) -> np.ndarray:
+    """A C-contiguous float64 numpy view (or copy) of a CPU tensor."""
+    return np.ascontiguousarray((x.detach() if x.requires_grad else x).numpy())
+
+
+_KIND = {"fixed": 0, "hinge": 1, "ball": 2, "free": 3}
+
+
+@lru_cache(maxsize=64)
+def link_tables(body: Body) -> tuple:
+    """Per link: joint kind (0 fixed, 1 hinge, 2 ball, 3 free), index among the rotation
+    joints (ball, free; −1 for none), first coordinate, dof and parent (int64 arrays)."""
+    kind = np.array([_KIND[link.joint] for link in body.links], dtype=np.int64)
+    rot = np.where(kind >= 2, np.cumsum(kind >= 2) - 1, -1).astype(np.int64)
+    dof = np.array([link.dof for link in body.links], dtype=np.int64)
+    offset = np.concatenate([[0], np.cumsum(dof)[:-1]]).astype(np.int64)
+    parent = np.array([link.parent for link in body.links], dtype=np.int64)
+    return kind, rot, offset, dof, parent
+
 
 #: LLVM may contract and reorder floating-point arithmetic, but not assume away NaN/Inf
 #: (a blown-up state must still come out non-finite).
@@ -388,3 +425,78 @@ def rnea(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0,
                 tau[b, o + k] = acc
             if p >= 0:
                 _force_back(E[i], r[i], F[i], F[p])
+
+
+# ------------------------------------------------------------- the simulator's state
+
+@njit(cache=True, fastmath=_FAST)
+def read_state(y, quat, other, coords_order, coords, quats, R):
+    """:func:`tflearn.configspace.unpack` for every sample b of the state y (B×D): each
+    rotation joint's quaternion (entries ``quat``, nr×4 indices into y) normalised into
+    ``quats`` (B×nr×4), its rotation matrix into R (B×nr×3×3) and its principal rotation
+    vector, with the other position entries (``other``), put in coordinate order
+    (``coords_order``) into ``coords`` (B×nv) — the formulas of
+    :func:`tflearn.configspace.quat_to_rotvec` and :func:`~tflearn.configspace.quat_to_rotmat`."""
+    B, nr = y.shape[0], quat.shape[0]
+    flat = np.empty(3 * nr + other.shape[0])
+    for b in range(B):
+        for j in range(nr):
+            x, yy, z, w = y[b, quat[j, 0]], y[b, quat[j, 1]], y[b, quat[j, 2]], y[b, quat[j, 3]]
+            n = np.sqrt(x * x + yy * yy + z * z + w * w)
+            x, yy, z, w = x / n, yy / n, z / n, w / n
+            quats[b, j, 0], quats[b, j, 1], quats[b, j, 2], quats[b, j, 3] = x, yy, z, w
+            R[b, j, 0, 0] = x * x - yy * yy - z * z + w * w
+            R[b, j, 0, 1] = 2 * (x * yy - z * w)
+            R[b, j, 0, 2] = 2 * (x * z + yy * w)
+            R[b, j, 1, 0] = 2 * (x * yy + z * w)
+            R[b, j, 1, 1] = -x * x + yy * yy - z * z + w * w
+            R[b, j, 1, 2] = 2 * (yy * z - x * w)
+            R[b, j, 2, 0] = 2 * (x * z - yy * w)
+            R[b, j, 2, 1] = 2 * (yy * z + x * w)
+            R[b, j, 2, 2] = -x * x - yy * yy + z * z + w * w
+            if not w > 0:                                  # the shortest arc: w > 0
+                x, yy, z, w = -x, -yy, -z, -w
+            u = np.sqrt(x * x + yy * yy + z * z)
+            if u < 1e-3 * w:                               # atan(r)/r by its series
+                r2 = (u / w) ** 2
+                f = (2 / w) * (1 - r2 / 3 + r2 * r2 / 5 - r2 ** 3 / 7)
+            else:
+                f = 2 * np.arctan2(u, w) / u
+            flat[3 * j], flat[3 * j + 1], flat[3 * j + 2] = f * x, f * yy, f * z
+        for k in range(other.shape[0]):
+            flat[3 * nr + k] = y[b, other[k]]
+        for k in range(coords_order.shape[0]):
+            coords[b, k] = flat[coords_order[k]]
+
+
+@njit(cache=True, fastmath=_FAST)
+def position_rate(kind, rot, offset, dof, R, quats, v, position_order, out):
+    """:func:`tflearn.configspace.position_rate` for every sample b: q̇ = ½ q ⊗ (ω, 0) per
+    rotation joint (ω its first three velocities), θ̇ = v per hinge, ṫ = R u per free
+    joint (u its last three), put in the state's order (``position_order``) into ``out``
+    (B×n_position); the per-link tables of :func:`aba`."""
+    B, nr, L = v.shape[0], quats.shape[1], kind.shape[0]
+    flat = np.empty(position_order.shape[0])
+    for b in range(B):
+        k = 4 * nr
+        for i in range(L):
+            o = offset[i]
+            if kind[i] >= 2:
+                j = rot[i]
+                x, yy, z, w = quats[b, j, 0], quats[b, j, 1], quats[b, j, 2], quats[b, j, 3]
+                w0, w1, w2 = v[b, o], v[b, o + 1], v[b, o + 2]
+                flat[4 * j] = 0.5 * (w * w0 + yy * w2 - z * w1)
+                flat[4 * j + 1] = 0.5 * (w * w1 + z * w0 - x * w2)
+                flat[4 * j + 2] = 0.5 * (w * w2 + x * w1 - yy * w0)
+                flat[4 * j + 3] = -0.5 * (x * w0 + yy * w1 + z * w2)
+                if kind[i] == 3:
+                    for m in range(3):
+                        flat[k + m] = (R[b, j, m, 0] * v[b, o + 3] + R[b, j, m, 1] * v[b, o + 4]
+                                       + R[b, j, m, 2] * v[b, o + 5])
+                    k += 3
+            else:
+                for m in range(dof[i]):
+                    flat[k + m] = v[b, o + m]
+                k += dof[i]
+        for m in range(position_order.shape[0]):
+            out[b, m] = flat[position_order[m]]
