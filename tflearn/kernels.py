@@ -240,22 +240,6 @@ def _inertia_back(E, r, Ia, out, W, Z):
 
 
 @njit(cache=True, fastmath=_FAST)
-def _velocity(i, b, kind, rot, R0, origin, axis, S, dof, offset, parent, R, q, V0, v, E, r, V, s, Rj):
-    """The outward pass at link i, sample b: its frame (E[i], r[i]), joint motion
-    s = S_i q̇_i and velocity V[i] = X_i V_p + s (the arguments of :func:`aba`)."""
-    d, o, p = dof[i], offset[i], parent[i]
-    _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
-    for m in range(6):
-        acc = 0.0
-        for k in range(d):
-            acc += S[i, m, k] * v[b, o + k]
-        s[m] = acc
-    _motion(E[i], r[i], V0[b % V0.shape[0]] if p < 0 else V[p], V[i])
-    for m in range(6):
-        V[i, m] += s[m]
-
-
-@njit(cache=True, fastmath=_FAST)
 def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, A0, v, tau, qdd):
     """The articulated-body algorithm (module docstring) for every sample b. Per link i:
     kind (0 fixed, 1 hinge, 2 ball, 3 free), rot (its index in R, −1 for none), R0
@@ -264,6 +248,8 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
     inertia (L×6×6, spatial, about the link origin); R (B×nr×3×3) the rotation joints'
     rotations, q, v, tau (B×nv), V0, A0 (B×6, or 1×6 for all samples) → qdd (B×nv),
     written in place."""
+    # The outward velocity pass is written out here and in :func:`rnea`: as a shared
+    # function taking these arrays it cost 0.7 µs more per sample (1.4 → 2.1 µs at 10⁴).
     B, L = q.shape[0], kind.shape[0]
     E = np.zeros((L, 3, 3))
     r = np.zeros((L, 3))
@@ -286,9 +272,17 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
     Lc = np.zeros((6, 6))
     Lci = np.zeros((6, 6))
     for b in range(B):
+        V0b, A0b = V0[b if V0.shape[0] > 1 else 0], A0[b if A0.shape[0] > 1 else 0]
         for i in range(L):
-            _velocity(i, b, kind, rot, R0, origin, axis, S, dof, offset, parent, R, q, V0, v,
-                      E, r, V, s, Rj)
+            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
+            for m in range(6):
+                acc = 0.0
+                for k in range(dof[i]):
+                    acc += S[i, m, k] * v[b, offset[i] + k]
+                s[m] = acc
+            _motion(E[i], r[i], V0b if parent[i] < 0 else V[parent[i]], V[i])
+            for m in range(6):
+                V[i, m] += s[m]
             _cross_motion(V[i], s, c[i])
             for m in range(6):
                 acc = 0.0
@@ -359,7 +353,7 @@ def aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0, 
                 _force_back(E[i], r[i], pa, pA[p])
         for i in range(L):
             d, o, p = dof[i], offset[i], parent[i]
-            _motion(E[i], r[i], A0[b % A0.shape[0]] if p < 0 else A[p], x)
+            _motion(E[i], r[i], A0b if p < 0 else A[p], x)
             for m in range(6):
                 x[m] += c[i, m]
             for m in range(d):
@@ -394,11 +388,19 @@ def rnea(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, q, V0,
     IV = np.zeros(6)
     Rj = np.zeros((3, 3))
     for b in range(B):
+        V0b, A0b = V0[b if V0.shape[0] > 1 else 0], A0[b if A0.shape[0] > 1 else 0]
         for i in range(L):
             d, o, p = dof[i], offset[i], parent[i]
-            _velocity(i, b, kind, rot, R0, origin, axis, S, dof, offset, parent, R, q, V0, v,
-                      E, r, V, s, Rj)
-            _motion(E[i], r[i], A0[b % A0.shape[0]] if p < 0 else A[p], A[i])
+            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E[i], r[i], Rj)
+            for m in range(6):
+                acc = 0.0
+                for k in range(dof[i]):
+                    acc += S[i, m, k] * v[b, offset[i] + k]
+                s[m] = acc
+            _motion(E[i], r[i], V0b if parent[i] < 0 else V[parent[i]], V[i])
+            for m in range(6):
+                V[i, m] += s[m]
+            _motion(E[i], r[i], A0b if p < 0 else A[p], A[i])
             _cross_motion(V[i], s, x)
             for m in range(6):
                 acc = x[m]
