@@ -185,8 +185,8 @@ def learn_many_section(d: dict) -> list:
     stages = ("each motion alone", "pool and merge", "reduce", "path matching")
     for r in d["rows"]:
         if "error" in r:
-            lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | failed: {r['error']} |"
-                         + " |" * 8)
+            lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | {r['train_s']:.0f} s | "
+                         f"{r['error']} |" + " |" * 7)
             continue
         st = r["stages_s"]
         cells = [f"{st[k]} s" if k in st else "–" for k in stages]

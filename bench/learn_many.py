@@ -67,8 +67,9 @@ def learn(data: Path, out: Path, overrides=()) -> dict:
                           text=True)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    if proc.returncode:
-        return {"train_s": wall, "error": proc.stderr.strip().splitlines()[-1:]}
+    if not (out / "metrics.json").exists():        # exit 1 alone means: not all reproduced
+        return {"train_s": wall, "error": f"train exited {proc.returncode}: "
+                                          + " ".join(proc.stderr.strip().splitlines()[-1:])[-300:]}
     m = json.loads((out / "metrics.json").read_text())
     motions = m["motions"].values()
     return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
