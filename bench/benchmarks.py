@@ -92,7 +92,8 @@ def latency_section(d: dict) -> list:
     if ops:
         before = ref.get("aten_ops_batch1") if ref else None
         lines += ["", "ATen operators dispatched per call at batch 1 (torch.profiler; each costs "
-                  "a roughly fixed 0.3–1 µs of dispatch at this size, so this count bounds latency): "
+                  "a roughly fixed 0.3–1 µs of dispatch at this size; the compiled loops are not among "
+                  "them): "
                   + ", ".join(f"{k} {v}" + (f" (was {before[k]})" if before and k in before else "")
                   for k, v in ops.items()) + "."]
     return lines + [""]
