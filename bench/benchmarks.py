@@ -144,6 +144,15 @@ def path_section(d: dict) -> list:
     return lines + [""]
 
 
+def exponents(d: dict) -> list:
+    """The fitted exponents of a size benchmark (``d["exponents"]``, key ``name_s`` → p),
+    as a paragraph after its table; none where fewer than two sizes were measured."""
+    if "exponents" not in d:
+        return []
+    return ["", "Fitted exponents (cost ∝ N^p): " + ", ".join(
+        f"{k.removesuffix('_s').replace('_', ' ')} p = {v:.2f}" for k, v in d["exponents"].items()) + "."]
+
+
 def scale_section(d: dict) -> list:
     lines = heading("Pooled work against the number of motions",
                     "`bench/scale.py`: N random supported programs (made by one batch of per-motion "
@@ -166,11 +175,7 @@ def scale_section(d: dict) -> list:
         lines.append(f"| {r['motions']:,} | {r['samples']:,} | {r['generate_s']:.1f} s | "
                      f"{r['em_step_s']:.2f} s | {score['shared']} | {score['each']} | "
                      f"{r['max_rss_mb'] / 1024:.1f} GiB |")
-    if "exponents" in d:
-        e = d["exponents"]
-        lines += ["", "Fitted exponents (cost ∝ N^p): " + ", ".join(
-            f"{k.removesuffix('_s').replace('_', ' ')} p = {v:.2f}" for k, v in e.items()) + "."]
-    return lines + [""]
+    return lines + exponents(d) + [""]
 
 
 def learn_many_section(d: dict) -> list:
@@ -194,10 +199,7 @@ def learn_many_section(d: dict) -> list:
         lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | {r['train_s']:.0f} s | "
                      + " | ".join(cells) + f" | {r['M']} | {r['reproduced']}/{r['motions']} | "
                      f"{r['worst_rmse_rad']:.4f} | {100 * r['worst_tip_m']:.2f} |")
-    if "exponents" in d:
-        lines += ["", "Fitted exponents (time ∝ N^p): " + ", ".join(
-            f"{k.removesuffix('_s')} p = {v:.2f}" for k, v in d["exponents"].items()) + "."]
-    return lines + [""]
+    return lines + exponents(d) + [""]
 
 
 def main(argv=None) -> int:
