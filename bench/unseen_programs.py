@@ -14,6 +14,7 @@ Each row: M, motions reproduced (joint RMSE ≤ 0.03 rad and tip ≤ 2 cm), the 
 RMSE and tip error, the worst relative RMS torque error, and the run's wall time.
 
     python bench/unseen_programs.py --seeds 2024 3 5 7 11 --out unseen.json
+    python bench/unseen_programs.py --stiffness diag --methods pipeline --seeds 2024 3 5 7 11
 """
 from __future__ import annotations
 
@@ -32,8 +33,9 @@ from tflearn import config, gestures, train  # noqa: E402
 from tflearn import motion as motion_mod  # noqa: E402
 
 
-def run_seed(seed: int, work: Path, slsqp_iter: int) -> list:
-    programs = gestures.random_gestures(3, seed=seed)
+def run_seed(seed: int, work: Path, slsqp_iter: int, stiffness: str = "scalar",
+             methods=("pipeline", "slsqp")) -> list:
+    programs = gestures.random_gestures(3, seed=seed, stiffness=stiffness)
     fields = sum(len(p.eta) for p in programs)
     data = work / f"s{seed}" / "data"
     gestures.write(data, plots=False, gestures=programs, resolved=True)
@@ -43,11 +45,12 @@ def run_seed(seed: int, work: Path, slsqp_iter: int) -> list:
             "slsqp": ["solver.method=slsqp", f"model.fields={fields}",
                       f"solver.slsqp.max_iter={slsqp_iter}"]}
     rows = []
-    for method, extra in runs.items():
+    for method in methods:
+        extra = runs[method]
         cfg = config.load(None, base + [f"out={work / f's{seed}' / method}"] + extra)
         metrics = train.run(cfg, restart=True)
         per = metrics["motions"].values()
-        rows.append({"seed": seed, "method": method, "fields": fields, "rates": rates,
+        rows.append({"seed": seed, "stiffness": stiffness, "method": method, "fields": fields, "rates": rates,
                      "M": metrics["overall"]["M"],
                      "reproduced": sum(r["success"] for r in per), "motions": len(per),
                      "rmse": max(r["rmse"] for r in per), "tip": max(r["tip"] for r in per),
@@ -61,6 +64,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[2024])
     ap.add_argument("--slsqp-iter", type=int, default=2000)
+    ap.add_argument("--stiffness", choices=gestures.STIFFNESS_KINDS, default="scalar",
+                    help="the generating programs' stiffness (gestures.random_gestures)")
+    ap.add_argument("--methods", nargs="+", choices=("pipeline", "slsqp"), default=["pipeline", "slsqp"])
     ap.add_argument("--out", type=Path, help="write every row as JSON")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -69,7 +75,7 @@ def main(argv=None) -> int:
           "| worst torque error | wall (s) |\n|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
-            for r in run_seed(seed, Path(tmp), args.slsqp_iter):
+            for r in run_seed(seed, Path(tmp), args.slsqp_iter, args.stiffness, args.methods):
                 rows.append(r)
                 print(f"| {r['seed']} | {r['method']} | {r['fields']} | {r['M']} | "
                       f"{r['reproduced']}/{r['motions']} | {r['rmse']:.4f} | {100 * r['tip']:.2f} | "

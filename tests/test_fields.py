@@ -278,12 +278,40 @@ def test_project_bounds_stiffness_and_centres(kind):
     assert float(basis.eta.detach().abs().max()) == pytest.approx(F.ETA_MAX)
 
 
-def test_own_fields_program_gives_the_library_programs_torques():
+def test_random_programs_with_diagonal_stiffness():
+    """random_gestures(stiffness="diag"): seven per-axis stiffnesses per field, each within
+    SUPPORTED["k"]; the option changes only the stiffness draws, and the scalar programs
+    stay those the documented bar was measured on (seed 2024); library_model turns them
+    into a diag basis with K = diag(k), and a wrong-length entry is refused."""
+    from tflearn import gestures
+    lo, hi = gestures.SUPPORTED["k"]
+    diag = gestures.random_gestures(6, seed=3, stiffness="diag")
+    assert [p.name for p in diag] == [f"random3d_{i}" for i in range(6)]
+    ks = [k for p in diag for k in p.k]
+    assert all(len(k) == 7 and all(lo <= x <= hi for x in k) for k in ks)
+    assert max(max(k) / min(k) for k in ks) > 2          # really per axis, not k·I
+    scalar = gestures.random_gestures(6, seed=3)
+    assert all(isinstance(k, float) for p in scalar for k in p.k)
+    assert diag[0].eta == scalar[0].eta and diag[0].k[0][0] == scalar[0].k[0]
+    assert gestures.random_gestures(1, seed=2024)[0].k == (1.1219106600829352,)
+    basis, _, _ = gestures.library_model(diag)
+    assert basis.kind == "diag"
+    assert torch.allclose(basis.K().detach(), torch.diag_embed(torch.tensor(ks, dtype=torch.float64)),
+                          rtol=1e-14, atol=0)
+    assert gestures.library_model(scalar)[0].kind == "scalar"
+    with pytest.raises(ValueError, match="needs 7 values, got 3"):
+        gestures.stiffness_matrix((1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match="stiffness must be one of"):
+        gestures.random_gestures(1, stiffness="full")
+
+
+@pytest.mark.parametrize("stiffness", ["scalar", "diag"])
+def test_own_fields_program_gives_the_library_programs_torques(stiffness):
     """gestures.own_fields_program evaluates each motion's own fields only; its torques are
     the whole library program's, bit for bit, at a scalar time, sample times and a time
     per member."""
     from tflearn import gestures
-    programs = gestures.random_gestures(5, seed=11)
+    programs = gestures.random_gestures(5, seed=11, stiffness=stiffness)
     basis, weights, spans = gestures.library_model(programs)
     assert basis.M == sum(hi - lo for lo, hi in spans) > max(hi - lo for lo, hi in spans)
     whole, own = F.FieldProgram(basis, weights), gestures.own_fields_program(basis, weights, spans)

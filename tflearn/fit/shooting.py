@@ -260,13 +260,16 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     result, active = ShootingResult(loss=[]), [j for j in everyone if math.isfinite(float(before[j]))]
     for j in set(everyone) - set(active):
         result.failures[tg.names[j]] = "cannot be simulated from its starting weights"
-    h = min(options.horizon, longest)
+    h, after = min(options.horizon, longest), before.clone()
     while active:
-        _stage(prob, theta, mu, h, active, result, callback)
-        if h >= longest:
+        cost = _stage(prob, theta, mu, h, active, result, callback)
+        if h >= longest:             # the last stage's cost is each motion's path loss
+            after[active] = cost[active]
             break
         h = min(2 * h, longest)
-    after = prob.cost(theta, 2 * longest, everyone)
+    again = [j for j in everyone if math.isfinite(float(before[j])) and j not in active]
+    if again:                        # motions that left before the whole-motion stage
+        after[again] = prob.cost(theta[again], 2 * longest, again)
     worse = ~(after <= before)                         # never end further from the path
     theta[worse], after[worse] = start[worse], before[worse]
     weights.set_flat(keys, theta, everyone)
@@ -295,7 +298,8 @@ def _normal_equations(prob: _Problem, theta, h, active: list, result: ShootingRe
 
 def _stage(prob: _Problem, theta, mu, h, active: list, result: ShootingResult, callback):
     """The Levenberg–Marquardt iterations of one horizon on the ``active`` motions
-    (θ, μ and ``active`` are updated in place)."""
+    (θ, μ and ``active`` are updated in place). Returns each motion's cost (N) at its
+    final θ (∞ where not active)."""
     tg = prob.tg
     cost = torch.full((tg.N,), math.inf, dtype=torch.float64)
     cost[active] = prob.cost(theta[active], h, active)
@@ -328,3 +332,4 @@ def _stage(prob: _Problem, theta, mu, h, active: list, result: ShootingResult, c
         todo_stage = [j for j, o in zip(todo_stage, old.tolist())
                       if o - float(cost[j]) > prob.opts.tol * o and float(cost[j]) > prob.opts.floor]
     active[:] = [j for j in active if tg.names[j] not in result.failures]
+    return cost
