@@ -170,6 +170,35 @@ def test_em_converges_monotonically(come_here):
     assert abs(float(weights.a.detach()) - 3.0) <= 5e-3 and float(weights.b.detach()) <= 5e-3
 
 
+def test_em_trust_region_keeps_a_weak_field_alive():
+    """backwards_reach from the basin experiment's guess (seed 0, r = 1.8, salt 4): plain EM
+    throws the pulse field to the bounds in its first steps (|η| at ETA_MAX, its weight 0)
+    and ends in the one-field minimum (measured cost 0.138); with max_step = 0.5 no step
+    moves a parameter by more than 0.5 and EM recovers the gesture (measured 5e-8)."""
+    from tflearn.experiments import common as C
+    from tflearn.fields import ETA_MAX
+    body, g = gestures.arm(), gestures.GESTURES["backwards_reach"]
+    (m, _), = gestures.generate(body, gestures=[g])
+    tg = targets.prepare(body, [m])
+    true = C.generating([g])
+    guess = C.noised(true, C.noise_draws(true, 0, list(gestures.GESTURES).index(g.name)), 1.8)
+    support = torch.cat([guess["a"] != 0, guess["b"] != 0], dim=-1)
+    ends = {}
+    for cap in (None, 0.5):
+        basis, weights = C.build(guess, tg)
+        fp = torque._FieldParameters(basis, weights, tg, False)
+        thetas = [fp.vector()]
+        torque.em(basis, weights, tg, steps=300, tol=1e-10, support=support, max_step=cap,
+                  callback=lambda step, costs: thetas.append(fp.vector()))
+        steps = [float((b - a).abs().max()) for a, b in zip(thetas, thetas[1:])]
+        ends[cap] = (float(torque.torque_cost(basis, weights, tg).detach().sum()),
+                     float(basis.eta.detach()[1].abs().max()), float(weights.b.detach()[0, 1]), steps)
+    cost, eta_far, pulse, steps = ends[None]
+    assert cost > 0.1 and eta_far == pytest.approx(ETA_MAX) and pulse == 0.0 and max(steps) > 1.0
+    cost, eta_far, pulse, steps = ends[0.5]
+    assert cost < 1e-6 and max(steps) <= 0.5 + 1e-12 and pulse == pytest.approx(1.9, rel=1e-3)
+
+
 def test_em_beats_joint_descent(come_here):
     """Same start, same number of steps (each EM step is one LM step + an NNLS solve, each
     joint-descent step one Adam step). Measured (scalar K):

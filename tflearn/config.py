@@ -55,6 +55,7 @@ class EachSection(Section):                     # per-motion growth
 class EMSection(Section):                       # Levenberg–Marquardt steps per EM refinement
     steps: int = Field(100, ge=0)
     tol: float = Field(1e-6, ge=0)               # stop when a step gains < tol (relative)
+    max_step: Optional[float] = Field(None, gt=0)  # trust region: |δθ| ≤ this (rad, log L); None: off
 
 
 class PathSection(Section):                     # simulation options and path matching

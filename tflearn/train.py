@@ -293,7 +293,7 @@ class Run:
             if tag:
                 self.log.scalar(tag, cost, state.step)
             self.log.busy(em_step=step + 1, cost=cost)
-        return torque.em(basis, weights, tg, steps=c.steps, tol=c.tol,
+        return torque.em(basis, weights, tg, steps=c.steps, tol=c.tol, max_step=c.max_step,
                          phases=self.cfg.model.phases == "variable", callback=cb, distributed=True,
                          support=_weight_support(support, weights.P))
 

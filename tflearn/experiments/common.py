@@ -141,13 +141,16 @@ def fit_local_case(body, guess: dict, tg: Targets, cfg: ExperimentConfig) -> dic
 
     The first phase keeps EM local: unrestricted, its first NNLS solve may switch on a
     profile the guess has off (e.g. a large pulse on a step-only gesture) and descend
-    into that profile's basin, a local minimum that the guess was not near."""
+    into that profile's basin, a local minimum that the guess was not near. EM's trust
+    region (``local.em_max_step``) keeps a weakly weighted field from being thrown to
+    the bounds by one Gauss–Newton step (docs/results.md §1)."""
     c = cfg.local
     basis, weights = build(guess, tg)
     calls0, t0 = sim_mod.calls, time.perf_counter()
     support = torch.cat([guess["a"] != 0, guess["b"] != 0], dim=-1)
-    history = torque.em(basis, weights, tg, steps=c.em_steps, tol=c.em_tol, support=support)
-    history += torque.em(basis, weights, tg, steps=c.em_steps, tol=c.em_tol)[1:]
+    opts = dict(steps=c.em_steps, tol=c.em_tol, max_step=c.em_max_step)
+    history = torque.em(basis, weights, tg, support=support, **opts)
+    history += torque.em(basis, weights, tg, **opts)[1:]
     cost = history[-1]
     m = check(body, basis, weights, tg, cfg) if c.path_steps and cost <= c.path_gate else None
     if m is not None and not all(m["success"]):

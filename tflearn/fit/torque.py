@@ -242,7 +242,8 @@ class _Motions:
 
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
        phases: bool = False, tol: float = 1e-10, callback: Optional[Callable] = None,
-       support: Optional[torch.Tensor] = None, distributed: bool = False) -> list:
+       support: Optional[torch.Tensor] = None, distributed: bool = False,
+       max_step: Optional[float] = None) -> list:
     """EM-style alternation: exact NNLS weights, then a damped Gauss–Newton step on the
     fields' centres and stiffnesses (and phases) with those weights held.
 
@@ -257,6 +258,11 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     first-order descent crawls along. Stops after ``steps`` accepted or rejected
     steps, or when the cost falls by less than ``tol`` (relative). ``callback(step, costs)``
     is called every step. ``support`` restricts the weights (see :func:`solve_weights`).
+    ``max_step``: a trust region in θ's own units (centres in rad, stiffness as log of
+    the factor's diagonal): μ grows until every |δθ_k| ≤ max_step. Marquardt's scaling
+    makes the step scale-free, so a field whose weights are small gets a full-size
+    step from a tiny gradient; without a bound one step can throw it to ETA_MAX and
+    K_RANGE, where its NNLS weight is 0 and it never returns (None: no bound).
     Returns the cost history (sum over motions) and leaves the weights at their NNLS
     optimum.
 
@@ -281,6 +287,9 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
         accepted = False
         for _ in range(8):
             delta = torch.linalg.solve(A + mu * torch.diag(d), -g)
+            while max_step is not None and float(delta.abs().max()) > max_step:
+                mu *= 4                                      # a trust region in θ's units
+                delta = torch.linalg.solve(A + mu * torch.diag(d), -g)
             fp.assign(theta + delta)
             new_costs = own.solve(basis)
             _warn_nonfinite(new_costs, tg, "EM")
