@@ -52,6 +52,9 @@ def test_profiles_are_c1():
     inner = u.detach()[8:]
     assert torch.allclose(dpsi[8:], 1 - torch.cos(2 * math.pi * inner), rtol=0, atol=1e-14)
     assert torch.allclose(dphi[8:], math.pi * torch.sin(2 * math.pi * inner), rtol=0, atol=1e-14)
+    # step_slope / pulse_slope (EM's closed-form Jacobian) are these derivatives everywhere
+    assert torch.allclose(F.step_slope(u.detach()), dpsi, rtol=0, atol=1e-15)
+    assert torch.allclose(F.pulse_slope(u.detach()), dphi, rtol=0, atol=1e-15)
     # Values are continuous across the joins too.
     eps = _t([-1e-9, 1e-9])
     assert float(F.step_profile(eps).abs().max()) <= 1e-9

@@ -54,6 +54,18 @@ def pulse_profile(u: torch.Tensor) -> torch.Tensor:
     return 0.5 * (1 - torch.cos(2 * math.pi * u))
 
 
+def step_slope(u: torch.Tensor) -> torch.Tensor:
+    """ψ'(u) = 1 − cos 2πu on [0, 1], 0 elsewhere."""
+    inside = (u >= 0) & (u <= 1)
+    return torch.where(inside, 1 - torch.cos(2 * math.pi * u), torch.zeros_like(u))
+
+
+def pulse_slope(u: torch.Tensor) -> torch.Tensor:
+    """φ'(u) = π sin 2πu on [0, 1], 0 elsewhere."""
+    inside = (u >= 0) & (u <= 1)
+    return torch.where(inside, math.pi * torch.sin(2 * math.pi * u), torch.zeros_like(u))
+
+
 def _block_mask(blocks: Sequence[int], kind: str) -> torch.Tensor:
     n = sum(blocks)
     if kind == "full":

@@ -31,7 +31,7 @@ from typing import Callable, Optional
 import torch
 
 from .. import parallel
-from ..fields import FieldBasis, MotionWeights, pulse_profile, step_profile
+from ..fields import FieldBasis, MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
 from .nnls import nnls, warn_unconverged
 from .targets import Targets
 
@@ -185,10 +185,76 @@ class _FieldParameters:
         return r
 
     def jacobian(self, theta, x) -> torch.Tensor:
-        from torch.func import jacfwd
+        """∂r/∂θ (R × Mp), field by field (:meth:`field_jacobian`)."""
         th = theta.reshape(self.M, self.p)
-        return torch.cat([jacfwd(lambda z, i=i: self.field_term(i, z, x))(th[i])
-                          for i in range(self.M)], dim=1)
+        return torch.cat([self.field_jacobian(i, th[i], x) for i in range(self.M)], dim=1)
+
+    def field_jacobian(self, i: int, th: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """∂(:meth:`field_term`)/∂θ_i (R × p) in closed form. With d = ν − η_i,
+        u = d + ζ v, g = exp(−½ dᵀK d) and χ = −K u g:
+
+            ∂χ/∂η = g (K − (K u)(K d)ᵀ),
+            ∂χ[ΔK] = g (½ (K u)(dᵀ ΔK d) − ΔK u),
+
+        with ΔK = K Δκ (scalar, K = e^κ I) or ΔK = ΔL Lᵀ + L ΔLᵀ for the free entry
+        (a, b) of L (ΔL = e_a e_bᵀ, times L_aa on the diagonal, whose parameter is
+        log L_aa); the phases enter through the activation only, ∂ψ(s)/∂onset =
+        −ψ'(s)/λ and ∂ψ(s)/∂λ = −ψ'(s) s/λ for s = (t − onset)/λ."""
+        eta, raw, ph = self._split(th)
+        q, v, n = self.tg.q, self.tg.v, self.n
+        d = q - eta
+        u = d + self.basis.damping * v if self.basis.damping else d
+        if self.flat_mask is None:
+            K = torch.exp(raw) * torch.eye(n, dtype=th.dtype)
+        else:
+            eye = torch.eye(n, dtype=torch.bool)
+            L = torch.where(self.basis.stiffness.mask & ~eye, raw, torch.zeros_like(raw)) \
+                + torch.diag_embed(torch.exp(torch.diagonal(raw)))
+            K = L @ L.T
+        Kd, Ku = d @ K, u @ K                                       # K symmetric
+        g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))        # N×T×1
+        parts = [g[..., None] * (K - Ku[..., :, None] * Kd[..., None, :])]
+        if self.flat_mask is None:
+            parts.append((Ku * g * (0.5 * (d * Kd).sum(-1, keepdim=True) - 1))[..., None])
+        else:
+            a, b = self.flat_mask // n, self.flat_mask % n
+            c = torch.where(a == b, L[a, a], torch.ones_like(L[a, a]))
+            w, z = u @ L, d @ L                                     # Lᵀu, Lᵀd
+            dK_u = (torch.eye(n, dtype=th.dtype)[:, a] * w[..., None, b]
+                    + L[:, b] * u[..., None, a])                    # ΔK u, N×T×n×s
+            parts.append(g[..., None] * c * (Ku[..., :, None] * (d[..., a] * z[..., b])[..., None, :] - dK_u))
+        act, dact = self._activation(i, ph, x)
+        J = -self.scale[..., None] * act[..., None, None] * torch.cat(parts, dim=-1)
+        if dact is not None:                                        # N×T×4×N, motion j's own
+            chi = -Ku * g
+            J = torch.cat([J, (-self.scale[..., None, None] * chi[..., None, None]
+                               * dact[:, :, None]).flatten(-2)], dim=-1)
+        return J.reshape(-1, self.p)
+
+    def _activation(self, i: int, ph, x):
+        """Field i's activation (N×T) and, with variable phases, its derivatives by each
+        motion's phases (N×T×4×N in PHASES order; only column j of motion j is non-zero)."""
+        own = ph is not None
+        if not own:
+            ph = {k: getattr(self.weights, k)[:, i].detach() for k in PHASES}
+        t, M, P = self.tg.t, self.M, self.weights.P
+        act, grads = 0.0, []
+        for weight, profile, slope, on, dur in (
+                (x[:, i, None], step_profile, step_slope, "step_onset", "step_duration"),
+                (x[:, M + i, None], pulse_profile, pulse_slope, "pulse_onset", "pulse_duration")):
+            lam = ph[dur][:, None]
+            s = (t - ph[on][:, None]) / lam
+            act = act + weight * profile(s)
+            if own:
+                ds = weight * slope(s) / lam
+                grads += [-ds, -ds * s]
+        if P:                                     # the windows' timing is not among θ
+            c = x[:, 2 * M + i * P:2 * M + (i + 1) * P]
+            act = act + (self.windows * c[:, None]).sum(-1)
+        if not own:
+            return act, None
+        eye = torch.eye(self.N, dtype=act.dtype)
+        return act, torch.stack(grads, dim=-1)[..., None] * eye[:, None, None, :]
 
 
 def _project_out_weights(J, basis, weights, tg, scale, x) -> torch.Tensor:
