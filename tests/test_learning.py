@@ -167,7 +167,9 @@ def test_em_jacobian_in_closed_form_equals_forward_mode(kind, phases, damping, w
     basis = FieldBasis(0.5 * torch.randn(2, 7, generator=gen, dtype=DT), K, kind=kind,
                        blocks=[3, 1, 3], damping=damping)
     N, T = tg.N, tg.t.shape[-1]
-    pos = lambda *shape: 0.5 + torch.rand(*shape, generator=gen, dtype=DT)   # noqa: E731
+
+    def pos(*shape):
+        return 0.5 + torch.rand(*shape, generator=gen, dtype=DT)
     extra = dict(step_onset=0.1 * pos(N, 2), step_duration=0.3 * pos(N, 2),
                  pulse_onset=0.05 * pos(N, 2), pulse_duration=0.3 * pos(N, 2))
     if windows:
@@ -220,7 +222,7 @@ def test_em_trust_region_keeps_a_weak_field_alive():
         fp = torque._FieldParameters(basis, weights, tg, False)
         thetas = [fp.vector()]
         torque.em(basis, weights, tg, steps=300, tol=1e-10, support=support, max_step=cap,
-                  callback=lambda step, costs: thetas.append(fp.vector()))
+                  callback=lambda step, costs, fp=fp, thetas=thetas: thetas.append(fp.vector()))
         steps = [float((b - a).abs().max()) for a, b in zip(thetas, thetas[1:])]
         ends[cap] = (float(torque.torque_cost(basis, weights, tg).detach().sum()),
                      float(basis.eta.detach()[1].abs().max()), float(weights.b.detach()[0, 1]), steps)
