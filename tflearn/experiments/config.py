@@ -48,7 +48,7 @@ class LocalSection(Section):
 
     em_steps: int = Field(300, ge=0)
     em_tol: float = Field(1e-10, ge=0)
-    em_max_step: float | None = Field(0.5, gt=0)   # EM's trust region (torque.em max_step)
+    em_max_step: float | None = Field(1.0, gt=0)   # EM's trust region (torque.em max_step)
     path_steps: int = Field(15, ge=0)
     path_lr: float = Field(0.01, ge=0)
     path_gate: float = Field(1e-3, ge=0)

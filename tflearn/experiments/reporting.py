@@ -60,6 +60,8 @@ def _section(name: str, experiment, runs: Path, fig_root: Path) -> list:
     doc += [f"**Ours**{size}: `tflearn experiment {name}{flag}` (the fits took {compute / 60:.0f} "
             f"min of single-threaded compute in all; cases are cached, so a re-run only "
             f"redraws).", "", outcome(experiment, result), ""]
+    if "notes" in words:
+        doc += [f"**Notes:** {words['notes']}", ""]
     dest = fig_root / name
     dest.mkdir(exist_ok=True)
     for fig in result["figures"]:

@@ -314,7 +314,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     fields' centres and stiffnesses (and phases) with those weights held.
 
     With x* the NNLS weights, the residual r(θ) = √(w/S)(T − Φ(θ) x*) is linearised,
-    J = ∂r/∂θ (forward-mode autodiff), and the Levenberg–Marquardt step
+    J = ∂r/∂θ (in closed form, :meth:`_FieldParameters.field_jacobian`), and the Levenberg–Marquardt step
         (JᵀJ + μ diag(JᵀJ)) δ = −Jᵀ r
     is accepted when the reduced cost min_x C(x, θ + δ) (weights re-solved) decreases,
     μ shrinking on success and growing on failure. J is Kaufman's variable-projection
