@@ -166,15 +166,7 @@ class _FieldParameters:
         eta, raw, ph = self._split(th)
         chi = functional_call(self.basis, {"eta": eta[None], "stiffness.raw": raw[None]},
                               (self.tg.q, self.tg.v))[..., 0, :]
-        if ph is None:
-            ph = {k: getattr(self.weights, k)[:, i].detach() for k in PHASES}
-        t, M, P = self.tg.t, self.M, self.weights.P
-        psi = step_profile((t - ph["step_onset"][:, None]) / ph["step_duration"][:, None])
-        phi = pulse_profile((t - ph["pulse_onset"][:, None]) / ph["pulse_duration"][:, None])
-        act = x[:, i, None] * psi + x[:, M + i, None] * phi
-        if P:                                     # the windows' timing is not among θ
-            c = x[:, 2 * M + i * P:2 * M + (i + 1) * P]
-            act = act + (self.windows * c[:, None]).sum(-1)
+        act, _ = self._activation(i, ph, x, slopes=False)
         return (-self.scale * act.unsqueeze(-1) * chi).reshape(-1)
 
     def residual(self, theta, x) -> torch.Tensor:
@@ -231,11 +223,12 @@ class _FieldParameters:
                                * dact[:, :, None]).flatten(-2)], dim=-1)
         return J.reshape(-1, self.p)
 
-    def _activation(self, i: int, ph, x):
-        """Field i's activation (N×T) and, with variable phases, its derivatives by each
-        motion's phases (N×T×4×N in PHASES order; only column j of motion j is non-zero)."""
-        own = ph is not None
-        if not own:
+    def _activation(self, i: int, ph, x, slopes: bool = True):
+        """Field i's activation (N×T) and, with variable phases (``ph`` given) and
+        ``slopes``, its derivatives by each motion's phases (N×T×4×N in PHASES order;
+        only column j of motion j is non-zero), else None."""
+        own = ph is not None and slopes
+        if ph is None:
             ph = {k: getattr(self.weights, k)[:, i].detach() for k in PHASES}
         t, M, P = self.tg.t, self.M, self.weights.P
         act, grads = 0.0, []
