@@ -112,12 +112,13 @@ class Stiffness(nn.Module):
             self.raw = nn.Parameter(raw)
             self.register_buffer("mask", mask)
 
-    def factor(self) -> torch.Tensor:
-        """L (M×n×n), lower triangular with positive diagonal (not for ``scalar``)."""
-        n = self.n
-        eye = torch.eye(n, dtype=torch.bool, device=self.raw.device)
-        off = torch.where(self.mask & ~eye, self.raw, torch.zeros_like(self.raw))
-        return off + torch.diag_embed(torch.exp(torch.diagonal(self.raw, dim1=-2, dim2=-1)))
+    def factor(self, raw: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """L (M×n×n), lower triangular with positive diagonal (not for ``scalar``), of
+        the stored parameters or of ``raw`` (...×n×n) laid out like them."""
+        raw = self.raw if raw is None else raw
+        eye = torch.eye(self.n, dtype=torch.bool, device=raw.device)
+        off = torch.where(self.mask & ~eye, raw, torch.zeros_like(raw))
+        return off + torch.diag_embed(torch.exp(torch.diagonal(raw, dim1=-2, dim2=-1)))
 
     @torch.no_grad()
     def project_(self, k_min: float = K_RANGE[0], k_max: float = K_RANGE[1]) -> None:

@@ -199,9 +199,7 @@ class _FieldParameters:
         if self.flat_mask is None:
             K = torch.exp(raw) * torch.eye(n, dtype=th.dtype)
         else:
-            eye = torch.eye(n, dtype=torch.bool)
-            L = torch.where(self.basis.stiffness.mask & ~eye, raw, torch.zeros_like(raw)) \
-                + torch.diag_embed(torch.exp(torch.diagonal(raw)))
+            L = self.basis.stiffness.factor(raw)
             K = L @ L.T
         Kd, Ku = d @ K, u @ K                                       # K symmetric
         g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))        # N×T×1
