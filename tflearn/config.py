@@ -108,10 +108,20 @@ class SlsqpSection(Section):
     max_iter: int = Field(200, ge=1)             # iterations of the baseline
 
 
+class LayoutSection(Section):                   # method layout: 2n fields spanning joint space
+    radius: float = Field(2.0, gt=0, allow_inf_nan=False)     # centres at ν̄ ± radius e_k (rad)
+    stiffness: float = Field(1.0, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
+
+
 class SolverSection(Section):
     # pipeline | slsqp: the thesis' baseline, SLSQP with numerical derivatives on the
-    # torque cost from a seeded random guess (needs model.fields ≥ 1, diag K)
-    method: Literal["pipeline", "slsqp"] = "pipeline"
+    # torque cost from a seeded random guess (needs model.fields ≥ 1, diag K) | layout:
+    # a fixed basis of 2n fields spanning joint space around the motions, weights by
+    # NNLS, then path matching (tflearn.fit.layout; for recorded and keyframed motion)
+    method: Literal["pipeline", "slsqp", "layout"] = "pipeline"
+    # the torque costs' coordinate weights: uniform (the thesis) | inertia (each joint's
+    # torque error over its mean inertia: errors counted by the accelerations they cause)
+    torque_weight: Literal["uniform", "inertia"] = "uniform"
     init: InitSection = InitSection()
     each: EachSection = EachSection()
     em: EMSection = EMSection()
@@ -120,6 +130,7 @@ class SolverSection(Section):
     pool: PoolSection = PoolSection()
     merge: MergeSection = MergeSection()
     slsqp: SlsqpSection = SlsqpSection()
+    layout: LayoutSection = LayoutSection()
 
 
 class SuccessSection(Section):

@@ -15,7 +15,8 @@ TensorBoard (``log.tensorboard``, OUT/tensorboard, one run) — the tag layout:
 * ``model/M``      the same M (kept for scripts reading it);
 * ``torque_cost/STAGE``  one curve per stage: ``each`` (the cost of each motion's own
   fit), ``pool`` (EM steps after pooling), ``reduce`` (each trial's cost after EM),
-  ``slsqp`` (iterations); ``path/loss`` and ``path/lr`` per path-matching step;
+  ``slsqp`` (iterations), ``layout`` (the spanning basis' weights); ``path/loss`` and
+  ``path/lr`` per path-matching step;
   ``reduce/removed`` (1 when the field tried went);
 * ``motion/NAME/`` ``rmse_rad``, ``tip_cm``, ``torque_error_pct`` of motion NAME under
   the current model (its own fit during ``each``);
@@ -49,7 +50,8 @@ STAGES = {"each": ("each motion alone", "motions"),
           "pool": ("pool and merge", "stage"),
           "reduce": ("reduce: try dropping fields", "fields"),
           "path": ("path matching", "steps"),
-          "slsqp": ("slsqp", "iterations")}
+          "slsqp": ("slsqp", "iterations"),
+          "layout": ("lay out spanning fields", "stage")}
 
 
 def _fmt(value) -> str:

@@ -17,7 +17,7 @@ others', so that every rank holds the same scores of all motions.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional, Sequence
 
 import torch
@@ -146,7 +146,7 @@ def _scores(body, basis, weights, tg, q_sim, failure) -> Scores:
     inf = float("inf")
     rmse = [inf if f else float(r) for f, r in zip(failure, rmse)]
     tip = [inf if f else float(p) for f, p in zip(failure, tip)]
-    torque = relative_rms_torque_error(basis, weights, tg).tolist()
+    torque = relative_rms_torque_error(basis, weights, replace(tg, coord_weight=None)).tolist()
     return Scores(rmse, tip, torque, q_sim, failure)
 
 

@@ -34,6 +34,9 @@ With ``solver.method: slsqp`` the single stage ``slsqp`` replaces 1–4: the the
 baseline (:func:`tflearn.fit.slsqp.fit_slsqp`, torque matching only) with
 ``model.fields`` diagonal-stiffness fields from a seeded random guess — centres at
 postures drawn from the motions' samples, K = I, weights by NNLS.
+With ``solver.method: layout`` the stage ``layout`` replaces 1–3: the 2n fields of
+:func:`tflearn.fit.layout.spanning_basis` around all the motions, every motion's
+weights by NNLS; ``path`` follows as above.
 
 The run's state is a :class:`RunState`; checkpoints hold it as plain tensors and JSON
 values only (loaded with ``torch.load(weights_only=True)``).
@@ -68,8 +71,8 @@ from .config import Config, ConfigError
 from .data import check_resolution, load_motions
 from .errors import InputError
 from .fields import FieldBasis, MotionWeights, model_from_state, model_state
+from .fit import layout, search, shooting, slsqp, torque
 from .fit import path as path_fit
-from .fit import search, shooting, slsqp, torque
 from .fit.targets import Targets, prepare, submovement_windows
 from .io import basis as basis_io
 from .io.files import replacing, write_text
@@ -78,7 +81,8 @@ from .metrics import Scores, score, score_models, summarize
 
 CHECKPOINT_FORMAT = "tflearn-checkpoint/5"
 SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "done"),
-             "slsqp": ("slsqp", "done")}
+             "slsqp": ("slsqp", "done"),
+             "layout": ("layout", "path", "done")}
 
 
 class Interrupted(Exception):
@@ -170,18 +174,23 @@ class Run:
         self.ckpt_path = self.out / "checkpoint.pt"
         self.log = RunLog(self.out, tensorboard=False, progress=False)
         self.stages = {"each": self._each, "pool": self._pool, "reduce": self._reduce,
-                       "path": self._path, "slsqp": self._slsqp}
+                       "path": self._path, "slsqp": self._slsqp, "layout": self._layout}
         self.sequence = SEQUENCES[cfg.solver.method]
+        if cfg.solver.method == "layout" and (cfg.model.stiffness == "scalar" or cfg.model.fields):
+            raise ConfigError("solver.method 'layout' lays out 2n fields with a stiffness per "
+                              "coordinate: it needs model.fields=0 and model.stiffness diag, block "
+                              f"or full (got {cfg.model.fields}, {cfg.model.stiffness!r})")
         if cfg.solver.method == "slsqp":
             m = cfg.model
             if (m.fields < 1 or m.stiffness != "diag" or m.phases != "fixed" or m.field_damping
-                    or m.windows):
+                    or m.windows or cfg.solver.torque_weight != "uniform"):
                 raise ConfigError(
                     "solver.method 'slsqp' (the thesis' baseline) fits a basis of a given size "
                     "with diagonal stiffness, fixed phases, no field damping and no windows: it "
                     "needs model.fields ≥ 1, model.stiffness=diag, model.phases=fixed, "
-                    f"model.field_damping=0 and model.windows=0 (got {m.fields}, {m.stiffness!r}, "
-                    f"{m.phases!r}, {m.field_damping}, {m.windows})")
+                    f"model.field_damping=0, model.windows=0 and solver.torque_weight=uniform "
+                    f"(got {m.fields}, {m.stiffness!r}, {m.phases!r}, {m.field_damping}, "
+                    f"{m.windows}, {cfg.solver.torque_weight!r})")
 
     def template(self) -> FieldBasis:
         """An empty basis of the configured kind and field damping on the body's blocks."""
@@ -246,7 +255,7 @@ class Run:
         self._t0 = time.time()
         motions = load_motions(self.cfg.data, self.body, strict=self.cfg.strict)
         self.resolution = check_resolution(self.body, motions)
-        tg = prepare(self.body, motions)
+        tg = prepare(self.body, motions, weight=self.cfg.solver.torque_weight)
         state = self._start(restart)
         if state is None:
             gen = torch.Generator().manual_seed(self.cfg.seed)
@@ -528,6 +537,27 @@ class Run:
         weights.set_flat(keys, torch.tensor([r["theta"] for r in rows], dtype=torch.float64), motions)
         state.history["shooting"] = {tg.names[j]: {k: r[k] for k in ("loss", "failure")}
                                      for j, r in zip(motions, rows)}
+
+    def _layout(self, state: RunState, tg: Targets):
+        """The spanning basis (:func:`tflearn.fit.layout.spanning_basis`), each motion's
+        weights on its P windows by NNLS, the model scored by simulation."""
+        c = self.cfg.solver.layout
+        self.log.stage("layout", 1)
+        basis = layout.spanning_basis(self.body, tg, self.template(), c.radius, c.stiffness)
+        weights = MotionWeights.zeros(basis.M, tg.duration, tg.names,
+                                      submovement_windows(tg, self.cfg.model.windows))
+        cost = float(torque.solve_weights(basis, weights, tg).sum())
+        scores, ok = self._check(basis, weights, tg)
+        step = self._tick(state)
+        self.log.scalar("torque_cost/layout", cost, step)
+        self.log.scores(scores, tg, step, figures=True)
+        self.log.model(basis, weights, step)
+        state.model = model_state(basis, weights)
+        state.history["layout"] = {"M": basis.M, "torque_cost": cost, "success": ok}
+        self.log.status(M=basis.M, cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
+        self.log.end_stage()
+        self._advance(state)
+        self.save(state)
 
     def _slsqp(self, state: RunState, tg: Targets):
         gen = self._gen(state)

@@ -111,12 +111,15 @@ def score_candidates(basis: FieldBasis, weights: MotionWeights, tg: Targets,
                           weights.windows_per_motion(tg.t).detach()], -1)   # N×T×(2+P)
     new = chi.unsqueeze(-1) * profiles[:, :, None]                           # S×C×N×T×n×(2+P)
     ws = tg.wt / tg.torque_scale()[:, None]                                  # N×T
-    G_nn = torch.einsum("nt,scntdi,scntdj->scnij", ws, new, new)
-    h_n = torch.einsum("nt,scntdi,ntd->scni", ws, new, tg.tau)
+    if tg.coord_weight is not None:                                          # N×T×n: ω_k w / S
+        ws = ws[..., None] * tg.coord_weight[:, None, :]
+    sub = "ntd" if ws.ndim == 3 else "nt"
+    G_nn = torch.einsum(f"{sub},scntdi,scntdj->scnij", ws, new, new)
+    h_n = torch.einsum(f"{sub},scntdi,ntd->scni", ws, new, tg.tau)
     if M:
         G_oo, h_o = normal_equations(basis, weights, tg)                   # N×X×X, N×X
         Phi0 = design(basis, weights, tg)                                  # N×T×n×X
-        G_on = torch.einsum("nt,ntdi,scntdj->scnij", ws, Phi0, new)        # S×C×N×X×(2+P)
+        G_on = torch.einsum(f"{sub},ntdi,scntdj->scnij", ws, Phi0, new)        # S×C×N×X×(2+P)
         top = torch.cat([G_oo.expand(G_on.shape[:3] + G_oo.shape[-2:]), G_on], -1)
         bottom = torch.cat([G_on.transpose(-1, -2), G_nn], -1)
         G = torch.cat([top, bottom], -2)

@@ -1,10 +1,12 @@
 """Motions prepared for fitting: padded tensors of samples, velocities and torques."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Optional
 
 import torch
 
+from .. import dynamics
 from .. import motion as motion_mod
 from ..body import Body
 from ..fields import FieldBasis, FieldProgram, MotionWeights
@@ -20,7 +22,10 @@ class Targets:
     at each end, where spline torques are least reliable (used by torque costs);
     q, v, tau (N×T×n) coordinates, body velocities and inverse-dynamics torques;
     duration (N); q0, qd0 (N×n); grid (G) the union of all
-    sample times, index (N×T) each sample's position in it (for batched simulation)."""
+    sample times, index (N×T) each sample's position in it (for batched simulation);
+    coord_weight (N×n) or None: each coordinate's weight ω in the torque costs,
+    Σ_t w Σ_k ω_k (τ_k − F_k)² (None: ω = 1, the thesis' cost; :func:`inertia_weights`
+    measures torque errors by the accelerations they cause)."""
 
     names: list
     t: torch.Tensor
@@ -35,6 +40,7 @@ class Targets:
     qd0: torch.Tensor
     grid: torch.Tensor
     index: torch.Tensor
+    coord_weight: Optional[torch.Tensor] = None
 
     @property
     def N(self) -> int:
@@ -46,8 +52,16 @@ class Targets:
         return (self.mask.sum(-1) - 1) / self.duration
 
     def torque_scale(self) -> torch.Tensor:
-        """Σ_t w ‖τ‖² per motion (N): the normaliser of relative torque costs."""
-        return (self.wt * (self.tau ** 2).sum(-1)).sum(-1).clamp_min(1e-12)
+        """Σ_t w Σ_k ω_k τ_k² per motion (N): the normaliser of relative torque costs."""
+        return (self.wt * (self.weigh(self.tau) ** 2).sum(-1)).sum(-1).clamp_min(1e-12)
+
+    def weigh(self, x: torch.Tensor) -> torch.Tensor:
+        """√ω ⊙ x for torques x (N×T×n) or design columns (N×T×n×X): the residual of a
+        coordinate-weighted torque cost; x itself when :attr:`coord_weight` is None."""
+        if self.coord_weight is None:
+            return x
+        s = self.coord_weight.sqrt()[:, None, :]
+        return x * (s if x.ndim == 3 else s[..., None])
 
     def select(self, idx) -> Targets:
         """The targets of some motions (a list of indices), on their own time grid (the
@@ -56,6 +70,8 @@ class Targets:
         idx = torch.as_tensor(idx, dtype=torch.long)
         sub = {k: getattr(self, k)[idx] for k in ("t", "mask", "w", "wt", "q", "v", "tau", "duration",
                                                   "q0", "qd0")}
+        if self.coord_weight is not None:
+            sub["coord_weight"] = self.coord_weight[idx]
         grid, index = union_grid(sub["t"])
         return Targets(names=[self.names[i] for i in idx.tolist()], grid=grid, index=index, **sub)
 
@@ -118,12 +134,13 @@ def _trapezoid(t: torch.Tensor) -> torch.Tensor:
     return w
 
 
-def prepare(body: Body, motions: list, trim: int = 5) -> Targets:
+def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform") -> Targets:
     """Inverse-dynamics torques and padded tensors for a list of :class:`~tflearn.motion.Motion`.
 
     ``trim`` samples at each end of a motion are left out of torque costs: a spline's
     second derivative is weakest at its ends, and a fast motion sampled at 100 Hz can
-    give end torques far from the true ones."""
+    give end torques far from the true ones. ``weight``: the torque costs' coordinate
+    weights, ``uniform`` (the thesis' cost) or ``inertia`` (:func:`inertia_weights`)."""
     if not motions:
         raise ValueError("prepare: no motions")
     N, T, n = len(motions), max(len(m.t) for m in motions), body.nv
@@ -152,6 +169,25 @@ def prepare(body: Body, motions: list, trim: int = 5) -> Targets:
         if k > 4 * trim:
             wt[j, :trim] = 0
             wt[j, k - trim:k] = 0
-    return Targets(names=[m.name for m in motions], t=t, mask=mask, w=w, wt=wt, q=q, v=v, tau=tau,
-                   duration=duration, q0=q[:, 0].clone(), qd0=v[:, 0].clone(),
-                   grid=grid, index=inverse)
+    tg = Targets(names=[m.name for m in motions], t=t, mask=mask, w=w, wt=wt, q=q, v=v, tau=tau,
+                 duration=duration, q0=q[:, 0].clone(), qd0=v[:, 0].clone(),
+                 grid=grid, index=inverse)
+    if weight not in ("uniform", "inertia"):
+        raise ValueError(f"prepare: weight must be 'uniform' or 'inertia', not {weight!r}")
+    return replace(tg, coord_weight=inertia_weights(body, tg)) if weight == "inertia" else tg
+
+
+def mean_inertia(body: Body, tg: Targets) -> torch.Tensor:
+    """Each motion's mean joint-space inertia along its path, m̄_k = mean_t M(ν_t)_kk
+    over its real samples (N×n; kg·m² for rotations)."""
+    diag = torch.diagonal(dynamics.mass_matrix(body, tg.q), dim1=-2, dim2=-1)       # N×T×n
+    m = tg.mask.unsqueeze(-1).to(diag.dtype)
+    return (diag * m).sum(1) / m.sum(1)
+
+
+def inertia_weights(body: Body, tg: Targets) -> torch.Tensor:
+    """ω_k = 1/m̄_k (N×n, :func:`mean_inertia`): a torque error weighted so, ω_k e_k², is
+    e_k · (the acceleration it causes alone), so that the light wrist counts as much as
+    the shoulder — with the thesis' uniform weights a relative torque cost of 1% can hide
+    a wrist that is not driven at all, the shoulder's torques being 10–100× larger."""
+    return 1.0 / mean_inertia(body, tg)

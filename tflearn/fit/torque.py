@@ -61,10 +61,10 @@ def design(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tens
 
 def normal_equations(basis: FieldBasis, weights: MotionWeights, tg: Targets):
     """(G (N×X×X), h (N×X)) of the relative torque cost, X = M(2+P)."""
-    Phi = design(basis, weights, tg)
+    Phi = tg.weigh(design(basis, weights, tg))
     ws = (tg.wt / tg.torque_scale()[:, None])[..., None, None]
     G = (ws * Phi.transpose(-1, -2) @ Phi).sum(1)
-    h = (ws.squeeze(-1) * (Phi.transpose(-1, -2) @ tg.tau.unsqueeze(-1)).squeeze(-1)).sum(1)
+    h = (ws.squeeze(-1) * (Phi.transpose(-1, -2) @ tg.weigh(tg.tau).unsqueeze(-1)).squeeze(-1)).sum(1)
     return G, h
 
 
@@ -91,7 +91,7 @@ def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
 def torque_cost(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
     """C_j (N), differentiable in the fields and the weights (eq. 3.10, relative)."""
     F = (design(basis, weights, tg) @ weights.vector().unsqueeze(1).unsqueeze(-1)).squeeze(-1)
-    r = ((tg.tau - F) ** 2).sum(-1)
+    r = (tg.weigh(tg.tau - F) ** 2).sum(-1)
     return (tg.wt * r).sum(-1) / tg.torque_scale()
 
 
@@ -123,7 +123,7 @@ class _FieldParameters:
         self.flat_mask = None if st.kind == "scalar" else st.mask.reshape(-1).nonzero().squeeze(-1)
         self.s = 1 if self.flat_mask is None else self.flat_mask.numel()
         self.p = self.n + self.s + (4 * self.N if phases else 0)
-        self.scale = (tg.wt / tg.torque_scale()[:, None]).sqrt()[..., None]
+        self.scale = tg.weigh((tg.wt / tg.torque_scale()[:, None]).sqrt()[..., None].expand(tg.tau.shape))
         self.windows = weights.windows_per_motion(tg.t).detach()          # N×T×P
 
     def vector(self) -> torch.Tensor:
