@@ -78,7 +78,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
     for group, synth in ((known, False), (new, True)):
         if not group:
             continue
-        tg = prepare(lb.body, group)
+        tg = prepare(lb.body, group, weight=cfg.solver.torque_weight)   # the run's cost
         shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip)) if synth
                    else weights_for(lb, tg))

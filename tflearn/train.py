@@ -379,13 +379,7 @@ class Run:
             self._em(basis, weights, tg, state, tag="torque_cost/pool", support=state.support)
         cost = float(torque.solve_weights(basis, weights, tg,
                                           _weight_support(state.support, weights.P)).sum())
-        scores, ok = self._check(basis, weights, tg)
-        step = self._tick(state)
-        self.log.scalar("torque_cost/pool", cost, step)
-        self.log.scores(scores, tg, step, figures=True)
-        self.log.model(basis, weights, step)
-        state.model = model_state(basis, weights)
-        state.history["pool"] = {"M": basis.M, "merged": merged, "torque_cost": cost, "success": ok}
+        scores, ok = self._adopt(state, tg, "pool", basis, weights, cost, merged=merged)
         state.reference = _reference(scores, ok)
         self.log.status(M=basis.M, merged=len(merged), cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
         self.log.end_stage()
@@ -538,6 +532,19 @@ class Run:
         state.history["shooting"] = {tg.names[j]: {k: r[k] for k in ("loss", "failure")}
                                      for j, r in zip(motions, rows)}
 
+    def _adopt(self, state: RunState, tg: Targets, stage: str, basis, weights, cost: float, **extra):
+        """Make a stage's model the run's: scored by simulation, logged, and recorded in
+        the history under ``stage`` (M, ``extra``, its torque cost, success); returns
+        (scores, success per motion)."""
+        scores, ok = self._check(basis, weights, tg)
+        step = self._tick(state)
+        self.log.scalar(f"torque_cost/{stage}", cost, step)
+        self.log.scores(scores, tg, step, figures=True)
+        self.log.model(basis, weights, step)
+        state.model = model_state(basis, weights)
+        state.history[stage] = {"M": basis.M, **extra, "torque_cost": cost, "success": ok}
+        return scores, ok
+
     def _layout(self, state: RunState, tg: Targets):
         """The spanning basis (:func:`tflearn.fit.layout.spanning_basis`), each motion's
         weights on its P windows by NNLS, the model scored by simulation."""
@@ -547,13 +554,7 @@ class Run:
         weights = MotionWeights.zeros(basis.M, tg.duration, tg.names,
                                       submovement_windows(tg, self.cfg.model.windows))
         cost = float(torque.solve_weights(basis, weights, tg).sum())
-        scores, ok = self._check(basis, weights, tg)
-        step = self._tick(state)
-        self.log.scalar("torque_cost/layout", cost, step)
-        self.log.scores(scores, tg, step, figures=True)
-        self.log.model(basis, weights, step)
-        state.model = model_state(basis, weights)
-        state.history["layout"] = {"M": basis.M, "torque_cost": cost, "success": ok}
+        _, ok = self._adopt(state, tg, "layout", basis, weights, cost)
         self.log.status(M=basis.M, cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
         self.log.end_stage()
         self._advance(state)
