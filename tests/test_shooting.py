@@ -15,7 +15,7 @@ import math
 import pytest
 import torch
 
-from tflearn import evaluate, train
+from tflearn import dynamics, evaluate, train
 from tflearn.body import chain
 from tflearn.fields import FieldBasis, FieldProgram, MotionWeights, model_from_state, model_state
 from tflearn.fit import path as path_fit
@@ -105,6 +105,30 @@ def test_one_segment_per_motion_is_the_path_loss(problem):
     print("costs", cost.tolist(), "path losses", loss.tolist())
     assert float(loss.min()) > 1e-3
     assert torch.allclose(cost, loss, rtol=1e-7)
+
+
+def test_tip_weight_adds_the_hand_distance(problem):
+    """With γ > 0 and one segment per motion, the cost is the path loss plus
+    γ Σ_t (w_t/λ) ‖p(q_sim,t) − p(q_t)‖², p the hand tip (1e-7), and 2 Jᵀr is still the
+    backpropagated gradient of that cost (1e-5)."""
+    body, basis, weights, tg = problem
+    w = _perturbed(weights)
+    gamma = 30.0
+    opts = shooting.ShootingOptions(tip_weight=gamma)
+    prob = shooting._Problem(body, basis, w, tg, shooting.WEIGHTS, opts, TIGHT)
+    theta = w.flat(shooting.WEIGHTS)
+    cost = prob.cost(theta, 10.0, [0, 1])
+    _, Jtr = prob.normal_equations(theta, 10.0, [0, 1])
+    q, v = targets.simulate_targets(body, basis, w, tg, TIGHT)
+    tip = (dynamics.tip_position(body, q) - dynamics.tip_position(body, tg.q)).pow(2).sum(-1)
+    total = path_fit.path_loss(body, q, v, tg, velocity_weight=0.1) + \
+        gamma * ((tg.w * tip).sum(-1) / tg.duration)
+    hand = gamma * float(((tg.w * tip).sum(-1) / tg.duration).min().detach())
+    assert hand > 0.1 * float(cost.min().detach())         # the hand term is no rounding error
+    assert torch.allclose(cost, total.detach(), rtol=1e-7)
+    total.sum().backward()
+    grad = torch.cat([p.grad.reshape(2, -1) for p in (w.a_raw, w.b_raw, w.c_raw)], dim=-1)
+    assert torch.allclose(2 * Jtr, grad, rtol=1e-5, atol=1e-5 * float(grad.abs().max()))
 
 
 def test_jacobian_gives_the_backpropagated_gradient(problem):

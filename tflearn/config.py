@@ -84,12 +84,14 @@ class ShootingSection(Section):
     iterations: int = Field(6, ge=0)
     horizon: float = Field(0.25, gt=0)           # the first segments' length (s), doubled to the whole motion
     velocity_weight: float = Field(0.1, ge=0)
+    # γ (rad²/m²): the hand tip's distance in the residuals too (0: joints and velocities only)
+    tip_weight: float = Field(0.0, ge=0, allow_inf_nan=False)
 
     def options(self, phases: bool):
         """These settings as :class:`tflearn.fit.shooting.ShootingOptions`."""
         from .fit.shooting import ShootingOptions
         return ShootingOptions(horizon=self.horizon, iterations=self.iterations, phases=phases,
-                               velocity_weight=self.velocity_weight)
+                               velocity_weight=self.velocity_weight, tip_weight=self.tip_weight)
 
 
 class PoolSection(Section):

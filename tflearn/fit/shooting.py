@@ -10,10 +10,13 @@ sample k_s + K_j under the motion's program at the motion's own time t_{k_s} + �
 (:class:`~tflearn.fields.FieldProgram`'s ``start``). Its residuals at every sample but
 its first are
 
-    r = √(w_t / λ_j) · [e_t ;  √β (v_sim,t − v_target,t)],    e_t = q_sim,t ⊖ q_target,t
+    r = √(w_t / λ_j) · [e_t ;  √β (v_sim,t − v_target,t) ;  √γ (p(q_sim,t) − p(q_target,t))],
+    e_t = q_sim,t ⊖ q_target,t
 
-(w_t the trapezoid weights, λ_j the duration), so that Σ r² is the path loss of
-:func:`tflearn.fit.path.path_loss` with each segment restarted on the target. Drift
+(w_t the trapezoid weights, λ_j the duration, p the hand tip's position), so that with
+γ = 0 (the default) Σ r² is the path loss of :func:`tflearn.fit.path.path_loss` with each
+segment restarted on the target; γ > 0 (rad²/m²) also counts where the hand is, the
+distance the success bar measures. Drift
 cannot build up over a short segment, so the residuals stay nearly linear in θ.
 
 **Horizon.** Segments start at h = ``ShootingOptions.horizon`` and double, joining
@@ -50,6 +53,7 @@ import torch
 
 from ..body import Body
 from ..configspace import difference
+from ..dynamics import tip_position
 from ..fields import FieldBasis, FieldProgram, MotionWeights
 from ..simulate import SimOptions, SimulationFailed, simulate
 from .targets import Targets, union_grid
@@ -66,7 +70,8 @@ class ShootingOptions:
     leaves a stage sooner once its cost falls by less than ``tol`` relatively in an
     iteration, or is below ``floor`` (rad²: a path RMSE of 1e-5 rad)); phases: also fit
     each motion's activation timing (onsets and durations of its steps, pulses and
-    windows); velocity_weight: β; mu: the initial damping; step: the relative
+    windows); velocity_weight: β; tip_weight: γ (rad²/m²: γ = 100 counts 1 cm of hand
+    like 0.1 rad of joint angle); mu: the initial damping; step: the relative
     forward-difference step."""
 
     horizon: float = 0.25
@@ -75,6 +80,7 @@ class ShootingOptions:
     floor: float = 1e-10
     phases: bool = False
     velocity_weight: float = 0.1
+    tip_weight: float = 0.0
     mu: float = 1e-3
     step: float = 1e-6
 
@@ -143,13 +149,18 @@ def _simulate(body, basis, weights: MotionWeights, seg: _Segments, options: SimO
     return tr.q.gather(1, idx), tr.v.gather(1, idx)
 
 
-def _residuals(body, tg: Targets, seg: _Segments, q, v, beta: float) -> torch.Tensor:
+def _residuals(body, tg: Targets, seg: _Segments, q, v, beta: float, gamma: float = 0.0) -> torch.Tensor:
     """r (…×B×R) for simulated (q, v) of the segments (…×B×(K+1)×n), see the module
     docstring."""
-    e = difference(body, tg.q[seg.motion[:, None], seg.sample], q)
+    target = tg.q[seg.motion[:, None], seg.sample]
+    e = difference(body, target, q)
     ev = v - tg.v[seg.motion[:, None], seg.sample]
     s = seg.weight.sqrt().unsqueeze(-1)
-    return torch.cat([(s * e).flatten(-2), (math.sqrt(beta) * s * ev).flatten(-2)], dim=-1)
+    parts = [(s * e).flatten(-2), (math.sqrt(beta) * s * ev).flatten(-2)]
+    if gamma:
+        ep = tip_position(body, q) - tip_position(body, target)
+        parts.append((math.sqrt(gamma) * s * ep).flatten(-2))
+    return torch.cat(parts, dim=-1)
 
 
 class _Problem:
@@ -175,7 +186,7 @@ class _Problem:
         self.simulations += 1
         q, v = _simulate(self.body, self.basis, w, seg, self.sim, copies)
         q, v = (x.reshape(copies, B, -1, self.body.nv) for x in (q, v))
-        return _residuals(self.body, self.tg, seg, q, v, self.opts.velocity_weight)
+        return _residuals(self.body, self.tg, seg, q, v, self.opts.velocity_weight, self.opts.tip_weight)
 
     def cost(self, theta: torch.Tensor, h: float, motions: list) -> torch.Tensor:
         """Each of ``motions``' multiple-shooting cost Σ r² at horizon h and θ
