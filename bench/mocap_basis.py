@@ -118,6 +118,9 @@ def main(argv=None) -> int:
     p.add_argument("--import-only", action="store_true", help="print the import table and stop")
     p.add_argument("overrides", nargs="*")
     args = p.parse_args(argv)
+    if args.clips:          # key=value after --clips would be read as clip names
+        args.overrides += [c for c in args.clips if "=" in c]
+        args.clips = [c for c in args.clips if "=" not in c]
     torch.set_num_threads(1)
     report, _, windows = prepare_windows(args)
     body_doc = report["body"]
