@@ -11,7 +11,9 @@ For the 7-DOF arm (float64, one torch thread), per sample:
   matching differentiates; without one, tflearn runs them compiled, :mod:`tflearn.kernels`);
 * one right-hand side of the arm's ODE (:class:`tflearn.simulate.ArmODE`, batch 1, a
   gesture's field program, no gradient) and a 3 s gesture simulated at the default
-  tolerances (:class:`tflearn.simulate.SimOptions`);
+  tolerances (:class:`tflearn.simulate.SimOptions`), and the same gesture stepped alone
+  (batch ``each``) by the compiled simulator (:mod:`tflearn.simkernel`), whose time per
+  right-hand side includes its solver;
 * how many ATen operators each of those dispatches at batch 1 (the profile that
   explains small-batch latency);
 * with ``--ref REV`` the tflearn figures are measured again, in a subprocess, for the
@@ -122,6 +124,19 @@ def tflearn_figures(max_batch: int, min_time: float) -> dict:
         sim.ArmODE.forward = orig
         out["gesture"] = {"name": motion.name, "duration_s": float(motion.t[-1]),
                           "rhs_evals": len(evals), "seconds": best_time(gesture, min_time)}
+        try:                                  # the compiled simulator (tflearn.simkernel)
+            from tflearn import simkernel
+        except ImportError:                   # a revision from before it
+            simkernel = None
+        if simkernel is not None:
+            each = sim.SimOptions(batch="each")
+            y0 = pack(body, lb.q0, lb.qd0)
+            sol = simkernel.integrate(body, program, y0, motion.t, rtol=each.rtol, atol=each.atol,
+                                      max_evals=each.max_evals)
+            out["gesture_compiled"] = {
+                "rhs_evals": int(sol.evals.sum()),
+                "seconds": best_time(lambda: sim.simulate(body, program, lb.q0, lb.qd0, motion.t, each),
+                                     min_time)}
     out["grad"] = {"rnea": {}, "forward": {}}            # q needs a gradient: torch's recursions
     for B in (b for b in BATCHES if b <= max_batch // 10):
         q, v, a = states(body.nv, B)

@@ -27,6 +27,7 @@ model.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
@@ -216,6 +217,12 @@ class FieldBasis(nn.Module):
     def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
         """χ_i(q, v) for every field (:func:`field_torques`): q, v (...×n) → (...×M×n)."""
         return field_torques(q, v, self.eta, self.K(), self.damping)
+
+    @torch.no_grad()
+    def tables(self) -> tuple:
+        """(η (1×M×n), K (1×M×n×n), ζ): the fields as one group, shared by every motion
+        (for :meth:`FieldProgram.rows`)."""
+        return self.eta.detach()[None], self.K()[None], self.damping, False
 
 
 def field_torques(q: torch.Tensor, v: Optional[torch.Tensor], eta: torch.Tensor, K: torch.Tensor,
@@ -467,6 +474,84 @@ class FieldProgram(nn.Module):
             w = w[..., self.index, :]
         chi = self.basis(q, v)
         return (w.unsqueeze(-1) * chi).sum(-2)
+
+    @torch.no_grad()
+    def rows(self, batch: torch.Size) -> Optional[ProgramRows]:
+        """The program of every member of a batch of this shape (...×N', N' the motions it
+        is called with), row by row in the flattened batch's order, for the compiled
+        simulator (:mod:`tflearn.simkernel`); None when the basis cannot say what its
+        fields are (it has no ``tables``)."""
+        if not hasattr(self.basis, "tables"):
+            return None
+        W = self.weights
+        motion = torch.arange(W.N) if self.index is None else self.index
+        if not batch or batch[-1] != len(motion):
+            return None
+        motion = motion.repeat(math.prod(batch[:-1]))
+        eta, K, zeta, per_motion = self.basis.tables()
+        pick = lambda x: x.detach()[motion]
+        start = torch.zeros(len(motion), dtype=torch.float64) if self.start is None else pick(self.start)
+        return ProgramRows(
+            group=motion if per_motion else torch.zeros_like(motion), start=start,
+            a=pick(W.a), b=pick(W.b), c=pick(W.c),
+            **{k: pick(getattr(W, k)) for k in W.TIMING + W.WINDOWS},
+            eta=eta, K=K, damping=torch.full((eta.shape[0],), float(zeta), dtype=torch.float64))
+
+
+@dataclass
+class ProgramRows:
+    """A field program unrolled per member b of a flattened batch (B rows), for the
+    compiled simulator: member b runs motion time start_b + t and is driven by
+
+        τ_b = Σ_i w_bi χ_gi(ν, v),  g = group_b,
+        w_bi = a_bi ψ((t' − so_bi)/sd_bi) + b_bi φ((t' − po_bi)/pd_bi) + Σ_k c_bik φ((t' − wo_bk)/wd_bk)
+
+    with the fields of group g: η (G×M×n), K (G×M×n×n), ζ (G). Per row: group, start
+    (B); a, b and the step/pulse onsets and durations (B×M); c (B×M×P); window onsets
+    and durations (B×P). :func:`stack_rows` joins several programs' rows."""
+
+    group: torch.Tensor
+    start: torch.Tensor
+    a: torch.Tensor
+    b: torch.Tensor
+    c: torch.Tensor
+    step_onset: torch.Tensor
+    step_duration: torch.Tensor
+    pulse_onset: torch.Tensor
+    pulse_duration: torch.Tensor
+    window_onset: torch.Tensor
+    window_duration: torch.Tensor
+    eta: torch.Tensor
+    K: torch.Tensor
+    damping: torch.Tensor
+
+
+def stack_rows(parts: Sequence[ProgramRows]) -> ProgramRows:
+    """Several programs' rows one after another (their field groups kept apart), padded to
+    the largest M and P with fields and windows of zero weight (durations 1)."""
+    M = max(p.a.shape[1] for p in parts)
+    P = max(p.c.shape[2] for p in parts)
+
+    def pad(x, dims, value=0.0):                       # dims: [(dimension, new size)]
+        size = dict(dims)
+        widths = []
+        for d in range(x.ndim - 1, min(size) - 1, -1):
+            widths += [0, size.get(d, x.shape[d]) - x.shape[d]]
+        return nn.functional.pad(x, widths, value=value)
+    out, groups = {}, 0
+    for p in parts:
+        item = {"group": p.group + groups, "start": p.start, "damping": p.damping,
+                "a": pad(p.a, [(1, M)]), "b": pad(p.b, [(1, M)]), "c": pad(p.c, [(1, M), (2, P)]),
+                "step_onset": pad(p.step_onset, [(1, M)]), "pulse_onset": pad(p.pulse_onset, [(1, M)]),
+                "step_duration": pad(p.step_duration, [(1, M)], 1.0),
+                "pulse_duration": pad(p.pulse_duration, [(1, M)], 1.0),
+                "window_onset": pad(p.window_onset, [(1, P)]),
+                "window_duration": pad(p.window_duration, [(1, P)], 1.0),
+                "eta": pad(p.eta, [(1, M)]), "K": pad(p.K, [(1, M)])}
+        groups += p.eta.shape[0]
+        for k, x in item.items():
+            out.setdefault(k, []).append(x)
+    return ProgramRows(**{k: torch.cat(x) for k, x in out.items()})
 
 
 # ------------------------------------------------------------------ the model's one state

@@ -146,6 +146,11 @@ class _OwnFields(torch.nn.Module):
     def forward(self, q, v=None):
         return field_torques(q, v, self.eta, self.K)
 
+    def tables(self) -> tuple:
+        """(η, K, ζ = 0, per motion): one group of fields per motion (for
+        :meth:`FieldProgram.rows`)."""
+        return self.eta, self.K, 0.0, True
+
 
 def own_fields_program(basis: FieldBasis, weights: MotionWeights, spans: list) -> FieldProgram:
     """:func:`library_model`'s program with each motion evaluating only its own fields
@@ -164,9 +169,9 @@ def own_fields_program(basis: FieldBasis, weights: MotionWeights, spans: list) -
 def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
              options: sim.SimOptions | None = None) -> list:
     """Simulate every gesture from rest and sample it at ``rate`` Hz over [0, λ]: one
-    batched run, by default ``dopri8`` at rtol = atol = 1e-10 stepping onto every sample
-    time, or with ``options`` (e.g. batch ``each`` for many programs, each then stepped
-    as finely as it alone needs).
+    batched run, by default each program stepped alone (batch ``each``, compiled:
+    :mod:`tflearn.simkernel`) at rtol = atol = 1e-12 with no evaluation budget, or with
+    ``options``.
 
     Returns a list of (Motion, LearnedBasis) pairs — the sampled motion and its own
     generating parameters (its fields only)."""
@@ -177,8 +182,7 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
     t = torch.arange(0, int(round(lam * rate)) + 1, dtype=torch.float64) / rate
     q0 = torch.zeros(len(gestures), body.nv, dtype=torch.float64)
     with torch.no_grad():
-        options = options or sim.SimOptions(method="dopri8", rtol=1e-10, atol=1e-10,
-                                            solver_options={"step_t": t[1:]})
+        options = options or sim.SimOptions(batch="each", rtol=1e-12, atol=1e-12, max_evals=None)
         tr = sim.simulate(body, own_fields_program(basis, weights, spans), q0, q0, t, options)
     out = []
     for j, g in enumerate(gestures):

@@ -25,7 +25,7 @@ import torch
 from . import dynamics, parallel
 from .body import Body
 from .configspace import difference
-from .fields import FieldBasis, FieldProgram, MotionWeights
+from .fields import FieldBasis, FieldProgram, MotionWeights, stack_rows
 from .fit.targets import Targets, on_samples, simulate_targets
 from .fit.torque import relative_rms_torque_error
 from .simulate import SimOptions, SimulationFailed, simulate
@@ -139,6 +139,13 @@ class _Stacked(torch.nn.Module):
 
     def forward(self, t, q, v):
         return torch.stack([p(t[k], q[k], v[k]) for k, p in enumerate(self.programs)])
+
+    def rows(self, batch: torch.Size):
+        """The programs' rows one after another (for the compiled simulator), or None."""
+        if len(batch) < 2 or batch[0] != len(self.programs):
+            return None
+        parts = [p.rows(batch[1:]) for p in self.programs]
+        return None if any(r is None for r in parts) else stack_rows(parts)
 
 
 def _scores(body, basis, weights, tg, q_sim, failure) -> Scores:

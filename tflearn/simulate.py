@@ -24,7 +24,7 @@ from typing import Callable, Optional
 import torch
 from torchdiffeq import odeint, odeint_adjoint
 
-from . import dynamics
+from . import dynamics, simkernel
 from .body import Body
 from .configspace import pack, position_rate, unpack
 from .ode import FAILURE_CODES, odeint_each
@@ -153,7 +153,7 @@ def _rows(state: tuple, batch: torch.Size, rows: torch.Tensor) -> tuple:
     def take(x):
         if isinstance(x, list):
             return [take(e) for e in x]
-        return None if x is None else x.reshape(-1, *x.shape[len(batch):])[rows]
+        return None if x is None else x.reshape(batch.numel(), *x.shape[len(batch):])[rows]
     return tuple(take(x) for x in state)
 
 
@@ -212,7 +212,7 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         y0 = torch.cat([y0, torch.zeros_like(y0[..., :1])], dim=-1)
     failure = None
     if each:
-        ys, failure = _integrate_each(ArmODE(body, program, track_work, strict=False), y0, t, options, throw)
+        ys, failure = _integrate_each(body, program, track_work, y0, t, options, throw)
     else:
         ys = _integrate_shared(ArmODE(body, program, track_work, options.max_evals, base), y0, t, options)
     ys = ys.movedim(0, -2)
@@ -244,10 +244,17 @@ _WHY = {"budget": "more than {} right-hand-side evaluations", "solver": "its ste
         "nonfinite": "NaN or Inf in its state"}
 
 
-def _integrate_each(func: ArmODE, y0, t, options: SimOptions, throw: bool):
-    """:func:`tflearn.ode.odeint_each`: the states at t (T×...×D) and each member's
-    failure (None or a message; members in row order), raising the first with ``throw``."""
-    sol = odeint_each(func, y0, t, rtol=options.rtol, atol=options.atol, max_evals=options.max_evals)
+def _integrate_each(body: Body, program, track_work: bool, y0, t, options: SimOptions, throw: bool):
+    """Every member stepped alone: compiled (:func:`tflearn.simkernel.integrate`) where it
+    applies, else :func:`tflearn.ode.odeint_each` with :class:`ArmODE`. The states at t
+    (T×...×D) and each member's failure (None or a message; members in row order),
+    raising the first with ``throw``."""
+    tol = dict(rtol=options.rtol, atol=options.atol, max_evals=options.max_evals)
+    sol = None
+    if simkernel.applies(program, y0):
+        sol = simkernel.integrate(body, program, y0, t, track_work=track_work, **tol)
+    if sol is None:
+        sol = odeint_each(ArmODE(body, program, track_work, strict=False), y0, t, **tol)
     errors = [None if not c else SimulationFailed(FAILURE_CODES[c], f"batch member {b}: "
                                                   + _WHY[FAILURE_CODES[c]].format(options.max_evals))
               for b, c in enumerate(sol.failure.reshape(-1).tolist())]

@@ -1,0 +1,275 @@
+"""The compiled simulator (numba): a field program, the body's dynamics and Dormand–Prince
+5(4) with a step size of its own for every member, in one loop per member.
+
+:func:`tflearn.simulate.simulate` hands a batch to :func:`integrate` when its members are
+stepped each alone (``SimOptions(batch="each")``), the base is fixed, the program can be
+unrolled per member (:meth:`tflearn.fields.FieldProgram.rows`: field programs, stacks of
+them, the gesture library's own-field programs), the tensors are float64 on the CPU and
+no gradient is to be carried. Otherwise the torch path runs (:func:`tflearn.ode.odeint_each`
+with :class:`tflearn.simulate.ArmODE`) — the same maths, the two agree to rounding
+(tests/test_simkernel.py):
+
+- the right-hand side of :class:`~tflearn.simulate.ArmODE`: the state read by
+  :func:`tflearn.kernels.read_state`, the program's torque
+
+      τ_b(t, ν, v) = Σ_i w_bi(s_b + t) · (−K_gi (d + ζ_g v) exp(−½ dᵀ K_gi d)),  d = ν − η_gi
+
+  (:class:`tflearn.fields.ProgramRows`; a field whose activation is 0 is skipped),
+  the body's joint damping −c v, the articulated-body algorithm
+  (:func:`tflearn.kernels.aba`) from a fixed base under the body's gravity, and the
+  position rates (:func:`tflearn.kernels.position_rate`); with ``track_work`` one more
+  entry, dW/dt = τ · v;
+- the solver of :func:`tflearn.ode.odeint_each`: its tableau, initial step, error norm,
+  step-size control, dense output at the sample times, evaluation count and failure codes
+  (1 budget, 2 step underflow, 3 non-finite), a failed member's samples NaN from its
+  failure on.
+
+Every member is integrated from start to end before the next, so a call costs the sum of
+its members' own work, without per-step Python or tensor dispatch (a right-hand side at
+batch 1 is a few microseconds instead of a fraction of a millisecond).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit
+
+from . import kernels
+from .body import Body
+from .configspace import _layout
+from .dynamics import _kernel_root, _kernel_tables
+from .ode import _A, _C, _ERROR, _GROW, _MID, _SAFETY, _SHRINK, EachSolution
+
+_FAST = kernels._FAST
+_TABLEAU = np.zeros((6, 6))
+for _s, _row in enumerate(_A):
+    _TABLEAU[_s, :len(_row)] = _row
+_NODES, _ERR, _DENSE = np.array(_C), np.array(_ERROR), np.array(_MID)
+
+
+def applies(program, y0: torch.Tensor) -> bool:
+    """Whether :func:`integrate` can run this simulation: float64 on the CPU, nothing
+    that needs a gradient, and a program that can be unrolled per member."""
+    if not (hasattr(program, "rows") and y0.dtype == torch.float64 and y0.device.type == "cpu"):
+        return False
+    if torch.is_grad_enabled():
+        params = program.parameters() if isinstance(program, torch.nn.Module) else ()
+        if y0.requires_grad or any(p.requires_grad for p in params):
+            return False
+    return True
+
+
+def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: float, atol: float,
+              max_evals, track_work: bool = False):
+    """The states at t (T×...×D) of y0 (...×D) under ``program`` (see the module), as
+    :class:`tflearn.ode.EachSolution`; None when the program cannot be unrolled for this
+    batch (run the torch path)."""
+    batch, D = y0.shape[:-1], y0.shape[-1]
+    rows = program.rows(batch)
+    if rows is None:
+        return None
+    B, T = int(np.prod(batch, dtype=np.int64)), t.numel()
+    L = _layout(body, y0.device)["numpy"]
+    n_pos = _layout(body, y0.device)["n_pos"]
+    ys = np.full((T, B, D), np.nan)
+    failure, evals, steps = (np.zeros(B, dtype=np.int64) for _ in range(3))
+    arr = lambda x: np.ascontiguousarray(x.detach().to(torch.float64).numpy())
+    program_arrays = (rows.group.numpy().astype(np.int64), arr(rows.start), arr(rows.a), arr(rows.b),
+                      arr(rows.c), arr(rows.step_onset), arr(rows.step_duration), arr(rows.pulse_onset),
+                      arr(rows.pulse_duration), arr(rows.window_onset), arr(rows.window_duration),
+                      arr(rows.eta), arr(rows.K), arr(rows.damping))
+    _integrate(arr(t.to(torch.float64)), arr(y0.reshape(B, D)), float(rtol), float(atol),
+               -1 if max_evals is None else int(max_evals), bool(track_work),
+               _kernel_tables(body), _kernel_root(body, True), float(body.damping),
+               (L["quat"], L["other"], L["coords"], L["position"]), n_pos, body.nv,
+               program_arrays, (_TABLEAU, _NODES, _ERR, _DENSE), ys, failure, evals, steps)
+    as_t = torch.from_numpy
+    return EachSolution(as_t(ys).reshape(T, *batch, D), as_t(failure).reshape(batch),
+                        as_t(evals).reshape(batch), as_t(steps).reshape(batch))
+
+
+# ------------------------------------------------------------------ the compiled loops
+
+@njit(cache=True, fastmath=_FAST)
+def _step(u):
+    """ψ(u) = u − sin(2πu)/2π on [0, 1], 0 before, 1 after."""
+    u = min(max(u, 0.0), 1.0)
+    return u - np.sin(2 * np.pi * u) / (2 * np.pi)
+
+
+@njit(cache=True, fastmath=_FAST)
+def _pulse(u):
+    """φ(u) = ½(1 − cos 2πu) on [0, 1], 0 elsewhere."""
+    u = min(max(u, 0.0), 1.0)
+    return 0.5 * (1 - np.cos(2 * np.pi * u))
+
+
+@njit(cache=True, fastmath=_FAST)
+def _torque(m, t, q, v, program, tau, d, Kd, win):
+    """τ (nv) of member m at its program's time t from ν = q, v (the module's formula)."""
+    group, start, a, b, c, so, sd, po, pd, wo, wd, eta, K, zeta = program
+    g, n, M, P = group[m], q.shape[0], a.shape[1], c.shape[2]
+    tt = start[m] + t
+    tau[:] = 0.0
+    for k in range(P):
+        win[k] = _pulse((tt - wo[m, k]) / wd[m, k])
+    for i in range(M):
+        w = a[m, i] * _step((tt - so[m, i]) / sd[m, i]) + b[m, i] * _pulse((tt - po[m, i]) / pd[m, i])
+        for k in range(P):
+            w += c[m, i, k] * win[k]
+        if w == 0.0:
+            continue
+        quad = 0.0
+        for k in range(n):
+            d[k] = q[k] - eta[g, i, k]
+        for k in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += K[g, i, k, j] * (d[j] + zeta[g] * v[j])
+            Kd[k] = acc
+            if zeta[g] != 0.0:                      # dᵀKd without the damping term
+                acc = 0.0
+                for j in range(n):
+                    acc += K[g, i, k, j] * d[j]
+            quad += d[k] * acc
+        e = w * np.exp(-0.5 * quad)
+        for k in range(n):
+            tau[k] -= e * Kd[k]
+
+
+@njit(cache=True, fastmath=_FAST)
+def _rate(m, t, y, out, work, tables, root, damping, orders, n_pos, program, s):
+    """dy/dt (D) of member m at time t and state y (D) into ``out``; s: scratch arrays."""
+    quat, other, coords_order, position_order = orders
+    Y, coords, quats, R, v, tau, total, qdd, pos, d, Kd, win = s
+    nv = coords.shape[1]
+    for k in range(y.shape[0]):
+        Y[0, k] = y[k]
+    kernels.read_state(Y, quat, other, coords_order, coords, quats, R)
+    for k in range(nv):
+        v[0, k] = y[n_pos + k]
+    _torque(m, t, coords[0], v[0], program, tau, d, Kd, win)
+    for k in range(nv):
+        total[0, k] = tau[k] - damping * v[0, k]
+    kind, rot, R0, origin, axis, S, dof, offset, parent, inertia = tables
+    kernels.aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, coords,
+                root[0], root[1], v, total, qdd)
+    kernels.position_rate(kind, rot, offset, dof, R, quats, v, position_order, pos)
+    for k in range(n_pos):
+        out[k] = pos[0, k]
+    for k in range(nv):
+        out[n_pos + k] = qdd[0, k]
+    if work:
+        acc = 0.0
+        for k in range(nv):
+            acc += tau[k] * v[0, k]
+        out[n_pos + nv] = acc
+
+
+@njit(cache=True, fastmath=_FAST)
+def _rms(x, scale):
+    acc = 0.0
+    for k in range(x.shape[0]):
+        acc += (x[k] / scale[k]) ** 2
+    return np.sqrt(acc / x.shape[0])
+
+
+@njit(cache=True, fastmath=_FAST)
+def _finite(x):
+    for k in range(x.shape[0]):
+        if not np.isfinite(x[k]):
+            return False
+    return True
+
+
+@njit(cache=True, fastmath=_FAST)
+def _integrate(t, y0, rtol, atol, max_evals, work, tables, root, damping, orders, n_pos, nv,
+               program, tableau, ys, failure, evals, steps):
+    """Every member b of y0 (B×D) from t[0] to t[-1], its samples into ys (T×B×D,
+    NaN-filled), its failure code, right-hand sides and accepted steps into the others:
+    :func:`tflearn.ode.odeint_each` member by member."""
+    A, C, E, MID = tableau
+    B, D = y0.shape
+    T, P, nr = t.shape[0], program[4].shape[2], orders[0].shape[0]
+    s = (np.zeros((1, D)), np.zeros((1, nv)), np.zeros((1, nr, 4)), np.zeros((1, nr, 3, 3)),
+         np.zeros((1, nv)), np.zeros(nv), np.zeros((1, nv)), np.zeros((1, nv)),
+         np.zeros((1, n_pos)), np.zeros(nv), np.zeros(nv), np.zeros(max(P, 1)))
+    k = np.zeros((7, D))
+    y, y1, f, stage, scale, err = np.zeros(D), np.zeros(D), np.zeros(D), np.zeros(D), np.zeros(D), np.zeros(D)
+    end = t[-1]
+    for b in range(B):
+        y[:] = y0[b]
+        tb = t[0]
+        _rate(b, tb, y, f, work, tables, root, damping, orders, n_pos, program, s)
+        for j in range(D):                                   # Hairer's initial step
+            scale[j] = atol + abs(y[j]) * rtol
+        d0, d1 = _rms(y, scale), _rms(f, scale)
+        h0 = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
+        for j in range(D):
+            stage[j] = y[j] + h0 * f[j]
+        _rate(b, tb + h0, stage, k[1], work, tables, root, damping, orders, n_pos, program, s)
+        for j in range(D):
+            err[j] = k[1, j] - f[j]
+        d2 = _rms(err, scale) / h0
+        big = max(d1, d2)
+        h1 = max(h0 * 1e-3, 1e-6) if big <= 1e-15 else (0.01 / big) ** 0.2
+        h = min(100 * h0, h1)
+        code = 0 if (_finite(f) and _finite(y)) else 3
+        count, accepted, nxt = 2, 0, 1
+        ys[0, b, :] = y
+        while code == 0 and nxt < T:
+            h = min(h, end - tb)
+            k[0, :] = f
+            for i in range(6):
+                for j in range(D):
+                    acc = 0.0
+                    for r in range(i + 1):
+                        if A[i, r] != 0.0:
+                            acc += A[i, r] * k[r, j]
+                    stage[j] = y[j] + h * acc
+                _rate(b, tb + C[i] * h, stage, k[i + 1], work, tables, root, damping, orders,
+                      n_pos, program, s)
+            for j in range(D):
+                y1[j] = stage[j]
+                acc = 0.0
+                for r in range(7):
+                    if E[r] != 0.0:
+                        acc += E[r] * k[r, j]
+                err[j] = h * acc
+                scale[j] = atol + rtol * max(abs(y[j]), abs(y1[j]))
+            ratio = _rms(err, scale)
+            finite = _finite(y1) and _finite(k[6]) and np.isfinite(ratio)
+            count += 6
+            ok = finite and ratio <= 1
+            t1 = tb + h if ok else tb
+            if ok:
+                while nxt < T and t[nxt] <= t1 + 1e-12 * (1 + abs(t1)):
+                    x = min(max((t[nxt] - tb) / h, 0.0), 1.0)
+                    for j in range(D):
+                        acc = 0.0
+                        for r in range(7):
+                            if MID[r] != 0.0:
+                                acc += MID[r] * k[r, j]
+                        mid = y[j] + h * acc
+                        qa = 2 * h * (k[6, j] - k[0, j]) - 8 * (y1[j] + y[j]) + 16 * mid
+                        qb = h * (5 * k[0, j] - 3 * k[6, j]) + 18 * y[j] + 14 * y1[j] - 32 * mid
+                        qc = h * (k[6, j] - 4 * k[0, j]) - 11 * y[j] - 5 * y1[j] + 16 * mid
+                        ys[nxt, b, j] = (((qa * x + qb) * x + qc) * x + h * k[0, j]) * x + y[j]
+                    nxt += 1
+                accepted += 1
+                y[:] = y1
+                f[:] = k[6]
+            safe = ratio if finite else 1e6
+            factor = min(_SAFETY * max(safe, 1e-10) ** -0.2, _GROW)
+            factor = max(factor, 1.0) if ok else max(factor, _SHRINK)
+            h_new = h * factor
+            tb = t1
+            if not finite:
+                code = 3
+            if not ok and h_new <= 1e-14 * (1 + abs(tb)):
+                code = 2
+            if max_evals >= 0 and count > max_evals and nxt < T:
+                code = 1
+            h = h_new
+        failure[b], evals[b], steps[b] = code, count, accepted
+
