@@ -49,6 +49,26 @@ def test_a_member_is_stepped_as_if_alone():
         assert alone.steps[0] == both.steps[j]
 
 
+def test_a_group_is_stepped_as_one_system():
+    """Members in one group share every step and one error norm over all their entries:
+    the group (ω = 1, 5) equals one member holding both oscillators (D = 4), its steps
+    between those its members take alone; a member in a group of its own is as alone."""
+    f, y0 = oscillators([1.0, 40.0, 5.0])
+    grouped = odeint_each(f, y0, T, groups=torch.tensor([7, 3, 7]))
+    g, y = oscillators([1.0, 5.0])
+
+    def joint(t, x, live=None):                         # the pair as one 4-entry member
+        return g(t.expand(2), x.reshape(-1, 2, 2)[0]).reshape(1, 4)
+    one = odeint_each(joint, y.reshape(1, 4), T)
+    assert torch.allclose(grouped.ys[:, [0, 2]].reshape(len(T), 4), one.ys[:, 0], rtol=0, atol=1e-14)
+    assert grouped.steps[0] == grouped.steps[2] == one.steps[0]
+    assert grouped.evals[0] == grouped.evals[2]
+    alone = odeint_each(*oscillators([40.0]), T)
+    assert torch.equal(grouped.ys[:, 1], alone.ys[:, 0])
+    apart = odeint_each(f, y0, T)
+    assert apart.steps[0] < grouped.steps[0] <= apart.steps[2]
+
+
 def test_the_right_hand_side_is_told_which_members_are_live():
     """ω = 1 finishes long before ω = 40: from then on live is False for it alone, and
     the calls after it finished are the right-hand sides ω = 40 takes beyond ω = 1's."""

@@ -158,7 +158,9 @@ def test_recovers_the_generating_weights(problem):
     for k in ("a", "b", "c"):
         assert torch.allclose(getattr(w, k).detach(), getattr(weights, k).detach(), atol=1e-5), k
     assert bool((w.a_raw >= 0).all() and (w.b_raw >= 0).all() and (w.c_raw >= 0).all())
-    assert [h["horizon"] for h in res.history][0] == 0.25 and res.history[-1]["horizon"] == 1.2
+    horizons = [h["horizon"] for h in res.history]        # a stage at or below the floor
+    assert horizons[0] == 0.25 and set(horizons) <= {0.25, 0.5, 1.0, 1.2}   # takes no step
+    assert horizons == sorted(horizons) and horizons[-1] >= 1.0
 
 
 def test_fits_the_timing_too(problem):

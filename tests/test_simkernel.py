@@ -148,6 +148,32 @@ def test_failures_match(monkeypatch):
     assert int(sol.steps[0]) > 5
 
 
+def test_groups_share_their_steps(monkeypatch):
+    """Members in a group share every step (the copies of multiple shooting): the same
+    paths, steps and failures as the torch path, equal steps within a group, and a group
+    of identical copies is the member alone; a non-finite member stops its group."""
+    body = arm()
+    basis, weights, _ = gestures.library_model(body=body)
+    program = FieldProgram(basis, weights)
+    q0 = torch.zeros(2, weights.N, body.nv, dtype=DT)
+    q0[1, :2] = 0.2
+    groups = torch.tensor([[0, 0, 1, 1, 2], [3, 4, 5, 5, 2]])
+    t = torch.linspace(0, 1.0, 21, dtype=DT)
+    fast, slow = _both(monkeypatch, body, program, q0, torch.zeros_like(q0), t, groups=groups)
+    _same(fast, slow, tol=1e-12)
+    with torch.no_grad():
+        y0 = pack(body, q0, torch.zeros_like(q0))
+        sol = simkernel.integrate(body, program, y0, t, rtol=1e-7, atol=1e-9, max_evals=None, groups=groups)
+        alone = simkernel.integrate(body, program, y0, t, rtol=1e-7, atol=1e-9, max_evals=None)
+        assert sol.steps[0, 0] == sol.steps[0, 1] and sol.steps[1, 2] == sol.steps[1, 3]
+        assert sol.steps[0, 0] != alone.steps[0, 0] or sol.steps[0, 1] != alone.steps[0, 1]
+        assert torch.allclose(sol.ys[:, :, 4], alone.ys[:, :, 4], rtol=0, atol=1e-12)   # copies
+        q0[0, 1, 0] = float("nan")
+        y0 = pack(body, q0, torch.zeros_like(q0))
+        bad = simkernel.integrate(body, program, y0, t, rtol=1e-7, atol=1e-9, max_evals=None, groups=groups)
+    assert bad.failure[0].tolist() == [3, 3, 0, 0, 0] and bad.failure[1].tolist() == [0] * 5
+
+
 def test_taken_only_without_a_gradient(monkeypatch):
     """A program whose parameters need a gradient runs the torch path (and carries it);
     the same under no_grad runs compiled; the shared-step solver never does."""

@@ -20,6 +20,10 @@ simulator's does, for the dynamics — the work of a batch then shrinks as its m
 finish). Steps are clipped to land on the last sample. A member that fails stops
 alone and is reported by code (:data:`FAILURE_CODES`); the others go on.
 
+Members given one group (``groups``) share every step, the error e taken over all
+their entries: a group is stepped as one system (the copies of a segment in
+multiple shooting, whose differences must be those of one discrete map).
+
 Gradients flow through the accepted steps and the dense output, with the step sizes and
 accept/reject decisions held fixed (those of the discrete map that was run). A batch with
 a failed member has no usable gradient (its rows hold NaN): drop the member and rerun.
@@ -61,17 +65,27 @@ class EachSolution:
     steps: torch.Tensor
 
 
-def _rms(x: torch.Tensor) -> torch.Tensor:
-    return x.pow(2).mean(-1).sqrt()
+def _pooling(groups: Optional[torch.Tensor], B: int):
+    """x (B×D) → the RMS of x over each member's group, per member (B): its own row's
+    without ``groups``."""
+    if groups is None:
+        return lambda x: x.pow(2).mean(-1).sqrt()
+    _, gid = torch.unique(groups.reshape(B), return_inverse=True)
+    count = torch.bincount(gid)
+
+    def rms(x):
+        ms = x.pow(2).mean(-1)
+        return (ms.new_zeros(len(count)).index_add(0, gid, ms) / count.to(ms.dtype))[gid].sqrt()
+    return rms
 
 
-def _initial_step(func, t0, y0, f0, rtol, atol):
+def _initial_step(func, t0, y0, f0, rtol, atol, rms):
     """Hairer's starting step per member (B)."""
     scale = atol + y0.abs() * rtol
-    d0, d1 = _rms(y0 / scale), _rms(f0 / scale)
+    d0, d1 = rms(y0 / scale), rms(f0 / scale)
     h0 = torch.where((d0 < 1e-5) | (d1 < 1e-5), torch.full_like(d0, 1e-6), 0.01 * d0 / d1)
     f1 = func(t0 + h0, y0 + h0[:, None] * f0, None)
-    d2 = _rms((f1 - f0) / scale) / h0
+    d2 = rms((f1 - f0) / scale) / h0
     big = torch.maximum(d1, d2)
     h1 = torch.where(big <= 1e-15, torch.clamp(h0 * 1e-3, min=1e-6), (0.01 / big) ** 0.2)
     return torch.minimum(100 * h0, h1)
@@ -86,7 +100,8 @@ def _dense(y0, y1, ymid, f0, f1, h, x):
 
 
 def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: float = 1e-7,
-                atol: float = 1e-9, max_evals: Optional[int] = None) -> EachSolution:
+                atol: float = 1e-9, max_evals: Optional[int] = None,
+                groups: Optional[torch.Tensor] = None) -> EachSolution:
     """Integrate dy/dt = func(t, y) from y0 (...×D) at t[0], each member with its own steps.
 
     ``func(t, y, live)`` gets t (...) — every member's own time —, y (...×D) and live
@@ -95,19 +110,23 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
     increasing sample times (T), shared. ``max_evals``: a member that needs more
     right-hand sides than this stops with code 1 (budget). A member stops with code 2
     when its step underflows (t + h = t) and code 3 when its state or derivative is not
-    finite. See the module for the error control."""
+    finite. See the module for the error control. ``groups`` (..., integers): members with
+    the same value share every step — one step size, and one error norm e over all their
+    entries (a group is stepped as one system; a non-finite member stops its group);
+    default: every member alone."""
     shape, D = y0.shape[:-1], y0.shape[-1]
     y = y0.reshape(-1, D)
     B, T, dev, dt = y.shape[0], t.numel(), y.device, y.dtype
+    rms = _pooling(groups, B)
     t = t.to(dt)
     def call(tb, yb, live):
         live = None if live is None or bool(live.all()) else live.reshape(shape)
         return func(tb.reshape(shape), yb.reshape(*shape, D), live).reshape(B, D)
     tb = t[0].expand(B).clone()
     f = call(tb, y, None)
-    h = _initial_step(call, tb, y.detach(), f.detach(), rtol, atol).detach()
+    h = _initial_step(call, tb, y.detach(), f.detach(), rtol, atol, rms).detach()
     failure = torch.zeros(B, dtype=torch.long, device=dev)
-    failure[~torch.isfinite(f).all(-1) | ~torch.isfinite(y).all(-1)] = 3
+    failure[~torch.isfinite(rms(f) + rms(y))] = 3
     evals = torch.full((B,), 2, dtype=torch.long, device=dev)
     steps = torch.zeros(B, dtype=torch.long, device=dev)
     nxt = torch.ones(B, dtype=torch.long, device=dev)        # next sample to fill
@@ -124,8 +143,8 @@ def odeint_each(func: Callable, y0: torch.Tensor, t: torch.Tensor, *, rtol: floa
             k.append(call(tb + c * h, ys, live))
         y1 = ys                                         # the last stage is the 5th-order solution
         err = h[:, None] * sum(e * ki for e, ki in zip(_ERROR, k) if e)
-        ratio = _rms(err / (atol + rtol * torch.maximum(y.abs(), y1.abs()))).detach()
-        finite = torch.isfinite(y1).all(-1) & torch.isfinite(k[-1]).all(-1) & torch.isfinite(ratio)
+        ratio = rms(err / (atol + rtol * torch.maximum(y.abs(), y1.abs()))).detach()
+        finite = torch.isfinite(rms(y1.detach()) + rms(k[-1].detach())) & torch.isfinite(ratio)
         evals = evals + 6 * live
         acc = live & finite & (ratio <= 1)
         t1 = torch.where(acc, tb + h, tb)

@@ -60,15 +60,23 @@ def applies(program, y0: torch.Tensor) -> bool:
 
 
 def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: float, atol: float,
-              max_evals, track_work: bool = False):
+              max_evals, track_work: bool = False, groups: torch.Tensor | None = None):
     """The states at t (T×...×D) of y0 (...×D) under ``program`` (see the module), as
     :class:`tflearn.ode.EachSolution`; None when the program cannot be unrolled for this
-    batch (run the torch path)."""
+    batch (run the torch path). ``groups`` (..., integers): members with the same value
+    share every step (see :func:`tflearn.ode.odeint_each`); default: each member alone."""
     batch, D = y0.shape[:-1], y0.shape[-1]
     rows = program.rows(batch)
     if rows is None:
         return None
     B, T = int(np.prod(batch, dtype=np.int64)), t.numel()
+    if groups is None:
+        order, bounds = np.arange(B, dtype=np.int64), np.arange(B + 1, dtype=np.int64)
+    else:
+        g = groups.reshape(B).to(torch.int64)
+        order = torch.argsort(g, stable=True).numpy().astype(np.int64)
+        counts = torch.unique_consecutive(g[order], return_counts=True)[1]
+        bounds = np.concatenate([[0], np.cumsum(counts.numpy())]).astype(np.int64)
     L = _layout(body, y0.device)["numpy"]
     n_pos = _layout(body, y0.device)["n_pos"]
     ys = np.full((T, B, D), np.nan)
@@ -78,7 +86,7 @@ def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: f
                       arr(rows.c), arr(rows.step_onset), arr(rows.step_duration), arr(rows.pulse_onset),
                       arr(rows.pulse_duration), arr(rows.window_onset), arr(rows.window_duration),
                       arr(rows.eta), arr(rows.K), arr(rows.damping))
-    _integrate(arr(t.to(torch.float64)), arr(y0.reshape(B, D)), float(rtol), float(atol),
+    _integrate(arr(t.to(torch.float64)), arr(y0.reshape(B, D)), order, bounds, float(rtol), float(atol),
                -1 if max_evals is None else int(max_evals), bool(track_work),
                _kernel_tables(body), _kernel_root(body, True), float(body.damping),
                (L["quat"], L["other"], L["coords"], L["position"]), n_pos, body.nv,
@@ -175,6 +183,12 @@ def _rms(x, scale):
 
 
 @njit(cache=True, fastmath=_FAST)
+def _flat(x):
+    """A contiguous array as one vector (a view)."""
+    return x.reshape(x.size)
+
+
+@njit(cache=True, fastmath=_FAST)
 def _finite(x):
     for k in range(x.shape[0]):
         if not np.isfinite(x[k]):
@@ -183,78 +197,92 @@ def _finite(x):
 
 
 @njit(cache=True, fastmath=_FAST)
-def _integrate(t, y0, rtol, atol, max_evals, work, tables, root, damping, orders, n_pos, nv,
-               program, tableau, ys, failure, evals, steps):
-    """Every member b of y0 (B×D) from t[0] to t[-1], its samples into ys (T×B×D,
-    NaN-filled), its failure code, right-hand sides and accepted steps into the others:
-    :func:`tflearn.ode.odeint_each` member by member."""
+def _rates(members, t, Y, out, work, tables, root, damping, orders, n_pos, program, s):
+    """dy/dt of every member of a group (rows of Y, m×D) at time t into ``out`` (m×D)."""
+    for i in range(members.shape[0]):
+        _rate(members[i], t, Y[i], out[i], work, tables, root, damping, orders, n_pos, program, s)
+
+
+@njit(cache=True, fastmath=_FAST)
+def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, damping, orders,
+               n_pos, nv, program, tableau, ys, failure, evals, steps):
+    """Every group of members (rows ``order[bounds[g]:bounds[g+1]]`` of y0, B×D) from t[0]
+    to t[-1], its samples into ys (T×B×D, NaN-filled), its failure code, right-hand sides
+    and accepted steps into the others: :func:`tflearn.ode.odeint_each` group by group
+    (a group of one member is a member stepped alone)."""
     A, C, E, MID = tableau
-    B, D = y0.shape
+    D = y0.shape[1]
     T, P, nr = t.shape[0], program[4].shape[2], orders[0].shape[0]
     s = (np.zeros((1, D)), np.zeros((1, nv)), np.zeros((1, nr, 4)), np.zeros((1, nr, 3, 3)),
          np.zeros((1, nv)), np.zeros(nv), np.zeros((1, nv)), np.zeros((1, nv)),
          np.zeros((1, n_pos)), np.zeros(nv), np.zeros(nv), np.zeros(max(P, 1)))
-    k = np.zeros((7, D))
-    y, y1, f, stage, scale, err = np.zeros(D), np.zeros(D), np.zeros(D), np.zeros(D), np.zeros(D), np.zeros(D)
     end = t[-1]
-    for b in range(B):
-        y[:] = y0[b]
+    for g in range(bounds.shape[0] - 1):
+        members = order[bounds[g]:bounds[g + 1]]
+        m = members.shape[0]
+        k = np.zeros((7, m, D))
+        y, y1, f = np.zeros((m, D)), np.zeros((m, D)), np.zeros((m, D))
+        stage, scale, err = np.zeros((m, D)), np.zeros((m, D)), np.zeros((m, D))
+        for i in range(m):
+            y[i] = y0[members[i]]
         tb = t[0]
-        _rate(b, tb, y, f, work, tables, root, damping, orders, n_pos, program, s)
-        for j in range(D):                                   # Hairer's initial step
-            scale[j] = atol + abs(y[j]) * rtol
-        d0, d1 = _rms(y, scale), _rms(f, scale)
+        _rates(members, tb, y, f, work, tables, root, damping, orders, n_pos, program, s)
+        scale[:] = atol + np.abs(y) * rtol                   # Hairer's initial step
+        d0, d1 = _rms(_flat(y), _flat(scale)), _rms(_flat(f), _flat(scale))
         h0 = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
-        for j in range(D):
-            stage[j] = y[j] + h0 * f[j]
-        _rate(b, tb + h0, stage, k[1], work, tables, root, damping, orders, n_pos, program, s)
-        for j in range(D):
-            err[j] = k[1, j] - f[j]
-        d2 = _rms(err, scale) / h0
+        stage[:] = y + h0 * f
+        _rates(members, tb + h0, stage, k[1], work, tables, root, damping, orders, n_pos, program, s)
+        err[:] = k[1] - f
+        d2 = _rms(_flat(err), _flat(scale)) / h0
         big = max(d1, d2)
         h1 = max(h0 * 1e-3, 1e-6) if big <= 1e-15 else (0.01 / big) ** 0.2
         h = min(100 * h0, h1)
-        code = 0 if (_finite(f) and _finite(y)) else 3
+        code = 0 if (_finite(_flat(f)) and _finite(_flat(y))) else 3
         count, accepted, nxt = 2, 0, 1
-        ys[0, b, :] = y
+        for i in range(m):
+            ys[0, members[i], :] = y[i]
         while code == 0 and nxt < T:
             h = min(h, end - tb)
-            k[0, :] = f
-            for i in range(6):
+            k[0] = f
+            for st in range(6):
+                for i in range(m):
+                    for j in range(D):
+                        acc = 0.0
+                        for r in range(st + 1):
+                            if A[st, r] != 0.0:
+                                acc += A[st, r] * k[r, i, j]
+                        stage[i, j] = y[i, j] + h * acc
+                _rates(members, tb + C[st] * h, stage, k[st + 1], work, tables, root, damping,
+                       orders, n_pos, program, s)
+            for i in range(m):
                 for j in range(D):
+                    y1[i, j] = stage[i, j]
                     acc = 0.0
-                    for r in range(i + 1):
-                        if A[i, r] != 0.0:
-                            acc += A[i, r] * k[r, j]
-                    stage[j] = y[j] + h * acc
-                _rate(b, tb + C[i] * h, stage, k[i + 1], work, tables, root, damping, orders,
-                      n_pos, program, s)
-            for j in range(D):
-                y1[j] = stage[j]
-                acc = 0.0
-                for r in range(7):
-                    if E[r] != 0.0:
-                        acc += E[r] * k[r, j]
-                err[j] = h * acc
-                scale[j] = atol + rtol * max(abs(y[j]), abs(y1[j]))
-            ratio = _rms(err, scale)
-            finite = _finite(y1) and _finite(k[6]) and np.isfinite(ratio)
+                    for r in range(7):
+                        if E[r] != 0.0:
+                            acc += E[r] * k[r, i, j]
+                    err[i, j] = h * acc
+                    scale[i, j] = atol + rtol * max(abs(y[i, j]), abs(y1[i, j]))
+            ratio = _rms(_flat(err), _flat(scale))
+            finite = _finite(_flat(y1)) and _finite(_flat(k[6])) and np.isfinite(ratio)
             count += 6
             ok = finite and ratio <= 1
             t1 = tb + h if ok else tb
             if ok:
                 while nxt < T and t[nxt] <= t1 + 1e-12 * (1 + abs(t1)):
                     x = min(max((t[nxt] - tb) / h, 0.0), 1.0)
-                    for j in range(D):
-                        acc = 0.0
-                        for r in range(7):
-                            if MID[r] != 0.0:
-                                acc += MID[r] * k[r, j]
-                        mid = y[j] + h * acc
-                        qa = 2 * h * (k[6, j] - k[0, j]) - 8 * (y1[j] + y[j]) + 16 * mid
-                        qb = h * (5 * k[0, j] - 3 * k[6, j]) + 18 * y[j] + 14 * y1[j] - 32 * mid
-                        qc = h * (k[6, j] - 4 * k[0, j]) - 11 * y[j] - 5 * y1[j] + 16 * mid
-                        ys[nxt, b, j] = (((qa * x + qb) * x + qc) * x + h * k[0, j]) * x + y[j]
+                    for i in range(m):
+                        for j in range(D):
+                            acc = 0.0
+                            for r in range(7):
+                                if MID[r] != 0.0:
+                                    acc += MID[r] * k[r, i, j]
+                            mid = y[i, j] + h * acc
+                            k0, k6, ya, yb = k[0, i, j], k[6, i, j], y[i, j], y1[i, j]
+                            qa = 2 * h * (k6 - k0) - 8 * (yb + ya) + 16 * mid
+                            qb = h * (5 * k0 - 3 * k6) + 18 * ya + 14 * yb - 32 * mid
+                            qc = h * (k6 - 4 * k0) - 11 * ya - 5 * yb + 16 * mid
+                            ys[nxt, members[i], j] = (((qa * x + qb) * x + qc) * x + h * k0) * x + ya
                     nxt += 1
                 accepted += 1
                 y[:] = y1
@@ -271,5 +299,5 @@ def _integrate(t, y0, rtol, atol, max_evals, work, tables, root, damping, orders
             if max_evals >= 0 and count > max_evals and nxt < T:
                 code = 1
             h = h_new
-        failure[b], evals[b], steps[b] = code, count, accepted
-
+        for i in range(m):
+            failure[members[i]], evals[members[i]], steps[members[i]] = code, count, accepted

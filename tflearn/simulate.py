@@ -177,7 +177,8 @@ def zero_program(t, q, v):
 
 def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Tensor,
              t: torch.Tensor, options: SimOptions = SimOptions(), *,
-             track_work: bool = False, base=None, throw: bool = True) -> Trajectory:
+             track_work: bool = False, base=None, throw: bool = True,
+             groups: Optional[torch.Tensor] = None) -> Trajectory:
     """Integrate the body from (q0, v0) at t[0] under ``program(t, ν, v) → τ``.
 
     Args:
@@ -191,6 +192,10 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
             ``each``.
         throw: raise when the simulation fails. ``False`` (batch ``each`` only): return
             the members that failed in ``Trajectory.failure``, the others' paths intact.
+        groups: (batch ``each`` only) an integer per member (q0's batch shape): members
+            with the same value share every step, one error norm over all of them
+            (copies of a system whose differences must come from one discrete map);
+            default: every member alone.
     Returns:
         :class:`Trajectory` with ν and v sampled at t (time on dimension -2).
     Raises:
@@ -203,8 +208,8 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
     each = options.batch == "each"
     if each and base is not None:
         raise ValueError("simulate: batch 'each' does not take a moving base")
-    if not (throw or each):
-        raise ValueError("simulate: throw=False needs SimOptions(batch='each')")
+    if not (throw or each) or (groups is not None and not each):
+        raise ValueError("simulate: throw=False and groups need SimOptions(batch='each')")
     global calls
     calls += 1
     y0 = pack(body, q0, v0)
@@ -212,7 +217,7 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         y0 = torch.cat([y0, torch.zeros_like(y0[..., :1])], dim=-1)
     failure = None
     if each:
-        ys, failure = _integrate_each(body, program, track_work, y0, t, options, throw)
+        ys, failure = _integrate_each(body, program, track_work, y0, t, options, throw, groups)
     else:
         ys = _integrate_shared(ArmODE(body, program, track_work, options.max_evals, base), y0, t, options)
     ys = ys.movedim(0, -2)
@@ -244,12 +249,13 @@ _WHY = {"budget": "more than {} right-hand-side evaluations", "solver": "its ste
         "nonfinite": "NaN or Inf in its state"}
 
 
-def _integrate_each(body: Body, program, track_work: bool, y0, t, options: SimOptions, throw: bool):
+def _integrate_each(body: Body, program, track_work: bool, y0, t, options: SimOptions, throw: bool,
+                    groups=None):
     """Every member stepped alone: compiled (:func:`tflearn.simkernel.integrate`) where it
     applies, else :func:`tflearn.ode.odeint_each` with :class:`ArmODE`. The states at t
     (T×...×D) and each member's failure (None or a message; members in row order),
     raising the first with ``throw``."""
-    tol = dict(rtol=options.rtol, atol=options.atol, max_evals=options.max_evals)
+    tol = dict(rtol=options.rtol, atol=options.atol, max_evals=options.max_evals, groups=groups)
     sol = None
     if simkernel.applies(program, y0):
         sol = simkernel.integrate(body, program, y0, t, track_work=track_work, **tol)

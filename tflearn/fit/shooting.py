@@ -30,10 +30,12 @@ step is projected onto the bounds and kept if it lowers the motion's cost (μ ÷
 μ × 4 and the step is tried again. Every motion has its own μ and its own decisions.
 
 **Jacobian.** Forward differences of D + 1 copies of every segment (D = len(θ_j)),
-simulated in one batch: the copies share every step of the adaptive solver, so their
-differences are those of one discrete map — no step-size noise — and agree with
-backpropagation through ``odeint`` (tests/test_shooting.py). One simulation per
-Jacobian, whatever the number of motions.
+simulated in one batch: the copies of a segment share every step of the adaptive solver
+(one group of :func:`tflearn.simulate.simulate`, each segment on its own steps; with a
+solver other than dopri5 the whole batch shares them), so their differences are those
+of one discrete map — no step-size noise — and agree with backpropagation through
+``odeint`` (tests/test_shooting.py). One simulation per Jacobian, whatever the number
+of motions.
 
 **Never worse.** A motion whose path loss (single shooting) ends above where it started
 — the short horizons minimise a different cost — gets its starting parameters back.
@@ -144,7 +146,8 @@ def _simulate(body, basis, weights: MotionWeights, seg: _Segments, options: SimO
     copy c's motion of segment b at row c·B + b; raises SimulationFailed."""
     rep = lambda x: x.repeat((copies,) + (1,) * (x.ndim - 1))
     program = FieldProgram(basis, weights, start=rep(seg.t0))
-    tr = simulate(body, program, rep(seg.q0), rep(seg.v0), seg.grid, options)
+    groups = rep(torch.arange(len(seg.motion))) if options.batch == "each" else None
+    tr = simulate(body, program, rep(seg.q0), rep(seg.v0), seg.grid, options, groups=groups)
     idx = rep(seg.index).unsqueeze(-1).expand(-1, -1, body.nv)
     return tr.q.gather(1, idx), tr.v.gather(1, idx)
 
@@ -169,8 +172,10 @@ class _Problem:
 
     def __init__(self, body, basis, weights, tg, keys, opts: ShootingOptions, sim: SimOptions):
         self.body, self.basis, self.weights, self.tg = body, basis, weights, tg
-        # the copies of a segment must share every step (one discrete map): batch shared
-        self.keys, self.opts, self.sim = keys, opts, replace(sim, batch="shared")
+        # the copies of a segment must share every step (one discrete map): one group each
+        # (dopri5), else the whole batch on shared steps
+        each = sim.method == "dopri5" and not (sim.adjoint or sim.solver_options)
+        self.keys, self.opts, self.sim = keys, opts, replace(sim, batch="each" if each else "shared")
         self.simulations = 0
         layout = [(k, math.prod(getattr(weights, k).shape[1:])) for k in keys]
         self.lower = torch.cat([torch.full((d,), 1e-2 if k in _DURATIONS else
@@ -253,8 +258,8 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     ``motions``: fit these only (indices; the others are left as they are, and the
     result's rows are these motions'). ``weights`` is changed in place;
     ``callback(horizon, iteration, cost (N))`` is called after each iteration. Returns
-    a :class:`ShootingResult`. Whatever ``sim.batch`` says, a batch is stepped together
-    (``shared``: the differences need one discrete map)."""
+    a :class:`ShootingResult`. Whatever ``sim.batch`` says, the copies of a segment are
+    stepped together (the differences need one discrete map)."""
     if motions is not None:
         sub = weights.select_motions(motions)
         result = shooting_match(body, basis, sub, tg.select(motions), options=options, sim=sim,
