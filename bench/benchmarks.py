@@ -91,7 +91,7 @@ def latency_section(d: dict) -> list:
              "| what | now | " + (f"at {d['reference']['rev']} | speed-up |" if ref else "") + " goal |",
              "|---|---|" + ("---|---|" if ref else "") + "---|"]
     for what, now, before, goal in rows:
-        cells = [what, f"{now * 1e3:.3f} ms"]
+        cells = [what, f"{now * 1e3:.3f} ms" if now >= 1e-4 else f"{now * 1e6:.1f} µs"]
         if ref:
             cells += [f"{before * 1e3:.3f} ms", f"{before / now:.2f}×"]
         lines.append("| " + " | ".join(cells + [goal]) + " |")
