@@ -24,9 +24,10 @@ with :class:`tflearn.simulate.ArmODE`) — the same maths, the two agree to roun
   (1 budget, 2 step underflow, 3 non-finite), a failed member's samples NaN from its
   failure on.
 
-Every member is integrated from start to end before the next, so a call costs the sum of
-its members' own work, without per-step Python or tensor dispatch (a right-hand side at
-batch 1 is a few microseconds instead of a fraction of a millisecond).
+Every member (or group of members that share their steps) is integrated from start to
+end before the next, so a call costs the sum of its members' own work, without per-step
+Python or tensor dispatch (a right-hand side is a few microseconds instead of a fraction
+of a millisecond).
 """
 from __future__ import annotations
 
@@ -41,22 +42,18 @@ from .dynamics import _kernel_root, _kernel_tables
 from .ode import _A, _C, _ERROR, _GROW, _MID, _SAFETY, _SHRINK, EachSolution
 
 _FAST = kernels._FAST
-_TABLEAU = np.zeros((6, 6))
-for _s, _row in enumerate(_A):
-    _TABLEAU[_s, :len(_row)] = _row
-_NODES, _ERR, _DENSE = np.array(_C), np.array(_ERROR), np.array(_MID)
+#: Dormand–Prince's stages (6×6, row s the weights of stages 0..s), nodes, error weights
+#: and dense-output weights: tflearn.ode's, as arrays.
+_TABLEAU = (np.array([row + [0.0] * (6 - len(row)) for row in _A]), np.array(_C),
+            np.array(_ERROR), np.array(_MID))
 
 
 def applies(program, y0: torch.Tensor) -> bool:
-    """Whether :func:`integrate` can run this simulation: float64 on the CPU, nothing
-    that needs a gradient, and a program that can be unrolled per member."""
-    if not (hasattr(program, "rows") and y0.dtype == torch.float64 and y0.device.type == "cpu"):
-        return False
-    if torch.is_grad_enabled():
-        params = program.parameters() if isinstance(program, torch.nn.Module) else ()
-        if y0.requires_grad or any(p.requires_grad for p in params):
-            return False
-    return True
+    """Whether :func:`integrate` can run this simulation: a program that can be unrolled
+    per member, float64 on the CPU and nothing that needs a gradient
+    (:func:`tflearn.kernels.applies`)."""
+    params = list(program.parameters()) if isinstance(program, torch.nn.Module) else []
+    return hasattr(program, "rows") and kernels.applies(y0, *params)
 
 
 def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: float, atol: float,
@@ -77,8 +74,8 @@ def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: f
         order = torch.argsort(g, stable=True).numpy().astype(np.int64)
         counts = torch.unique_consecutive(g[order], return_counts=True)[1]
         bounds = np.concatenate([[0], np.cumsum(counts.numpy())]).astype(np.int64)
-    L = _layout(body, y0.device)["numpy"]
-    n_pos = _layout(body, y0.device)["n_pos"]
+    layout = _layout(body, y0.device)
+    L, n_pos = layout["numpy"], layout["n_pos"]
     ys = np.full((T, B, D), np.nan)
     failure, evals, steps = (np.zeros(B, dtype=np.int64) for _ in range(3))
     arr = lambda x: np.ascontiguousarray(x.detach().to(torch.float64).numpy())
@@ -90,7 +87,7 @@ def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: f
                -1 if max_evals is None else int(max_evals), bool(track_work),
                _kernel_tables(body), _kernel_root(body, True), float(body.damping),
                (L["quat"], L["other"], L["coords"], L["position"]), n_pos, body.nv,
-               program_arrays, (_TABLEAU, _NODES, _ERR, _DENSE), ys, failure, evals, steps)
+               program_arrays, _TABLEAU, ys, failure, evals, steps)
     as_t = torch.from_numpy
     return EachSolution(as_t(ys).reshape(T, *batch, D), as_t(failure).reshape(batch),
                         as_t(evals).reshape(batch), as_t(steps).reshape(batch))
