@@ -220,8 +220,8 @@ class FieldBasis(nn.Module):
 
     @torch.no_grad()
     def tables(self) -> tuple:
-        """(η (1×M×n), K (1×M×n×n), ζ): the fields as one group, shared by every motion
-        (for :meth:`FieldProgram.rows`)."""
+        """(η (1×M×n), K (1×M×n×n), ζ, per motion = False): the fields as one group,
+        shared by every motion (for :meth:`FieldProgram.rows`)."""
         return self.eta.detach()[None], self.K()[None], self.damping, False
 
 

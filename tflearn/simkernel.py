@@ -31,6 +31,8 @@ of a millisecond).
 """
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 import torch
 from numba import njit
@@ -79,10 +81,8 @@ def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: f
     ys = np.full((T, B, D), np.nan)
     failure, evals, steps = (np.zeros(B, dtype=np.int64) for _ in range(3))
     arr = lambda x: np.ascontiguousarray(x.detach().to(torch.float64).numpy())
-    program_arrays = (rows.group.numpy().astype(np.int64), arr(rows.start), arr(rows.a), arr(rows.b),
-                      arr(rows.c), arr(rows.step_onset), arr(rows.step_duration), arr(rows.pulse_onset),
-                      arr(rows.pulse_duration), arr(rows.window_onset), arr(rows.window_duration),
-                      arr(rows.eta), arr(rows.K), arr(rows.damping))
+    program_arrays = (rows.group.numpy().astype(np.int64),    # ProgramRows' fields, in order
+                      *(arr(getattr(rows, f.name)) for f in fields(rows)[1:]))
     _integrate(arr(t.to(torch.float64)), arr(y0.reshape(B, D)), order, bounds, float(rtol), float(atol),
                -1 if max_evals is None else int(max_evals), bool(track_work),
                _kernel_tables(body), _kernel_root(body, True), float(body.damping),

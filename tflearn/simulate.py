@@ -76,10 +76,16 @@ class SimOptions:
     solver_options: Optional[dict] = None
     batch: str = "shared"
 
+    @property
+    def can_step_each(self) -> bool:
+        """Whether these options allow batch ``each`` (dopri5, no adjoint, no
+        solver_options)."""
+        return self.method == "dopri5" and not (self.adjoint or self.solver_options)
+
     def __post_init__(self):
         if self.batch not in ("shared", "each"):
             raise ValueError(f"SimOptions: batch must be 'shared' or 'each', not {self.batch!r}")
-        if self.batch == "each" and (self.method != "dopri5" or self.adjoint or self.solver_options):
+        if self.batch == "each" and not self.can_step_each:
             raise ValueError("SimOptions: batch 'each' steps with its own dopri5: method must be "
                              "'dopri5', without the adjoint or solver_options")
 

@@ -174,8 +174,8 @@ class _Problem:
         self.body, self.basis, self.weights, self.tg = body, basis, weights, tg
         # the copies of a segment must share every step (one discrete map): one group each
         # (dopri5), else the whole batch on shared steps
-        each = sim.method == "dopri5" and not (sim.adjoint or sim.solver_options)
-        self.keys, self.opts, self.sim = keys, opts, replace(sim, batch="each" if each else "shared")
+        self.keys, self.opts = keys, opts
+        self.sim = replace(sim, batch="each" if sim.can_step_each else "shared")
         self.simulations = 0
         layout = [(k, math.prod(getattr(weights, k).shape[1:])) for k in keys]
         self.lower = torch.cat([torch.full((d,), 1e-2 if k in _DURATIONS else
