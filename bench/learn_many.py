@@ -1,6 +1,8 @@
 """Many motions learned end to end: N random supported programs
-(:func:`tflearn.gestures.random_gestures`, made by one batch of per-motion steps at
-rtol = atol = 1e-10, sampled at 100 Hz, written as NAME.npz), then the main job's
+(:func:`tflearn.gestures.random_gestures`, each stepped alone by the compiled simulator at
+rtol = atol = 1e-12 and sampled at the lowest of 100·2ᵏ Hz that resolves it,
+:func:`tflearn.gestures.generate_resolved` — the data condition of the supported box —,
+written as NAME.npz), then the main job's
 configuration on them, ``train configs/gestures.yaml data=DIR``, in a fresh process: the
 wall time of making them and of training, each stage's share (from the progress bars),
 M, how many motions simulation reproduces, the worst joint RMSE and tip error, the
@@ -29,21 +31,21 @@ ROOT = Path(__file__).resolve().parents[1]
 _BAR = re.compile(r"\[\d+/\d+\] (.+?): .*?\[(?:(\d+):)?(\d+):(\d+)<")
 
 
-def make(n: int, seed: int, folder: Path) -> float:
-    """Write n random programs' motions into ``folder``; the seconds it took."""
+def make(n: int, seed: int, folder: Path) -> dict:
+    """Write n random programs' motions into ``folder``: the seconds it took, the number
+    of motions at each sampling rate and the samples in all."""
     import torch
 
     from tflearn import gestures
-    from tflearn.body import arm
     from tflearn.motion import save
-    from tflearn.simulate import SimOptions
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    making = SimOptions(rtol=1e-10, atol=1e-10, max_evals=None, batch="each")
-    for motion, _ in gestures.generate(arm(), gestures=gestures.random_gestures(n, seed=seed),
-                                       options=making):
+    rates, samples = {}, 0
+    for motion, _ in gestures.generate_resolved(gestures.random_gestures(n, seed=seed)):
         save(motion, folder / f"{motion.name}.npz")
-    return time.perf_counter() - t0
+        rates[f"{motion.rate:.0f}"] = rates.get(f"{motion.rate:.0f}", 0) + 1
+        samples += motion.T
+    return {"make_s": time.perf_counter() - t0, "motions_at_hz": rates, "samples": samples}
 
 
 def stage_seconds(stderr: str) -> dict:
@@ -91,7 +93,7 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             data, out = Path(tmp) / "data", Path(tmp) / "run"
             data.mkdir()
-            row = {"motions": n, "make_s": make(n, args.seed, data)}
+            row = {"motions": n, **make(n, args.seed, data)}
             row.update(learn(data, out, args.overrides))
         rows.append(row)
         print(json.dumps(row), flush=True)

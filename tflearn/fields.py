@@ -231,10 +231,10 @@ def field_torques(q: torch.Tensor, v: Optional[torch.Tensor], eta: torch.Tensor,
     K (...×M×n×n) that broadcast against q, v (...×n) → (...×M×n). Without v, or with
     ζ = 0, χ_i(q) = −K_i d exp(−½ dᵀK_i d)."""
     d = q.unsqueeze(-2) - eta
-    Kd = (K @ d.unsqueeze(-1)).squeeze(-1)              # one broadcast matrix product
+    Kd = torch.einsum("...ij,...j->...i", K, d)         # one batched product (not n×n ones per sample)
     g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
     if damping and v is not None:
-        return -(Kd + damping * (K @ v[..., None, :, None]).squeeze(-1)) * g
+        return -(Kd + damping * torch.einsum("...ij,...j->...i", K, v.unsqueeze(-2))) * g
     return -Kd * g
 
 
