@@ -187,23 +187,25 @@ def scale_section(d: dict) -> list:
 
 def learn_many_section(d: dict) -> list:
     lines = heading("Many motions learned end to end",
-                    "`bench/learn_many.py`: N random supported programs (made by one batch of "
-                    "per-motion steps, written as .npz), then `train configs/gestures.yaml "
-                    "data=DIR` in a fresh process; each stage's time from its progress bar"
+                    "`bench/learn_many.py`: N random supported programs (each stepped alone and "
+                    "sampled at the lowest of 100·2ᵏ Hz that resolves it, written as .npz), then "
+                    "`train configs/gestures.yaml data=DIR` in a fresh process; each stage's time "
+                    "from its progress bar"
                     + (f"; at commit {d['commit']}" if d.get("commit") else "")
                     + (f", overrides {' '.join(d['overrides'])}." if d.get("overrides") else "."),
-                    ["motions N", "making them", "training", "each motion alone", "pool and merge",
+                    ["motions N", "samples", "making them", "training", "each motion alone", "pool and merge",
                      "reduce", "path matching", "M", "reproduced", "worst RMSE (rad)",
                      "worst tip (cm)"])
     stages = ("each motion alone", "pool and merge", "reduce", "path matching")
     for r in d["rows"]:
+        head = (f"| {r['motions']:,} | {r['samples']:,} | " if "samples" in r
+                else f"| {r['motions']:,} | – | ") + f"{r['make_s']:.0f} s | {r['train_s']:.0f} s | "
         if "error" in r:
-            lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | {r['train_s']:.0f} s | "
-                         f"{r['error']} |" + " |" * 7)
+            lines.append(head + f"{r['error']} |" + " |" * 7)
             continue
         st = r["stages_s"]
         cells = [f"{st[k]} s" if k in st else "–" for k in stages]
-        lines.append(f"| {r['motions']:,} | {r['make_s']:.0f} s | {r['train_s']:.0f} s | "
+        lines.append(head
                      + " | ".join(cells) + f" | {r['M']} | {r['reproduced']}/{r['motions']} | "
                      f"{r['worst_rmse_rad']:.4f} | {100 * r['worst_tip_m']:.2f} |")
     return lines + exponents(d) + [""]
