@@ -86,6 +86,9 @@ class ShootingSection(Section):
     velocity_weight: float = Field(0.1, ge=0)
     # γ (rad²/m²): the hand tip's distance in the residuals too (0: joints and velocities only)
     tip_weight: float = Field(0.0, ge=0, allow_inf_nan=False)
+    # in the per-motion stage, a motion its own fields do not reproduce has those fields
+    # (centres, stiffnesses) fitted to its path too, with its weights, before pooling
+    fields: bool = True
 
     def options(self, phases: bool):
         """These settings as :class:`tflearn.fit.shooting.ShootingOptions`."""

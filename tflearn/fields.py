@@ -197,6 +197,52 @@ class FieldBasis(nn.Module):
         """Stiffness matrices (M×n×n)."""
         return self.stiffness()
 
+    @property
+    def free_stiffness(self) -> Optional[torch.Tensor]:
+        """The flat indices (into n·n) of the stiffness parameters the kind leaves free —
+        not the structural zeros of ``diag`` or ``block`` —, or None for ``scalar`` (one κ)."""
+        return None if self.kind == "scalar" else self.stiffness.mask.reshape(-1).nonzero().squeeze(-1)
+
+    @property
+    def free_size(self) -> int:
+        """p = n + s: a field's centre and its s free stiffness parameters."""
+        free = self.free_stiffness
+        return self.n + (1 if free is None else free.numel())
+
+    @torch.no_grad()
+    def free_vector(self) -> torch.Tensor:
+        """θ (M×p): each field's centre η_i and free stiffness parameters (κ for scalar,
+        else the free entries of L's parameters, log L_kk on the diagonal)."""
+        free, raw = self.free_stiffness, self.stiffness.raw.detach().reshape(self.M, -1)
+        raw = raw if free is None else raw[:, free]
+        return torch.cat([self.eta.detach(), raw.reshape(self.M, self.free_size - self.n)], dim=-1)
+
+    def split_free(self, theta: torch.Tensor) -> tuple:
+        """θ (...×p) → (η (...×n), the stiffness parameters: κ (...) for scalar, else
+        (...×n×n) laid out as :attr:`Stiffness.raw`); differentiable."""
+        n, free = self.n, self.free_stiffness
+        eta, rest = theta[..., :n], theta[..., n:]
+        if free is None:
+            return eta, rest[..., 0]
+        raw = torch.zeros(theta.shape[:-1] + (n * n,), dtype=theta.dtype).index_copy(-1, free, rest)
+        return eta, raw.reshape(theta.shape[:-1] + (n, n))
+
+    def stiffness_of(self, raw: torch.Tensor) -> torch.Tensor:
+        """K (...×n×n) of stiffness parameters as :meth:`split_free` returns them."""
+        if self.kind == "scalar":
+            return torch.exp(raw)[..., None, None] * torch.eye(self.n, dtype=raw.dtype)
+        L = self.stiffness.factor(raw)
+        return L @ L.transpose(-1, -2)
+
+    @torch.no_grad()
+    def assign_free(self, theta: torch.Tensor) -> None:
+        """Set every field from θ (M×p, :meth:`free_vector`'s layout), then
+        :meth:`project_`."""
+        eta, raw = self.split_free(theta)
+        self.eta.copy_(eta)
+        self.stiffness.raw.copy_(raw)
+        self.project_()
+
     @torch.no_grad()
     def select(self, idx: Sequence[int]) -> FieldBasis:
         """A new basis (detached) holding fields ``idx`` in that order."""
@@ -236,6 +282,24 @@ def field_torques(q: torch.Tensor, v: Optional[torch.Tensor], eta: torch.Tensor,
     if damping and v is not None:
         return -(Kd + damping * torch.einsum("...ij,...j->...i", K, v.unsqueeze(-2))) * g
     return -Kd * g
+
+
+class MotionFields(nn.Module):
+    """Each motion's own fields, η (N×m×n) and K (N×m×n×n), with damping ratio ζ, as a
+    basis for :class:`FieldProgram`: χ(q, v) for q, v (...×N×n) → (...×N×m×n), motion
+    j's fields only."""
+
+    def __init__(self, eta: torch.Tensor, K: torch.Tensor, damping: float = 0.0):
+        super().__init__()
+        self.eta, self.K, self.damping = eta, K, float(damping)
+
+    def forward(self, q, v=None):
+        return field_torques(q, v, self.eta, self.K, self.damping)
+
+    def tables(self) -> tuple:
+        """(η, K, ζ, per motion): one group of fields per motion (for
+        :meth:`FieldProgram.rows`)."""
+        return self.eta.detach(), self.K.detach(), self.damping, True
 
 
 class MotionWeights(nn.Module):

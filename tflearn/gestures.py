@@ -23,7 +23,7 @@ import torch
 
 from . import simulate as sim
 from .body import Body, arm
-from .fields import FieldBasis, FieldProgram, MotionWeights, field_torques
+from .fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
 from .io import basis as basis_io
 from .motion import RESOLVED, Motion, torque_resolution
 from .motion import save as save_motion
@@ -135,23 +135,6 @@ def library_model(gestures=None, body: Body | None = None):
     return basis, MotionWeights(a, b, lam, names=[g.name for g in gestures]), spans
 
 
-class _OwnFields(torch.nn.Module):
-    """Each motion's own fields, η (N×m×n) and K (N×m×n×n), as a basis for
-    :class:`FieldProgram`: χ(q, v) for q (...×N×n) → (...×N×m×n), motion j's fields only."""
-
-    def __init__(self, eta: torch.Tensor, K: torch.Tensor):
-        super().__init__()
-        self.eta, self.K = eta, K
-
-    def forward(self, q, v=None):
-        return field_torques(q, v, self.eta, self.K)
-
-    def tables(self) -> tuple:
-        """(η, K, ζ = 0, per motion): one group of fields per motion (for
-        :meth:`FieldProgram.rows`)."""
-        return self.eta, self.K, 0.0, True
-
-
 def own_fields_program(basis: FieldBasis, weights: MotionWeights, spans: list) -> FieldProgram:
     """:func:`library_model`'s program with each motion evaluating only its own fields
     (``spans``), padded with zero weights to the most any motion has: the same torques,
@@ -163,7 +146,7 @@ def own_fields_program(basis: FieldBasis, weights: MotionWeights, spans: list) -
     with torch.no_grad():
         own = MotionWeights(weights.a.gather(1, idx) * mask, weights.b.gather(1, idx) * mask,
                             weights.duration, names=weights.names)
-        return FieldProgram(_OwnFields(basis.eta[idx], basis.K()[idx]), own)
+        return FieldProgram(MotionFields(basis.eta[idx], basis.K()[idx]), own)
 
 
 def generate(body: Body | None = None, rate: float = 100.0, gestures=None,

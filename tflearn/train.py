@@ -57,7 +57,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Optional
@@ -351,6 +351,10 @@ class Run:
                                   phases=m.phases == "variable", em_tol=c.em.tol,
                                   reproduced=reproduced,
                                   windows=submovement_windows(one, m.windows))
+        if b.M and checked.get("last", (None,))[0] is not b:
+            reproduced(b, w)                         # grow stopped before checking its last basis
+        if b.M and not all(checked["last"][2]) and self._shoot_alone(b, w, one, reproduced):
+            costs = torque.torque_cost(b, w, one).detach()
         last = checked.get("last")
         fresh = last is not None and last[0] is b
         scores = None
@@ -359,6 +363,20 @@ class Run:
         return {"fit": (b.eta.detach().clone(), b.K().detach().clone(), w.timing(0)),
                 "cost": float(costs[0]), "M": b.M, "reproduced": bool(fresh and all(last[2])),
                 "scores": scores, "weights": w if self.cfg.log.tensorboard else None}
+
+    def _shoot_alone(self, basis, weights, one: Targets, reproduced) -> bool:
+        """A motion its own fields do not reproduce: those fields and its weights fitted
+        to its path by multiple shooting (``solver.shooting.fields``; docs/model.md,
+        "Programs whose motion is chaotic"), in place, then checked by ``reproduced``.
+        Returns whether it ran."""
+        c = self.cfg.solver.shooting
+        if not (c.fields and c.iterations):
+            return False
+        self.log.busy(shooting="fields")
+        opts = replace(c.options(self.cfg.model.phases == "variable"), fields=True)
+        shooting.shooting_match(self.body, basis, weights, one, options=opts, sim=self.options)
+        reproduced(basis, weights)
+        return True
 
     def _pool(self, state: RunState, tg: Targets):
         merge = self.cfg.solver.merge

@@ -2,7 +2,11 @@
 
 With the basis fixed, motion j's path depends on its own parameters θ_j only (its
 weights a, b, c and, optionally, its activation timing), so the problem splits into one
-small least-squares problem per motion.
+small least-squares problem per motion. A motion fitted alone may free its fields too
+(``ShootingOptions.fields``: θ then also holds every field's centre and free stiffness
+parameters, :meth:`~tflearn.fields.FieldBasis.free_vector`): the fields of a motion whose
+path amplifies small field errors several hundredfold are placed by its path, not by
+torque matching on spline torques (docs/model.md, "Programs whose motion is chaotic").
 
 **Segments.** Motion j is cut every K_j = max(1, round(h·rate_j)) samples; segment s
 starts at the target's own state (q, v) at its first sample k_s and is simulated to
@@ -56,7 +60,7 @@ import torch
 from ..body import Body
 from ..configspace import difference
 from ..dynamics import tip_position
-from ..fields import FieldBasis, FieldProgram, MotionWeights
+from ..fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
 from ..simulate import SimOptions, SimulationFailed, simulate
 from .targets import Targets, union_grid
 
@@ -74,7 +78,8 @@ class ShootingOptions:
     each motion's activation timing (onsets and durations of its steps, pulses and
     windows); velocity_weight: β; tip_weight: γ (rad²/m²: γ = 100 counts 1 cm of hand
     like 0.1 rad of joint angle); mu: the initial damping; step: the relative
-    forward-difference step."""
+    forward-difference step; fields: also fit the basis' fields (one motion only: they
+    are otherwise shared)."""
 
     horizon: float = 0.25
     iterations: int = 6
@@ -85,6 +90,7 @@ class ShootingOptions:
     tip_weight: float = 0.0
     mu: float = 1e-3
     step: float = 1e-6
+    fields: bool = False
 
 
 @dataclass
@@ -168,7 +174,8 @@ def _residuals(body, tg: Targets, seg: _Segments, q, v, beta: float, gamma: floa
 
 class _Problem:
     """The motions' parameters θ (N×D, the layout of :meth:`MotionWeights.flat` over
-    ``keys``), their bounds, and the simulations of segments at one θ."""
+    ``keys``, followed with ``opts.fields`` by the fields' :meth:`FieldBasis.free_vector`),
+    their bounds, and the simulations of segments at one θ."""
 
     def __init__(self, body, basis, weights, tg, keys, opts: ShootingOptions, sim: SimOptions):
         self.body, self.basis, self.weights, self.tg = body, basis, weights, tg
@@ -181,15 +188,38 @@ class _Problem:
         self.lower = torch.cat([torch.full((d,), 1e-2 if k in _DURATIONS else
                                            (0.0 if k in WEIGHTS else -math.inf), dtype=torch.float64)
                                 for k, d in layout])
+        self.dw = len(self.lower)                  # θ[:dw] the weights, θ[dw:] the fields
+        if opts.fields:
+            free = torch.full((basis.M * basis.free_size,), -math.inf, dtype=torch.float64)
+            self.lower = torch.cat([self.lower, free])
+
+    def theta(self) -> torch.Tensor:
+        """θ (N×D) of the current weights (and fields)."""
+        theta = self.weights.flat(self.keys)
+        if not self.opts.fields:
+            return theta
+        return torch.cat([theta, self.basis.free_vector().reshape(1, -1).expand(len(theta), -1)], -1)
+
+    def assign(self, theta: torch.Tensor) -> None:
+        """Set the weights (and fields) from θ (N×D)."""
+        self.weights.set_flat(self.keys, theta[:, :self.dw], list(range(len(theta))))
+        if self.opts.fields:
+            self.basis.assign_free(theta[0, self.dw:].reshape(self.basis.M, -1))
+
+    def _basis(self, fields: torch.Tensor):
+        """The fields of every member (rows of θ[dw:], B×M·p) as one group each."""
+        eta, raw = self.basis.split_free(fields.reshape(len(fields), self.basis.M, -1))
+        return MotionFields(eta, self.basis.stiffness_of(raw), self.basis.damping)
 
     def _run(self, theta, seg: _Segments, rows, copies: int = 1):
         """Residuals (copies × B × R) of the segments, row b of copy c under θ[c, rows[b]]
         (theta: copies × n_m × D). Raises SimulationFailed."""
         B = len(seg.motion)
         flat = theta[:, rows].reshape(copies * B, -1)
-        w = self.weights.with_flat(self.keys, flat, seg.motion.repeat(copies))
+        w = self.weights.with_flat(self.keys, flat[:, :self.dw], seg.motion.repeat(copies))
+        basis = self._basis(flat[:, self.dw:]) if self.opts.fields else self.basis
         self.simulations += 1
-        q, v = _simulate(self.body, self.basis, w, seg, self.sim, copies)
+        q, v = _simulate(self.body, basis, w, seg, self.sim, copies)
         q, v = (x.reshape(copies, B, -1, self.body.nv) for x in (q, v))
         return _residuals(self.body, self.tg, seg, q, v, self.opts.velocity_weight, self.opts.tip_weight)
 
@@ -254,7 +284,8 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
                    motions: Optional[list] = None,
                    callback: Optional[Callable] = None) -> ShootingResult:
     """Fit every motion's weights (and with ``options.phases`` its timing) to its path,
-    the basis fixed, by multiple shooting and Levenberg–Marquardt (module docstring).
+    the basis fixed — or with ``options.fields`` free, for one motion (``basis`` is then
+    changed in place) —, by multiple shooting and Levenberg–Marquardt (module docstring).
     ``motions``: fit these only (indices; the others are left as they are, and the
     result's rows are these motions'). ``weights`` is changed in place;
     ``callback(horizon, iteration, cost (N))`` is called after each iteration. Returns
@@ -266,9 +297,11 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
                                 callback=callback)
         weights.set_flat(keys_of(options), sub.flat(keys_of(options)), motions)
         return result
+    if options.fields and tg.N != 1:
+        raise ValueError(f"shooting_match: free fields need one motion (fields are shared), got {tg.N}")
     keys = keys_of(options)
     prob = _Problem(body, basis, weights, tg, keys, options, sim)
-    theta = weights.flat(keys)
+    theta = prob.theta()
     start, everyone = theta.clone(), list(range(tg.N))
     longest = float(tg.duration.max())
     before = prob.cost(theta, 2 * longest, everyone)
@@ -288,7 +321,7 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
         after[again] = prob.cost(theta[again], 2 * longest, again)
     worse = ~(after <= before)                         # never end further from the path
     theta[worse], after[worse] = start[worse], before[worse]
-    weights.set_flat(keys, theta, everyone)
+    prob.assign(theta)
     result.loss, result.simulations = after.tolist(), prob.simulations
     return result
 

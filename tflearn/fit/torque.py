@@ -131,47 +131,37 @@ class _FieldParameters:
 
     def __init__(self, basis: FieldBasis, weights: MotionWeights, tg: Targets, phases: bool):
         self.basis, self.weights, self.tg, self.phases = basis, weights, tg, phases
-        st = basis.stiffness
         self.M, self.n = basis.eta.shape
         self.N = weights.N
-        self.flat_mask = None if st.kind == "scalar" else st.mask.reshape(-1).nonzero().squeeze(-1)
-        self.s = 1 if self.flat_mask is None else self.flat_mask.numel()
-        self.p = self.n + self.s + (4 * self.N if phases else 0)
+        self.flat_mask = basis.free_stiffness
+        self.s = basis.free_size - self.n
+        self.p = basis.free_size + (4 * self.N if phases else 0)
         self.scale = residual_scale(tg)
         self.windows = weights.windows_per_motion(tg.t).detach()          # N×T×P
 
     def vector(self) -> torch.Tensor:
-        st = self.basis.stiffness
-        raw = st.raw.detach().reshape(self.M, -1)
-        raw = raw if self.flat_mask is None else raw[:, self.flat_mask]
-        blocks = [self.basis.eta.detach(), raw.reshape(self.M, self.s)]
+        blocks = [self.basis.free_vector()]
         if self.phases:
             blocks += [getattr(self.weights, k).detach().T for k in PHASES]
         return torch.cat(blocks, dim=-1).reshape(-1)
 
     def _split(self, th: torch.Tensor):
         """θ (...×p) → η (...×n), raw (scalar: ...; else ...×n×n), phases dict or None."""
-        n, s = self.n, self.s
-        eta, free = th[..., :n], th[..., n:n + s]
-        if self.flat_mask is None:
-            raw = free[..., 0]
-        else:
-            raw = torch.zeros(th.shape[:-1] + (n * n,), dtype=th.dtype).index_copy(
-                -1, self.flat_mask, free).reshape(th.shape[:-1] + (n, n))
+        q = self.n + self.s
+        eta, raw = self.basis.split_free(th[..., :q])
         ph = None
         if self.phases:
-            ph = dict(zip(PHASES, th[..., n + s:].reshape(th.shape[:-1] + (4, self.N)).unbind(-2)))
+            ph = dict(zip(PHASES, th[..., q:].reshape(th.shape[:-1] + (4, self.N)).unbind(-2)))
         return eta, raw, ph
 
     @torch.no_grad()
     def assign(self, theta: torch.Tensor) -> None:
-        eta, raw, ph = self._split(theta.reshape(self.M, self.p))
-        self.basis.eta.copy_(eta)
-        self.basis.stiffness.raw.copy_(raw)
+        th = theta.reshape(self.M, self.p)
+        self.basis.assign_free(th[:, :self.n + self.s])
+        _, _, ph = self._split(th)
         if ph is not None:
             for k in PHASES:
                 getattr(self.weights, k).copy_(ph[k].T)
-        self.basis.project_()
         self.weights.project_()
 
     def scaled_design(self) -> torch.Tensor:
@@ -217,11 +207,9 @@ class _FieldParameters:
         q, v, n = self.tg.q, self.tg.v, self.n
         d = q - eta
         u = d + self.basis.damping * v if self.basis.damping else d
-        if self.flat_mask is None:
-            K = torch.exp(raw) * torch.eye(n, dtype=th.dtype)
-        else:
+        K = self.basis.stiffness_of(raw)
+        if self.flat_mask is not None:
             L = self.basis.stiffness.factor(raw)
-            K = L @ L.T
         Kd, Ku = d @ K, u @ K                                       # K symmetric
         dKd = (d * Kd).sum(-1, keepdim=True)
         g = torch.exp(-0.5 * dKd)                                   # N×T×1
