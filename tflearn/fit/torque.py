@@ -207,9 +207,11 @@ class _FieldParameters:
         q, v, n = self.tg.q, self.tg.v, self.n
         d = q - eta
         u = d + self.basis.damping * v if self.basis.damping else d
-        K = self.basis.stiffness_of(raw)
-        if self.flat_mask is not None:
+        if self.flat_mask is None:
+            K = self.basis.stiffness_of(raw)
+        else:
             L = self.basis.stiffness.factor(raw)
+            K = L @ L.T
         Kd, Ku = d @ K, u @ K                                       # K symmetric
         dKd = (d * Kd).sum(-1, keepdim=True)
         g = torch.exp(-0.5 * dKd)                                   # N×T×1
