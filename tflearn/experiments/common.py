@@ -143,9 +143,12 @@ def fit_local_case(body, guess: dict, tg: Targets, cfg: ExperimentConfig) -> dic
     profile the guess has off (e.g. a large pulse on a step-only gesture) and descend
     into that profile's basin, a local minimum that the guess was not near. EM's trust
     region (``local.em_max_step``) keeps a weakly weighted field from being thrown to
-    the bounds by one Gauss–Newton step (docs/results.md §1)."""
+    the bounds by one Gauss–Newton step (docs/results.md §1). EM starts from the guess'
+    stiffnesses divided by ``local.start_wide``: a far, stiff guess has a Gaussian
+    factor that vanishes along the motion, hence an NNLS weight of 0 and no gradient;
+    a wider field still reaches the motion."""
     c = cfg.local
-    basis, weights = build(guess, tg)
+    basis, weights = build({**guess, "k": guess["k"] / c.start_wide}, tg)
     calls0, t0 = sim_mod.calls, time.perf_counter()
     support = torch.cat([guess["a"] != 0, guess["b"] != 0], dim=-1)
     opts = dict(steps=c.em_steps, tol=c.em_tol, max_step=c.em_max_step)

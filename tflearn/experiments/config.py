@@ -49,6 +49,10 @@ class LocalSection(Section):
     em_steps: int = Field(300, ge=0)
     em_tol: float = Field(1e-10, ge=0)
     em_max_step: float | None = Field(1.0, gt=0)   # EM's trust region (torque.em max_step)
+    # EM starts from the guess' stiffnesses divided by this (1: as guessed): wider fields,
+    # whose Gaussians reach the motion from a far centre, so their weights and gradients
+    # are not 0; EM then sets the stiffness
+    start_wide: float = Field(10.0, ge=1)
     path_steps: int = Field(15, ge=0)
     path_lr: float = Field(0.01, ge=0)
     path_gate: float = Field(1e-3, ge=0)
