@@ -139,6 +139,25 @@ def test_basin_quick(tmp_path):
     assert all((tmp_path / "basin" / "figures" / f).exists() for f in res["figures"])
 
 
+def test_local_solver_starts_wide():
+    """come_here from the guess of r = 4.2, seed 0 (the full sweep's case): started at the
+    guessed stiffnesses, EM ends with no torque at all (relative cost 1.0: the far, stiff
+    field's Gaussian vanishes along the motion, so its NNLS weight and gradient are 0);
+    started at a tenth of them (``local.start_wide``, the default) it reproduces the
+    gesture (measured: cost 7.8e-11)."""
+    cfg = experiments.load_config(CONFIGS / "basin.yaml", overrides=["gestures=[come_here]"])
+    common.setup(cfg, {"come_here": ["come_here"]})
+    _, _, tg, true, salt = common._STATE["groups"]["come_here"]
+    body = common._STATE["body"]
+    guess = common.noised(true, common.noise_draws(true, 0, salt), 4.2)
+    as_guessed = experiments.load_config(CONFIGS / "basin.yaml", overrides=["local.start_wide=1"])
+    narrow = common.fit_local_case(body, guess, tg, as_guessed)
+    wide = common.fit_local_case(body, guess, tg, cfg)
+    ok = lambda fit: all(common.check(body, fit["basis"], fit["weights"], tg, cfg)["success"])
+    assert narrow["cost"] > 0.99 and not ok(narrow)
+    assert wide["cost"] < 1e-9 and ok(wide)
+
+
 def test_shared_quick(tmp_path):
     """Four shared fields for come-here, tuck and backwards reach from r = 1.4: every
     motion reproduced by the local solver."""
