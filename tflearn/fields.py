@@ -137,11 +137,14 @@ class Stiffness(nn.Module):
         self.raw.clamp_(-math.sqrt(k_max), math.sqrt(k_max))
         self.raw[:, idx, idx] = diag
 
-    def forward(self) -> torch.Tensor:
+    def forward(self, raw: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """K (M×n×n) of the stored parameters, or (...×n×n) of ``raw`` laid out like them
+        (κ (...) for ``scalar``)."""
+        raw = self.raw if raw is None else raw
         if self.kind == "scalar":
-            eye = torch.eye(self.n, dtype=self.raw.dtype, device=self.raw.device)
-            return torch.exp(self.raw)[:, None, None] * eye
-        L = self.factor()
+            eye = torch.eye(self.n, dtype=raw.dtype, device=raw.device)
+            return torch.exp(raw)[..., None, None] * eye
+        L = self.factor(raw)
         return L @ L.transpose(-1, -2)
 
 
@@ -227,12 +230,6 @@ class FieldBasis(nn.Module):
         raw = torch.zeros(theta.shape[:-1] + (n * n,), dtype=theta.dtype).index_copy(-1, free, rest)
         return eta, raw.reshape(theta.shape[:-1] + (n, n))
 
-    def stiffness_of(self, raw: torch.Tensor) -> torch.Tensor:
-        """K (...×n×n) of stiffness parameters as :meth:`split_free` returns them."""
-        if self.kind == "scalar":
-            return torch.exp(raw)[..., None, None] * torch.eye(self.n, dtype=raw.dtype)
-        L = self.stiffness.factor(raw)
-        return L @ L.transpose(-1, -2)
 
     @torch.no_grad()
     def assign_free(self, theta: torch.Tensor) -> None:

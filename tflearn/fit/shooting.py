@@ -209,7 +209,7 @@ class _Problem:
     def _basis(self, fields: torch.Tensor):
         """The fields of every member (rows of θ[dw:], B×M·p) as one group each."""
         eta, raw = self.basis.split_free(fields.reshape(len(fields), self.basis.M, -1))
-        return MotionFields(eta, self.basis.stiffness_of(raw), self.basis.damping)
+        return MotionFields(eta, self.basis.stiffness(raw), self.basis.damping)
 
     def _run(self, theta, seg: _Segments, rows, copies: int = 1):
         """Residuals (copies × B × R) of the segments, row b of copy c under θ[c, rows[b]]

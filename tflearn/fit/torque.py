@@ -208,7 +208,7 @@ class _FieldParameters:
         d = q - eta
         u = d + self.basis.damping * v if self.basis.damping else d
         if self.flat_mask is None:
-            K = self.basis.stiffness_of(raw)
+            K = self.basis.stiffness(raw)
         else:
             L = self.basis.stiffness.factor(raw)
             K = L @ L.T
