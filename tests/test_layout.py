@@ -46,7 +46,8 @@ def test_uniform_weights_are_the_thesis_cost(come_here):
     body, m = come_here
     tg = targets.prepare(body, [m])
     assert tg.coord_weight is None
-    basis = layout.spanning_basis(body, tg, FieldBasis.empty(7, "diag", body.blocks), 2.5, 3.0)
+    with pytest.warns(UserWarning, match="come_here leaves the cross"):  # a cost identity: no span needed
+        basis = layout.spanning_basis(body, tg, FieldBasis.empty(7, "diag", body.blocks), 2.5, 3.0)
     w = MotionWeights.zeros(14, tg.duration, tg.names)
     plain = torque.solve_weights(basis, w, tg)
     ones = replace(tg, coord_weight=torch.ones(1, 7, dtype=DT))
@@ -70,7 +71,7 @@ def test_weighted_solves_agree(come_here):
     (1e-10), and EM's residual norm² is the weighted cost (1e-10)."""
     body, m = come_here
     tw = targets.prepare(body, [m], weight="inertia")
-    basis = layout.spanning_basis(body, tw, FieldBasis.empty(7, "diag", body.blocks), 2.5, 3.0)
+    basis = layout.spanning_basis(body, tw, FieldBasis.empty(7, "diag", body.blocks), 4.0, 3.0)
     w = MotionWeights.zeros(14, tw.duration, tw.names)
     cost = float(torque.solve_weights(basis, w, tw)[0])
     assert 1e-6 < cost < 0.99
@@ -92,39 +93,65 @@ def test_weighted_solves_agree(come_here):
     assert abs(float((r ** 2).sum()) - cost) <= 1e-10
 
 
-def test_spanning_basis_spans_every_torque(come_here):
-    """2n fields at ν̄ ± r e_k with K = κ diag(m̄); at any posture on the motion every
-    torque direction within r of ν̄ (the box |ν − ν̄|∞ < r) is a non-negative combination
-    of the fields (NNLS residual ≤ 1e-9 for 20 random torques at every 30th sample,
-    measured in accelerations); outside the box (the motion's last sample, 2.06 rad off)
-    and without its minus side the layout cannot; a motion leaving the box is warned of."""
+def test_layout_shapes_are_regular_polytopes():
+    """cross: ±e_k, gauge ‖x‖₁; simplex: n + 1 unit vertices with Σ u = 0 and
+    u_i·u_j = −1/n, gauge max −n u·x. Every vertex has gauge 1 (1e-12), the centre 0, and
+    the gauge is positively homogeneous."""
+    x = torch.randn(50, 7, generator=torch.Generator().manual_seed(1), dtype=DT)
+    assert torch.allclose(layout.reach("cross", x), x.abs().sum(-1), rtol=1e-12)
+    for shape, M in (("cross", 14), ("simplex", 8)):
+        u, _ = layout.SHAPES[shape](7)
+        assert u.shape == (M, 7)
+        assert torch.allclose(layout.reach(shape, u), torch.ones(M, dtype=DT), atol=1e-12)
+        assert torch.allclose(layout.reach(shape, 2.5 * x), 2.5 * layout.reach(shape, x), rtol=1e-12)
+        assert float(layout.reach(shape, torch.zeros(7, dtype=DT))) == 0.0
+    u, _ = layout.SHAPES["simplex"](7)
+    gram = u @ u.T
+    assert torch.allclose(gram, torch.eye(8, dtype=DT) * (1 + 1 / 7) - 1 / 7, atol=1e-12)
+    assert float(u.sum(0).abs().max()) <= 1e-12
+
+
+@pytest.mark.parametrize("shape", ["cross", "simplex"])
+def test_spanning_basis_spans_every_torque(come_here, shape):
+    """Fields at ν̄ + r u_i with K = κ diag(m̄). At a posture inside the centres' hull
+    (gauge 0.9 r, 20 random directions) every torque is a non-negative combination of
+    the fields (NNLS residual ≤ 1e-9 for 20 random torques, measured in accelerations);
+    just outside it (1.1 r) some torque is not (residual > 0.05). For the cross the hull
+    is the ℓ1 ball, not the box: |ν − ν̄|∞ = r/2 in every coordinate is outside. A motion
+    leaving the hull is warned of."""
     body, m = come_here
     tg = targets.prepare(body, [m])
     template = FieldBasis.empty(7, "diag", body.blocks, damping=0.2)
-    basis = layout.spanning_basis(body, tg, template, radius=2.5, stiffness=3.0)
-    basis = basis.like(basis.eta.detach() - 0.5 * torch.sign(basis.eta.detach() - tg.q[0].mean(0)), basis.K())
+    r = 2.0
+    basis = layout.spanning_basis(body, tg, template, radius=20.0, stiffness=3.0, shape=shape)
     centre = tg.q[0].mean(0)
-    eye = torch.eye(7, dtype=DT)
-    assert basis.M == 14 and basis.damping == 0.2 and basis.kind == "diag"
-    assert torch.allclose(basis.eta.detach(), torch.cat([centre + 2 * eye, centre - 2 * eye]), atol=1e-12)
+    u, _ = layout.SHAPES[shape](7)
+    assert basis.M == len(u) and basis.damping == 0.2 and basis.kind == "diag"
+    assert torch.allclose(basis.eta.detach(), centre + 20.0 * u, atol=1e-12)
     assert torch.allclose(basis.K()[5], 3.0 * torch.diag(targets.mean_inertia(body, tg)[0]), rtol=1e-12)
+    basis = basis.like(centre + r * u, basis.K())
     gen = torch.Generator().manual_seed(7)
     root = targets.mean_inertia(body, tg)[0].sqrt()                # compared by acceleration
-    for q in tg.q[0, ::30]:
-        chi = basis(q).detach() / root                             # M×n
+
+    def worst(x):
+        chi = basis(centre + x).detach() / root                    # M×n
         tau = torch.randn(20, 7, generator=gen, dtype=DT)
-        inside = float((q - centre).abs().max()) < 2.0
-        for half, bound in ((chi, 1e-9 if inside else None), (chi[:7], None)):
-            x = nnls_lstsq(half.T.expand(20, -1, -1), tau).x
-            res = (x @ half - tau).norm(dim=-1) / tau.norm(dim=-1)
-            if bound is not None:
-                assert float(res.max()) <= bound
-            else:
-                assert float(res.max()) > 0.1
-    with pytest.warns(UserWarning, match=r"come_here reaches 2.06 rad from .* raise solver.layout.radius"):
-        layout.spanning_basis(body, tg, template, radius=2.0, stiffness=3.0)
+        w = nnls_lstsq(chi.T.expand(20, -1, -1), tau).x
+        return float(((w @ chi - tau).norm(dim=-1) / tau.norm(dim=-1)).max())
+    for _ in range(20):
+        x = torch.randn(7, generator=gen, dtype=DT)
+        x = x / layout.reach(shape, x)
+        assert worst(0.9 * r * x) <= 1e-9
+        assert worst(1.1 * r * x) > 0.05
+    if shape == "cross":
+        assert worst(torch.full((7,), r / 2, dtype=DT)) > 0.05
+    far = float(layout.reach(shape, tg.q[0] - centre).max())
+    with pytest.warns(UserWarning, match=rf"come_here leaves the {shape} .* radius of {far:.2f} rad"):
+        layout.spanning_basis(body, tg, template, radius=0.9 * far, shape=shape)
     with pytest.raises(ValueError, match="not scalar"):
         layout.spanning_basis(body, tg, FieldBasis.empty(7, "scalar", body.blocks))
+    with pytest.raises(ValueError, match="unknown shape 'star'"):
+        layout.spanning_basis(body, tg, template, shape="star")
 
 
 def test_layout_config_refusals(tmp_path):

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Type, Union
 
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_core import PydanticCustomError
 
 from .errors import InputError
@@ -113,15 +113,17 @@ class SlsqpSection(Section):
     max_iter: int = Field(200, ge=1)             # iterations of the baseline
 
 
-class LayoutSection(Section):                   # method layout: 2n fields spanning joint space
-    radius: float = Field(2.0, gt=0, allow_inf_nan=False)     # centres at ν̄ ± radius e_k (rad)
+class LayoutSection(Section):                   # method layout: fields spanning joint space
+    # cross: 2n fields at ν̄ ± radius e_k | simplex: n + 1 at a regular simplex's vertices
+    shape: Literal["cross", "simplex"] = "cross"
+    radius: float = Field(2.0, gt=0, allow_inf_nan=False)     # centres at ν̄ + radius u_i (rad)
     stiffness: float = Field(1.0, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
 
 
 class SolverSection(Section):
     # pipeline | slsqp: the thesis' baseline, SLSQP with numerical derivatives on the
     # torque cost from a seeded random guess (needs model.fields ≥ 1, diag K) | layout:
-    # a fixed basis of 2n fields spanning joint space around the motions, weights by
+    # a fixed basis of fields spanning joint space around the motions, weights by
     # NNLS, then path matching (tflearn.fit.layout; for recorded and keyframed motion)
     method: Literal["pipeline", "slsqp", "layout"] = "pipeline"
     # the torque costs' coordinate weights: uniform (the thesis) | inertia (each joint's
@@ -162,11 +164,30 @@ def _body_builds(body: dict) -> dict:
 BodySection = Annotated[dict[str, Any], AfterValidator(_body_builds)]
 
 
+class BvhSection(Section):
+    # when data names BVH clips: imported into OUT/imported (tflearn.mocap.import_config)
+    arm: Literal["right", "left"] = "right"      # the performer's arm
+    mirror: bool = False                         # reflect it onto the other side
+    rate: float = Field(120.0, gt=0, allow_inf_nan=False)   # samples per second after import
+    # [start, stop] (s): the part of every clip that is learned; null: the whole clip
+    window: Optional[list[float]] = Field(None, min_length=2, max_length=2)
+
+    @field_validator("window")
+    @classmethod
+    def _ordered(cls, w):
+        if w is not None and not 0 <= w[0] < w[1]:
+            raise ValueError(f"a window is [start, stop] with 0 ≤ start < stop (seconds), got {list(w)}")
+        return w
+
+
 class Config(Section):
     """The training config (``train CONFIG``); see configs/gestures.yaml."""
 
-    # "gestures" (the built-in library), a folder of .npz motions, or a list of .npz files
+    # "gestures" (the built-in library), a folder of .npz motions, a list of .npz files,
+    # or BVH clips (.bvh files, or a folder of them): imported with the bvh section's
+    # options, the body then the performer's (tflearn.mocap.import_config)
     data: Union[str, list[str]] = "gestures"
+    bvh: BvhSection = BvhSection()
     strict: bool = False                         # stop at the first bad motion file
     out: str = "runs/gestures"
     seed: int = Field(0, ge=0)

@@ -34,7 +34,7 @@ With ``solver.method: slsqp`` the single stage ``slsqp`` replaces 1–4: the the
 baseline (:func:`tflearn.fit.slsqp.fit_slsqp`, torque matching only) with
 ``model.fields`` diagonal-stiffness fields from a seeded random guess — centres at
 postures drawn from the motions' samples, K = I, weights by NNLS.
-With ``solver.method: layout`` the stage ``layout`` replaces 1–3: the 2n fields of
+With ``solver.method: layout`` the stage ``layout`` replaces 1–3: the spanning fields of
 :func:`tflearn.fit.layout.spanning_basis` around all the motions, every motion's
 weights by NNLS; ``path`` follows as above.
 
@@ -65,7 +65,7 @@ from typing import Optional
 import torch
 
 from . import config as config_mod
-from . import parallel
+from . import mocap, parallel
 from .body import from_config
 from .config import Config, ConfigError
 from .data import check_resolution, load_motions
@@ -163,6 +163,7 @@ class Run:
     and the checkpoint."""
 
     def __init__(self, cfg: Config, stop_after: int | None = None, progress: bool | None = None):
+        cfg, self.imported = mocap.import_config(cfg)  # data naming BVH clips: imported first
         self.cfg = cfg
         self.out = Path(cfg.out)
         self.body = from_config(cfg.body)          # checked when the config was validated
@@ -177,7 +178,7 @@ class Run:
                        "path": self._path, "slsqp": self._slsqp, "layout": self._layout}
         self.sequence = SEQUENCES[cfg.solver.method]
         if cfg.solver.method == "layout" and (cfg.model.stiffness == "scalar" or cfg.model.fields):
-            raise ConfigError("solver.method 'layout' lays out 2n fields with a stiffness per "
+            raise ConfigError("solver.method 'layout' lays out its fields with a stiffness per "
                               "coordinate: it needs model.fields=0 and model.stiffness diag, block "
                               f"or full (got {cfg.model.fields}, {cfg.model.stiffness!r})")
         if cfg.solver.method == "slsqp":
@@ -263,6 +264,9 @@ class Run:
         lead = parallel.rank() == 0
         self.log = RunLog(self.out, tensorboard=self.cfg.log.tensorboard and lead,
                           progress=self.progress and lead, body=self.body, sequence=self.sequence)
+        if self.imported is not None:
+            self.log.message(f"imported {len(self.imported['clips'])} BVH clip(s) into {self.cfg.data} "
+                             f"(report.json there); body: the performer's arm")
         if state.step or state.stage != self.sequence[0]:
             self.log.message(f"resuming {self.out} at stage {state.stage} ({state.cursor})")
         with self.log:
@@ -568,7 +572,7 @@ class Run:
         weights on its P windows by NNLS, the model scored by simulation."""
         c = self.cfg.solver.layout
         self.log.stage("layout", 1)
-        basis = layout.spanning_basis(self.body, tg, self.template(), c.radius, c.stiffness)
+        basis = layout.spanning_basis(self.body, tg, self.template(), c.radius, c.stiffness, c.shape)
         weights = MotionWeights.zeros(basis.M, tg.duration, tg.names,
                                       submovement_windows(tg, self.cfg.model.windows))
         cost = float(torque.solve_weights(basis, weights, tg).sum())

@@ -4,27 +4,40 @@ Greedy growth (:mod:`tflearn.fit.search`) adds the one field that best explains 
 left, and stops when the next one gains little. On recorded motion that ends after one
 or two fields whose torques point along one or two directions, while a 7-dof arm's
 torques turn through all seven. A basis whose fields *positively span* joint space
-everywhere along the paths needs no search: with 2n fields around the motions' mean
-posture ν̄, one on each side of every coordinate,
+everywhere along the paths needs no search: M fields at the vertices of a polytope of
+radius r around the motions' mean posture ν̄,
 
-    η_{±k} = ν̄ ± r e_k,        K_{±k} = κ diag(m̄_1 … m̄_n),
+    η_i = ν̄ + r u_i,        K_i = κ diag(m̄_1 … m̄_n),
 
-every torque direction at every posture within r of ν̄ (|ν − ν̄|∞ < r) is a
-non-negative combination of the fields (near ν̄ a field is the spring −K(ν − η), and the
-pair ±k pushes both ways along e_k; beyond ν̄ ± r e_k both push the same way), so the
-weights — step, pulse and P sub-movement windows per field — come from one exact NNLS
-solve, and multiple shooting then fits them to the paths. m̄ is the mean
-joint-space inertia along the motions (:func:`~tflearn.fit.targets.mean_inertia`), so κ
-is a squared frequency (1/s²) and a unit activation drives every coordinate at the same
-rate: the light wrist is not made a thousand times stiffer than the shoulder (which
-turns the simulation stiff), and each field's Gaussian is widest where the inertia is
-smallest. With r e_k far from the path in K's metric the fields are nearly linear
-springs along the motions, their activations co-contract, and any co-activation adds
-stiffness and damping (ζK) about the path — the fields' feedback that open-loop torque
-matching lacks.
+with unit directions u_i that positively span ℝⁿ (``SHAPES``: ``cross``, u = ±e_k,
+M = 2n; ``simplex``, the n + 1 vertices of a regular simplex, the fewest that can).
+Where a field's Gaussian is ≈ 1 it is the spring K(η_i − ν), and the fields' sum is
+
+    Σ_i w_i K(η_i − ν) = K [ W (ν̄ − ν) + r Σ_i w_i u_i ],     W = Σ_i w_i ≥ 0:
+
+the second term points any way, but the first, a co-contraction stiffness W pulling
+towards ν̄, comes with it. Every torque at ν is a non-negative combination of the fields
+exactly when ν lies inside their centres' hull, ν̄ + r·conv(u) (the origin must lie inside
+the hull of the vectors η_i − ν): for ``cross`` the ℓ1 ball ‖ν − ν̄‖₁ < r — not the box
+|ν − ν̄|∞ < r — and for ``simplex`` the simplex, whose inscribed ball has radius r/n.
+:func:`reach` is the radius a posture needs (the polytope's gauge). Near the boundary W
+must grow without bound; well inside it, r ≫ reach, W (ν̄ − ν) is small beside what the
+weights must drive, so a larger radius fits the torques better (measured on 14 recorded
+windows: docs/mocap.md), and any co-activation beyond it adds stiffness and ζK damping
+about the path, the feedback that open-loop torque matching lacks. The weights — step,
+pulse and P sub-movement windows per field — come from one exact NNLS solve, and
+multiple shooting then fits them to the paths.
+
+m̄ is the mean joint-space inertia along the motions
+(:func:`~tflearn.fit.targets.mean_inertia`), so κ is a squared frequency (1/s²) and a
+unit activation drives every coordinate at the same rate: the light wrist is not made a
+thousand times stiffer than the shoulder (which turns the simulation stiff), and each
+field's Gaussian is widest where the inertia is smallest.
 """
 from __future__ import annotations
 
+import itertools
+import math
 import warnings
 
 import torch
@@ -34,29 +47,63 @@ from ..fields import FieldBasis
 from .targets import Targets, mean_inertia
 
 
+def _cross(n: int) -> tuple:
+    """±e_k (2n×n) and the ℓ1 ball's 2ⁿ facets s/1, s ∈ {±1}ⁿ."""
+    eye = torch.eye(n, dtype=torch.float64)
+    facets = torch.tensor(list(itertools.product((1.0, -1.0), repeat=n)), dtype=torch.float64)
+    return torch.cat([eye, -eye]), facets
+
+
+def _simplex(n: int) -> tuple:
+    """The n + 1 unit vertices u_i of a regular simplex ((n+1)×n: the columns of the
+    Helmert basis of 1⊥ ⊂ ℝⁿ⁺¹, scaled to unit length; Σ u_i = 0, u_i·u_j = −1/n) and
+    its facets: the one opposite u_i is u_i·x = −1/n, i.e. (−n u_i)·x ≤ 1."""
+    H = torch.zeros(n, n + 1, dtype=torch.float64)
+    for k in range(1, n + 1):
+        H[k - 1, :k] = 1.0
+        H[k - 1, k] = -float(k)
+        H[k - 1] /= math.sqrt(k * (k + 1))
+    u = H.T / math.sqrt(n / (n + 1))
+    return u, -n * u
+
+
+#: Layout shapes: name → n → (unit directions u (M×n), facets A (F×n) of conv(u) = {x: A x ≤ 1}).
+SHAPES = {"cross": _cross, "simplex": _simplex}
+
+
+def reach(shape: str, x: torch.Tensor) -> torch.Tensor:
+    """The radius r that a displacement x = ν − ν̄ (...×n) needs to lie in the layout's
+    hull r·conv(u): the gauge max(0, maxⱼ Aⱼ·x) (``cross``: ‖x‖₁; ``simplex``:
+    max_i −n u_i·x). Every torque is a non-negative combination of the fields at ν
+    where it is below r (module docstring)."""
+    _, facets = SHAPES[shape](x.shape[-1])
+    return (x @ facets.T).amax(-1).clamp_min(0)
+
+
 def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float = 2.0,
-                   stiffness: float = 1.0) -> FieldBasis:
-    """2n fields like ``template`` (its kind must hold a diagonal K: not ``scalar``; its
-    damping ratio is kept) at ν̄ ± ``radius`` e_k, K = ``stiffness`` · diag(m̄), ν̄ and m̄
-    the mean posture and mean inertia over every real sample of the motions in ``tg``
-    (module docstring). Warns when a motion leaves the box |ν − ν̄|∞ < ``radius``, where
-    the fields no longer push every way."""
+                   stiffness: float = 1.0, shape: str = "cross") -> FieldBasis:
+    """The fields of ``SHAPES[shape]`` like ``template`` (its kind must hold a diagonal K:
+    not ``scalar``; its damping ratio is kept) at ν̄ + ``radius`` u_i, K = ``stiffness`` ·
+    diag(m̄), ν̄ and m̄ the mean posture and mean inertia over every real sample of the
+    motions in ``tg`` (module docstring). Warns when a motion leaves the hull of the
+    centres (:func:`reach` ≥ ``radius``), where the fields no longer push every way."""
     if template.kind == "scalar":
         raise ValueError("spanning_basis: the layout's stiffness is per coordinate; "
                          "it needs model.stiffness diag, block or full, not scalar")
+    if shape not in SHAPES:
+        raise ValueError(f"spanning_basis: unknown shape {shape!r}; one of {sorted(SHAPES)}")
     real = tg.mask.unsqueeze(-1).to(tg.q.dtype)
     centre = (tg.q * real).sum((0, 1)) / real.sum((0, 1))                      # n
     samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)                    # N×1
     inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()      # n
-    far = ((tg.q - centre).abs().amax(-1) * tg.mask).amax(-1)               # N
+    far = (reach(shape, tg.q - centre) * tg.mask).amax(-1)                   # N
     if float(far.max()) >= radius:
         j = int(far.argmax())
-        warnings.warn(f"layout: motion {tg.names[j]} reaches {float(far[j]):.2f} rad from the "
-                      f"motions' mean posture in one coordinate, beyond the fields' radius "
-                      f"{radius:g} rad, where they cannot push every way: raise "
-                      f"solver.layout.radius", stacklevel=2)
+        warnings.warn(f"layout: motion {tg.names[j]} leaves the {shape} of the fields' centres "
+                      f"(it needs a radius of {float(far[j]):.2f} rad about the motions' mean "
+                      f"posture, the layout has {radius:g}), where they cannot push every way: "
+                      f"raise solver.layout.radius", stacklevel=2)
+    u, _ = SHAPES[shape](centre.shape[0])
     n = centre.shape[0]
-    eye = torch.eye(n, dtype=torch.float64)
-    eta = torch.cat([centre + radius * eye, centre - radius * eye])
-    K = (stiffness * torch.diag(inertia)).expand(2 * n, n, n).clone()
-    return template.like(eta, K)
+    K = (stiffness * torch.diag(inertia)).expand(len(u), n, n).clone()
+    return template.like(centre + radius * u, K)
