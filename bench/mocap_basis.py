@@ -90,6 +90,9 @@ def prepare_windows(args) -> tuple:
     files = sorted(args.mocap.glob("*.bvh"))
     if args.clips:
         files = [f for f in files if any(c in f.stem for c in args.clips)]
+    if not files:
+        sys.exit(f"{args.mocap}: no .bvh clips" + (f" matching {args.clips}" if args.clips else "")
+                 + " (--mocap DIR or $TFLEARN_MOCAP names the mocap folder)")
     frames = []
     for f in files:
         skel = bvh.read(f)

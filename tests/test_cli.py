@@ -326,3 +326,12 @@ def test_bvh_import_and_export(mocap, tmp_path, capsys):
     assert cli.main(["bvh", "import", str(bad), "--out", str(tmp_path / "none"), "--strict"]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"tflearn: {bad}: truncated") and len(err.strip().splitlines()) == 1
+    for folder, extra in (("one", []), ("win", ["--window", "0.5", "1"])):   # the clip alone: its own chart
+        assert cli.main(["bvh", "import", str(clips[0]), "--out", str(tmp_path / folder), "--rate", "60",
+                         *extra]) == 0
+    one, cut = (np.load(tmp_path / f / f"{clips[0].stem}.npz") for f in ("one", "win"))
+    assert len(cut["t"]) == 31 and cut["t"][-1] == pytest.approx(0.5, abs=1e-12)
+    np.testing.assert_allclose(cut["q"], one["q"][30:61], atol=1e-12, rtol=0)
+    win = tmp_path / "win"
+    assert cli.main(["bvh", "import", str(clips[0]), "--out", str(win), "--window", "1", "0.5"]) == 2
+    assert "--window is START STOP with 0 ≤ START < STOP" in capsys.readouterr().err

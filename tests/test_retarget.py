@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from tflearn import bvh
@@ -112,6 +113,10 @@ def test_missing_joint_and_folder(tmp_path):
     assert len(msgs) == 2 and str(bad) in msgs[0] and "c_truncated.bvh: line" in msgs[1]
     with pytest.raises(bvh.BVHError, match="b_noarm.bvh: no built-in arm map"):
         rt.read_clips([tmp_path], "right", strict=True)
+    from tflearn import mocap
+    from tflearn.errors import InputError
+    with pytest.raises(InputError, match="out: no clips to import"):
+        mocap.import_frames([], tmp_path / "out")
 
 
 CLIPS = ["dataset-1_guide_normal_001", "dataset-2_raise-up-right-hand_normal_001"]
@@ -206,3 +211,36 @@ def test_configured_map(tmp_path):
         rt.map_from_dict({**doc, "up": [1, 0]}, "map.yaml")
     with pytest.raises(bvh.BVHError, match="map.yaml: an arm map needs the keys"):
         rt.map_from_dict({**doc, "elbo": "x"}, "map.yaml")
+
+
+def test_train_data_names_bvh(mocap, tmp_path):
+    """``data:`` naming a BVH clip: the run imports it into OUT/imported with the bvh
+    section's options, trains on the folder written and takes the performer's body. The
+    window [0.5, 1.25] s at 50 Hz is the whole clip's import cut there (38 samples,
+    coordinates equal to 1e-12, times from 0), and the torso's frames cover it; a window longer than every
+    clip, a config mixing clips and motions, and a replaced body are reported."""
+    from tflearn import config, motion, train
+    from tflearn import mocap as mocap_mod
+    from tflearn.errors import InputError
+    clip = mocap / "dataset-2_wave-right-hand_normal_001.bvh"
+    base = [f"data={clip}", f"out={tmp_path / 'run'}", "bvh.rate=50"]
+    run = train.Run(config.load(None, base + ["bvh.window=[0.5,1.25]"]))
+    folder = tmp_path / "run" / "imported"
+    assert run.cfg.data == str(folder) and run.imported["clips"][0]["window_s"] == [0.5, 1.25]
+    whole = mocap_mod.import_clips([clip], tmp_path / "whole", mocap_mod.ImportOptions(rate=50))
+    assert run.cfg.body == whole["body"] == run.imported["body"]
+    got = motion.load(folder / "dataset-2_wave-right-hand_normal_001.npz", run.body)
+    want = motion.load(tmp_path / "whole" / "dataset-2_wave-right-hand_normal_001.npz", run.body)
+    assert got.T == 38 and float(got.t[0]) == 0.0 and abs(float(got.t[-1]) - 0.74) < 1e-12
+    assert torch.allclose(got.q, want.q[25:63], atol=1e-12, rtol=0)
+    torso = np.load(folder / "torso" / "dataset-2_wave-right-hand_normal_001.npz")
+    assert -1 / 30 < torso["t"][0] <= 0.0 and 0.74 <= torso["t"][-1] < 0.74 + 1 / 30
+    with pytest.warns(rt.BVHWarning, match="window \\[0.0, 100.0\\] s ends after the clip"):
+        with pytest.raises(InputError, match="no clip is as long as the window"):
+            train.Run(config.load(None, base + ["bvh.window=[0,100]"]))
+    with pytest.raises(InputError, match="ends after the clip"):
+        train.Run(config.load(None, base + ["bvh.window=[0,100]", "strict=true"]))
+    with pytest.raises(InputError, match="names BVH clips and motion files together"):
+        train.Run(config.load(None, [f"data=[{clip}, {folder}/x.npz]", f"out={tmp_path}"]))
+    with pytest.warns(UserWarning, match="config's body: section is replaced"):
+        train.Run(config.load(None, base + ["body.lengths=[0.3,0.3,0.1]"]))

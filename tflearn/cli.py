@@ -226,6 +226,14 @@ def _modes(args) -> int:
     return 0
 
 
+def _window(w) -> tuple | None:
+    """``--window START STOP`` checked (0 ≤ start < stop), or None."""
+    from .errors import InputError
+    if w is not None and not 0 <= w[0] < w[1]:
+        raise InputError(f"--window is START STOP with 0 ≤ START < STOP (seconds), got {w[0]:g} {w[1]:g}")
+    return None if w is None else tuple(w)
+
+
 def _bvh_import(args) -> int:
     from . import mocap
     amap = None
@@ -234,7 +242,8 @@ def _bvh_import(args) -> int:
         from .retarget import map_from_dict
         amap = map_from_dict(read(args.map), str(args.map))
     opts = mocap.ImportOptions(side=args.arm, mirror=args.mirror, rate=args.rate, fps=args.fps,
-                               gravity=args.gravity, strict=args.strict, amap=amap)
+                               gravity=args.gravity, strict=args.strict, amap=amap,
+                               window=_window(args.window))
     if not args.out.exists():
         print(f"created {args.out}")
     report = mocap.import_clips(args.clips, args.out, opts)
@@ -286,6 +295,8 @@ def _bvh_args(sub) -> None:
     p.add_argument("--fps", type=float, default=None, help="the clips' true frame rate (default: header)")
     p.add_argument("--gravity", action="store_true", help="give the body gravity (default: none)")
     p.add_argument("--strict", action="store_true", help="stop at a bad file instead of skipping it")
+    p.add_argument("--window", type=float, nargs=2, default=None, metavar=("START", "STOP"),
+                   help="keep only this part of every clip (seconds; default: all of it)")
     p.add_argument("--map", type=Path, default=None,
                    help="YAML arm map for another skeleton: chest, shoulder, elbow, wrist, up, left, hinge")
     p.set_defaults(func=_bvh_import)

@@ -60,7 +60,10 @@ class ImportOptions:
     is wrong (None: the header's); gravity: the body has gravity (else the thesis'
     gravity-free world); strict: stop at the first bad file (else skip it with a
     warning); cutoffs: low-pass cutoffs (Hz) tried, highest first; amap: the arm map
-    for a skeleton without a built-in one (:class:`tflearn.retarget.ArmMap`).
+    for a skeleton without a built-in one (:class:`tflearn.retarget.ArmMap`); window:
+    (start, stop) in seconds, the part of every clip kept (the arm's samples within it,
+    times then from the first of them, and the torso's frames covering those; a clip
+    shorter than stop is refused like a bad file), None: all of it.
     """
 
     side: str = "right"
@@ -71,6 +74,7 @@ class ImportOptions:
     strict: bool = False
     cutoffs: tuple = (12.0, 10.0, 8.0, 6.0, 5.0, 4.0, 3.0, 2.0)
     amap: Optional[rt.ArmMap] = None
+    window: Optional[tuple] = None
 
 
 def _filtered(q: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
@@ -140,6 +144,8 @@ def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -
     """:func:`import_clips` of clips already read (:class:`tflearn.retarget.ArmFrames`,
     of any sides and mirrors: one shoulder chart and one body for all)."""
     from .body import from_config
+    if not frames:
+        raise InputError(f"{out}: no clips to import")
     names = [f.skeleton.name + ("_mirrored" if f.mirror else "") for f in frames]
     if len(set(names)) != len(names):
         raise InputError(f"{out}: two clips have the same name ({sorted(names)})")
@@ -151,13 +157,18 @@ def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -
     clips = []
     for r in rt.retarget_all(frames, zero):
         m = motion_mod.Motion(r.motion.name, r.motion.t, r.motion.q, None, body)
+        if not _window_fits(m, options):
+            continue
         sm, filt = smooth(m, options.cutoffs)
-        final = motion_mod.resample(sm, options.rate)
+        final, span = _cut(motion_mod.resample(sm, options.rate), options.window)
         motion_mod.save(final, out / f"{m.name}.npz")
-        base = _save_torso(r.frames, out / "torso" / f"{m.name}.npz", filt["cutoff_hz"])
+        base = _save_torso(r.frames, out / "torso" / f"{m.name}.npz", filt["cutoff_hz"], span)
         r.report["torso"]["torque_share"] = torso_torque_share(body, final, base)
         clips.append({**r.report, "filter": filt, "rate_hz": options.rate,
+                      "window_s": None if options.window is None else list(options.window),
                       "file": f"{m.name}.npz"})
+    if not clips:
+        raise InputError(f"{out}: no clip is as long as the window {list(options.window)} s")
     side = ", ".join(sorted({("mirrored " if f.mirror else "") + f.side for f in frames}))
     write_text(out / "body.yaml",
                f"# The performer's arm ({side}) from {len(frames)} BVH clip(s): mean bone lengths (m),\n"
@@ -169,6 +180,77 @@ def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -
     return report
 
 
+def bvh_paths(data) -> list:
+    """The BVH clips a train config's ``data`` names: .bvh files and folders holding
+    .bvh files (as :class:`~pathlib.Path`); [] when it names none. Raises
+    :class:`InputError` when it mixes them with motion files, or a folder holds both."""
+    items = [data] if isinstance(data, (str, Path)) else list(data)
+    if [str(x) for x in items] == ["gestures"]:
+        return []
+    paths = [Path(x) for x in items]
+    clips = []
+    for p in paths:
+        if p.is_dir() and any(p.glob("*.bvh")):
+            if any(p.glob("*.npz")):
+                raise InputError(f"{p}: holds both BVH clips and .npz motions; "
+                                 f"name the clips or the motions, not the folder")
+            clips.append(p)
+        elif p.suffix.lower() == ".bvh":
+            clips.append(p)
+    if clips and len(clips) != len(paths):
+        others = [str(p) for p in paths if p not in clips]
+        raise InputError(f"data: names BVH clips and motion files together ({', '.join(others)}); "
+                         f"import the clips first (tflearn bvh import) or name only clips")
+    return clips
+
+
+def import_config(cfg):
+    """A train config (:class:`tflearn.config.Config`) whose ``data`` names BVH clips
+    (:func:`bvh_paths`), with the clips imported (:func:`import_clips`, the config's
+    ``bvh`` options and ``strict``) into OUT/imported: returned with ``data`` that folder
+    and ``body`` the performer's arm from the import. A config whose own ``body`` is not
+    the default arm is warned about, naming the section replaced; a config naming no
+    clips is returned as it is. Returns (config, import report or None)."""
+    import warnings
+    clips = bvh_paths(cfg.data)
+    if not clips:
+        return cfg, None
+    b = cfg.bvh
+    out = Path(cfg.out) / "imported"
+    report = import_clips(clips, out, ImportOptions(
+        side=b.arm, mirror=b.mirror, rate=b.rate, strict=cfg.strict,
+        window=None if b.window is None else tuple(b.window)))
+    if cfg.body not in ({"preset": "arm"}, report["body"]):
+        warnings.warn(f"{cfg.out}: the config's body: section is replaced by the performer's arm "
+                      f"imported from the BVH clips ({out / 'body.yaml'})", stacklevel=2)
+    return cfg.replace(data=str(out), body=report["body"]), report
+
+
+def _window_fits(m: motion_mod.Motion, options: ImportOptions) -> bool:
+    """Whether clip ``m`` covers ``options.window``; if not, raises :class:`InputError`
+    naming it (``strict``) or warns and returns False."""
+    if options.window is None or options.window[1] <= float(m.t[-1]) + 1e-9:
+        return True
+    msg = (f"{m.name}: the window {list(options.window)} s ends after the clip "
+           f"({float(m.t[-1]):.2f} s long)")
+    if options.strict:
+        raise InputError(msg)
+    import warnings
+    warnings.warn(msg + "; skipped", rt.BVHWarning, stacklevel=3)
+    return False
+
+
+def _cut(m: motion_mod.Motion, window: Optional[tuple]) -> tuple:
+    """(the samples of ``m`` with start ≤ t ≤ stop, times from the first of them; the
+    clip times (first, last) kept); ``window`` None: (``m``, None)."""
+    if window is None:
+        return m, None
+    keep = (m.t >= window[0] - 1e-9) & (m.t <= window[1] + 1e-9)
+    t = m.t[keep]
+    span = (float(t[0]), float(t[-1]))
+    return motion_mod.Motion(m.name, t - t[0], m.q[keep], m.qd[keep], m.body), span
+
+
 def _with_fps(skel: bvh.Skeleton, fps: float) -> bvh.Skeleton:
     from dataclasses import replace
     if not fps > 0:
@@ -176,10 +258,12 @@ def _with_fps(skel: bvh.Skeleton, fps: float) -> bvh.Skeleton:
     return replace(skel, frame_time=1.0 / fps)
 
 
-def _save_torso(frames: rt.ArmFrames, path: Path, cutoff: Optional[float]) -> BaseMotion:
+def _save_torso(frames: rt.ArmFrames, path: Path, cutoff: Optional[float],
+                span: Optional[tuple] = None) -> BaseMotion:
     """Write the base frame in the z-up model world (BVH world rotated by Pᵀ), low-passed
     like the arm (``cutoff`` Hz; positions and sign-aligned quaternions, renormalised);
-    return it."""
+    with ``span`` (the clip times (first, last) of a windowed arm motion) only the frames
+    covering it, one frame beyond each end, times from its first; return it."""
     from .io.files import replacing
     fps = 1.0 / frames.skeleton.frame_time
     t = np.arange(frames.skeleton.frames) / fps
@@ -191,6 +275,9 @@ def _save_torso(frames: rt.ArmFrames, path: Path, cutoff: Optional[float]) -> Ba
         quat = np.ascontiguousarray(filtfilt(b, a, quat, axis=0))
         R = roma.unitquat_to_rotmat(roma.quat_normalize(torch.from_numpy(quat))).numpy()
         x = np.ascontiguousarray(filtfilt(b, a, x, axis=0))
+    if span is not None:
+        keep = (t >= span[0] - 1.0 / fps) & (t <= span[1] + 1.0 / fps)
+        t, R, x = t[keep] - span[0], R[keep], x[keep]
     with replacing(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, t=t, R=R, x=x)
     return BaseMotion(t, R, x)
