@@ -78,6 +78,11 @@ def tflearn_row(run: Path, name: str, m) -> dict:
     from tflearn.simulate import SimOptions, SimulationFailed, simulate
     lb = basis_io.load(run / "basis.json")
     j = lb.index(name)
+    M, P = lb.basis.M, lb.weights.P
+    # per motion: a, b and the window weights c, and the windows' onsets and durations;
+    # shared: the centres and the stiffnesses' non-zero lower-triangle entries
+    shared = lb.basis.eta.numel() + int((torch.tril(lb.basis.K()) != 0).sum())
+    params = f"{M * (2 + P) + 2 * P} + {shared} shared"
     prog = FieldProgram(lb.basis, lb.weights, index=[j])
     opts = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000)      # the training's options
     try:
@@ -86,11 +91,11 @@ def tflearn_row(run: Path, name: str, m) -> dict:
                      for s in (0.0, SHIFT)]
     except SimulationFailed as err:
         nan = float("nan")
-        return {"params": f"{2 * lb.basis.M} + shared ({err.reason})", "rmse": nan, "tip": nan,
+        return {"params": f"{params} ({err.reason})", "rmse": nan, "tip": nan,
                 "shift_rms": nan, "shift_end": nan}
     rmse, tip = scores(lb.body, m.q.numpy(), paths[0])
     dev = np.linalg.norm(paths[1] - paths[0], axis=1)
-    return {"params": f"{2 * lb.basis.M} + shared", "rmse": rmse, "tip": tip,
+    return {"params": params, "rmse": rmse, "tip": tip,
             "shift_rms": float(np.sqrt((dev ** 2).mean())), "shift_end": float(dev[-1])}
 
 

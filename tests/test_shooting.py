@@ -306,3 +306,16 @@ def test_reduce_checks_trials_together_with_the_decisions_of_one_at_a_time(small
     metrics = train.run(cfg)
     assert max(sizes) > 1 and sum(sizes) >= len(metrics["history"]["reduce"])
     print("trials checked together:", sizes, metrics["history"]["reduce"])
+
+
+def test_synthesis_reports_a_stopped_shooting():
+    """Held-out synthesis whose multiple shooting cannot simulate the motion (an
+    evaluation budget of 3) warns, naming the motion and why, and keeps the NNLS weights."""
+    from tflearn import gestures
+    from tflearn.fit.torque import DivergenceWarning
+    (m, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
+    tg = targets.prepare(lb.body, [m])
+    nnls = evaluate.synthesize(lb, tg, shooting=None)
+    with pytest.warns(DivergenceWarning, match="synthesis of come_here: multiple shooting stopped: cannot be"):
+        w = evaluate.synthesize(lb, tg, shooting.ShootingOptions(iterations=2), SimOptions(max_evals=3))
+    assert torch.equal(w.vector(), nnls.vector()) and float(w.vector().detach().sum()) > 0

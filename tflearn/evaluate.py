@@ -3,6 +3,7 @@ a frozen basis, and play one motion's program from a ``basis.json``."""
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -14,7 +15,7 @@ from .data import check_resolution, load_motions
 from .fields import FieldProgram, MotionWeights
 from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
-from .fit.torque import solve_weights
+from .fit.torque import DivergenceWarning, solve_weights
 from .io import basis as basis_io
 from .io.files import write_text
 from .metrics import UNITS, pooled_rmse, score, summarize
@@ -38,7 +39,8 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     ``success[0]`` rad and hand-tip error ≤ ``success[1]`` m, as in training) then get
     their weights (and with ``shooting.phases`` their activation timing) by
     multiple-shooting path matching (:func:`tflearn.fit.shooting.shooting_match`; None:
-    NNLS only). The new motions get as many sub-movement windows as the basis' own
+    NNLS only; where it stops early, a :class:`~tflearn.fit.torque.DivergenceWarning`
+    names the motion and why). The new motions get as many sub-movement windows as the basis' own
     motions have, placed from their data (:func:`submovement_windows`)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P))
@@ -48,7 +50,10 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     ok = score(lb.body, lb.basis, weights, tg, options).succeeded(*success)
     todo = [j for j, x in enumerate(ok) if not x]
     if todo:
-        shooting_match(lb.body, lb.basis, weights, tg, options=shooting, sim=options, motions=todo)
+        res = shooting_match(lb.body, lb.basis, weights, tg, options=shooting, sim=options, motions=todo)
+        for name, why in res.failures.items():
+            warnings.warn(f"synthesis of {name}: multiple shooting stopped: {why}", DivergenceWarning,
+                          stacklevel=2)
     return weights
 
 
