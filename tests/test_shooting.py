@@ -316,6 +316,6 @@ def test_synthesis_reports_a_stopped_shooting():
     (m, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
     tg = targets.prepare(lb.body, [m])
     nnls = evaluate.synthesize(lb, tg, shooting=None)
-    with pytest.warns(DivergenceWarning, match="synthesis of come_here: multiple shooting stopped: cannot be"):
+    with pytest.warns(DivergenceWarning, match="come_here: multiple shooting stopped: cannot be"):
         w = evaluate.synthesize(lb, tg, shooting.ShootingOptions(iterations=2), SimOptions(max_evals=3))
     assert torch.equal(w.vector(), nnls.vector()) and float(w.vector().detach().sum()) > 0
