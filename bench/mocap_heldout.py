@@ -6,7 +6,7 @@ multiple shooting where that does not reproduce it). Prints per window the joint
 and the maximum hand-tip error, and writes OUT/heldout.json.
 
     PYTHONPATH=. python bench/mocap_heldout.py [--mocap DIR] [--out runs/mocap_heldout]
-        [--window 0.8] [--rate 50] [--clips TEXT...] [key=value ...]   (config overrides)
+        [--window 0.8] [--rate 50] [--clips TEXT...] [--hold TEXT...] [key=value ...]   (config overrides)
 
 A layout depends on its motions only through their mean posture and mean inertia (and
 the hull it must cover), so the other windows' own weights are not needed: the basis
@@ -53,11 +53,14 @@ def frozen_layout(cfg, body, motions) -> LearnedBasis:
 def main(argv=None) -> int:
     p = arguments(__doc__.split("\n\n")[0])
     p.set_defaults(out=ROOT / "runs" / "mocap_heldout", window=0.8, rate=50.0)
+    p.add_argument("--hold", nargs="*", default=None,
+                   help="hold out only the windows whose names contain one of these (default: each in turn)")
     p.add_argument("overrides", nargs="*")
     args = p.parse_args(argv)
-    if args.clips:          # key=value after --clips would be read as clip names
-        args.overrides += [c for c in args.clips if "=" in c]
-        args.clips = [c for c in args.clips if "=" not in c]
+    for key in ("clips", "hold"):   # key=value after --clips or --hold would be read as names
+        names = getattr(args, key) or []
+        args.overrides += [c for c in names if "=" in c]
+        setattr(args, key, [c for c in names if "=" not in c] or None)
     torch.set_num_threads(1)
     report, body, windows = prepare_windows(args)
     cfg = config.load(ROOT / "configs" / "mocap.yaml",
@@ -69,6 +72,8 @@ def main(argv=None) -> int:
     print(f"\n{'held-out window':>44s}  {'rmse (rad)':>10s}  {'tip (cm)':>8s}  reproduced  "
           f"held-out bar  wall (s)")
     for j, m in enumerate(motions):
+        if args.hold and not any(h in m.name for h in args.hold):
+            continue
         t0 = time.time()
         lb = frozen_layout(cfg, body, motions[:j] + motions[j + 1:])
         tg = prepare(body, [m], weight=cfg.solver.torque_weight)
