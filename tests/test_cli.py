@@ -334,4 +334,4 @@ def test_bvh_import_and_export(mocap, tmp_path, capsys):
     np.testing.assert_allclose(cut["q"], one["q"][30:61], atol=1e-12, rtol=0)
     win = tmp_path / "win"
     assert cli.main(["bvh", "import", str(clips[0]), "--out", str(win), "--window", "1", "0.5"]) == 2
-    assert "--window is START STOP with 0 ≤ START < STOP" in capsys.readouterr().err
+    assert "with 0 ≤ start < stop (seconds), got (1.0, 0.5)" in capsys.readouterr().err

@@ -226,14 +226,6 @@ def _modes(args) -> int:
     return 0
 
 
-def _window(w) -> tuple | None:
-    """``--window START STOP`` checked (0 ≤ start < stop), or None."""
-    from .errors import InputError
-    if w is not None and not 0 <= w[0] < w[1]:
-        raise InputError(f"--window is START STOP with 0 ≤ START < STOP (seconds), got {w[0]:g} {w[1]:g}")
-    return None if w is None else tuple(w)
-
-
 def _bvh_import(args) -> int:
     from . import mocap
     amap = None
@@ -243,7 +235,7 @@ def _bvh_import(args) -> int:
         amap = map_from_dict(read(args.map), str(args.map))
     opts = mocap.ImportOptions(side=args.arm, mirror=args.mirror, rate=args.rate, fps=args.fps,
                                gravity=args.gravity, strict=args.strict, amap=amap,
-                               window=_window(args.window))
+                               window=None if args.window is None else tuple(args.window))
     if not args.out.exists():
         print(f"created {args.out}")
     report = mocap.import_clips(args.clips, args.out, opts)

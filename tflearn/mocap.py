@@ -76,6 +76,11 @@ class ImportOptions:
     amap: Optional[rt.ArmMap] = None
     window: Optional[tuple] = None
 
+    def __post_init__(self):
+        w = self.window
+        if w is not None and not (len(w) == 2 and 0 <= w[0] < w[1]):
+            raise InputError(f"a window is (start, stop) with 0 ≤ start < stop (seconds), got {tuple(w)}")
+
 
 def _filtered(q: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
     """Zero-phase low-pass of arm coordinates (T×7): rotation vectors unwrapped first."""
