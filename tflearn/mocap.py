@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -216,7 +217,6 @@ def import_config(cfg):
     and ``body`` the performer's arm from the import. A config whose own ``body`` is not
     the default arm is warned about, naming the section replaced; a config naming no
     clips is returned as it is. Returns (config, import report or None)."""
-    import warnings
     clips = bvh_paths(cfg.data)
     if not clips:
         return cfg, None
@@ -240,7 +240,6 @@ def _window_fits(m: motion_mod.Motion, options: ImportOptions) -> bool:
            f"({float(m.t[-1]):.2f} s long)")
     if options.strict:
         raise InputError(msg)
-    import warnings
     warnings.warn(msg + "; skipped", rt.BVHWarning, stacklevel=3)
     return False
 
