@@ -27,12 +27,10 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from mocap_basis import arguments, prepare_windows  # noqa: E402
 
-from tflearn import config  # noqa: E402
+from tflearn import config, train  # noqa: E402
 from tflearn import motion as motion_mod  # noqa: E402
 from tflearn.evaluate import synthesize  # noqa: E402
-from tflearn.fields import FieldBasis, MotionWeights  # noqa: E402
-from tflearn.fit import layout  # noqa: E402
-from tflearn.fit.targets import prepare, submovement_windows  # noqa: E402
+from tflearn.fit.targets import prepare  # noqa: E402
 from tflearn.io.basis import LearnedBasis  # noqa: E402
 from tflearn.metrics import score  # noqa: E402
 
@@ -41,12 +39,10 @@ HELD_OUT = (0.08, 0.05)
 
 
 def frozen_layout(cfg, body, motions) -> LearnedBasis:
-    """The config's spanning layout over ``motions`` with zero weights on its windows."""
+    """The config's spanning layout over ``motions`` (training's layout stage,
+    :func:`tflearn.train.layout_model`) with zero weights on its windows."""
     tg = prepare(body, motions, weight=cfg.solver.torque_weight)
-    m, c = cfg.model, cfg.solver.layout
-    template = FieldBasis.empty(body.nv, m.stiffness, body.blocks, m.field_damping)
-    basis = layout.spanning_basis(body, tg, template, c.radius, c.stiffness, c.shape)
-    weights = MotionWeights.zeros(basis.M, tg.duration, tg.names, submovement_windows(tg, m.windows))
+    basis, weights = train.layout_model(cfg, body, tg)
     return LearnedBasis(body, basis, weights, tg.q0, tg.qd0, tg.rate)
 
 

@@ -195,8 +195,7 @@ class Run:
 
     def template(self) -> FieldBasis:
         """An empty basis of the configured kind and field damping on the body's blocks."""
-        m = self.cfg.model
-        return FieldBasis.empty(self.body.nv, m.stiffness, self.body.blocks, m.field_damping)
+        return empty_basis(self.cfg, self.body)
 
     # ---- checkpoints
     def save(self, state: RunState):
@@ -570,11 +569,8 @@ class Run:
     def _layout(self, state: RunState, tg: Targets):
         """The spanning basis (:func:`tflearn.fit.layout.spanning_basis`), each motion's
         weights on its P windows by NNLS, the model scored by simulation."""
-        c = self.cfg.solver.layout
         self.log.stage("layout", 1)
-        basis = layout.spanning_basis(self.body, tg, self.template(), c.radius, c.stiffness, c.shape)
-        weights = MotionWeights.zeros(basis.M, tg.duration, tg.names,
-                                      submovement_windows(tg, self.cfg.model.windows))
+        basis, weights = layout_model(self.cfg, self.body, tg)
         cost = float(torque.solve_weights(basis, weights, tg).sum())
         _, ok = self._adopt(state, tg, "layout", basis, weights, cost)
         self.log.status(M=basis.M, cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
@@ -650,6 +646,22 @@ def write_figures(body, tg: Targets, scores: Scores, out: Path) -> None:
                                       title=f"{name}: rmse {scores.rmse[j]:.4f} rad, "
                                             f"tip {100 * scores.tip[j]:.2f} cm"),
                    fig_dir / f"{name}.png")
+
+
+def empty_basis(cfg: Config, body) -> FieldBasis:
+    """An empty basis of the config's stiffness kind and field damping on the body's blocks."""
+    m = cfg.model
+    return FieldBasis.empty(body.nv, m.stiffness, body.blocks, m.field_damping)
+
+
+def layout_model(cfg: Config, body, tg: Targets) -> tuple:
+    """The ``layout`` stage's model before NNLS: the config's spanning basis
+    (:func:`tflearn.fit.layout.spanning_basis`, ``solver.layout``) around the motions of
+    ``tg``, and zero weights on each motion's ``model.windows`` sub-movement windows."""
+    c = cfg.solver.layout
+    basis = layout.spanning_basis(body, tg, empty_basis(cfg, body), c.radius, c.stiffness, c.shape)
+    return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names,
+                                      submovement_windows(tg, cfg.model.windows))
 
 
 def run(cfg: Config, restart: bool = False, stop_after: int | None = None,
