@@ -428,6 +428,44 @@ def test_elimination_keeps_every_motion_as_good():
                               failed, [True, False])
 
 
+def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
+    """Elimination with the other fields held (:meth:`train.Run._held_trial`) on come_here
+    and tuck with two extra fields — one no motion uses, one a copy of come_here's field
+    sharing its step weight (1.5 + 1.5): the unused field goes without a simulation and
+    leaves every weight as it was; the copy goes, come_here's weights re-solved (its own
+    field takes the whole step, 3) and tuck's untouched bit for bit; tuck's only field
+    stays (without it tuck is not reproduced)."""
+    programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
+    (m0, lb), (m1, _) = gestures.generate(gestures=programs)
+    body = lb.body
+    lib, w0, _ = gestures.library_model(programs, body)            # fields: come_here's, tuck's
+    eta = torch.cat([lib.eta.detach(), torch.full((1, 7), 1.0, dtype=DT), lib.eta.detach()[:1]])
+    K = lib.K().detach()
+    basis = FieldBasis(eta, torch.cat([K, K[:1], K[:1]]), kind="diag")
+    a = torch.tensor([[1.5, 0.0, 0.0, 1.5], [0.0, 2.0, 0.0, 0.0]], dtype=DT)
+    weights = MotionWeights(a, torch.zeros_like(a), w0.duration, names=["come_here", "tuck"])
+    tg = targets.prepare(body, [m0, m1])
+    run = train.Run(small_config("gestures", tmp_path / "run"))
+    scores, ok = run._check(basis, weights, tg)
+    assert ok == [True, True]
+    state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(),
+                           reference=train._reference(scores, ok), ids=[0, 1, 2, 3])
+    unused = run._held_trial(basis, weights, tg, state, 2)
+    assert unused["motions"] == [] and unused["check"] is None and run._accepts(state, unused)
+    assert torch.equal(unused["model"][1].a, a[:, [0, 1, 3]])
+    copy = run._held_trial(basis, weights, tg, state, 3)
+    a_new, b_new = (x.detach() for x in (copy["model"][1].a, copy["model"][1].b))
+    assert copy["motions"] == [0] and run._accepts(state, copy)
+    print("come_here's weights after the copy went:", a_new[0].tolist(), b_new[0].tolist())
+    assert float(a_new[0, 0]) == pytest.approx(3.0, abs=1e-4)   # measured: 2.4e-6 on the unused field
+    assert float(a_new[0, 1:].abs().max()) < 1e-4 and float(b_new[0].abs().max()) < 1e-4
+    assert torch.equal(a_new[1], a[1, :3]) and torch.equal(b_new[1], torch.zeros(3, dtype=DT))
+    assert copy["check"][0].rmse[0] < 1e-4
+    alone = run._held_trial(basis, weights, tg, state, 1)
+    assert alone["motions"] == [1] and not run._accepts(state, alone)
+    assert alone["check"][0].rmse[0] > 0.03
+
+
 def test_training_warns_of_an_unresolved_motion():
     """A wrist twisting at 25 Hz sampled at 100 Hz (4 samples per period) is named in a
     warning; the same twist at 1 Hz is not."""

@@ -104,6 +104,13 @@ class PoolSection(Section):
     sharing: Literal["joint", "own"] = "joint"
 
 
+class ReduceSection(Section):                   # backward elimination of pooled fields
+    # true: each field's removal tried first with every field refitted by EM (one EM of
+    # the whole model per field), then with the others held; false: held only (only the
+    # motions that used the field are re-solved and simulated: for many motions)
+    refit: bool = True
+
+
 class MergeSection(Section):                    # merge pooled fields that nearly coincide
     distance: float = Field(0.05, ge=0)          # centres closer than this (rad)
     stiffness: float = Field(0.05, ge=0)         # and stiffnesses within this fraction
@@ -136,6 +143,7 @@ class SolverSection(Section):
     shooting: ShootingSection = ShootingSection()
     pool: PoolSection = PoolSection()
     merge: MergeSection = MergeSection()
+    reduce: ReduceSection = ReduceSection()
     slsqp: SlsqpSection = SlsqpSection()
     layout: LayoutSection = LayoutSection()
 

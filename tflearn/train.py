@@ -144,7 +144,7 @@ def no_worse(reference: dict, scores: Scores, ok: list) -> bool:
 
 
 def _reference(scores: Scores, ok: list) -> dict:
-    return {"rmse": scores.rmse, "tip": scores.tip, "ok": ok}
+    return {"rmse": list(scores.rmse), "tip": list(scores.tip), "ok": list(ok)}
 
 
 def _weight_support(fields: Optional[list], P: int) -> Optional[torch.Tensor]:
@@ -409,13 +409,17 @@ class Run:
 
     def _reduce(self, state: RunState, tg: Targets):
         """Backward elimination. With model.fields = 0 a field goes only if no motion gets
-        worse (:func:`no_worse`); with model.fields = M the smallest-share fields go
-        until M remain. With ``solver.path.batch: each`` (one process) the next trials
-        are checked together in one simulation (:func:`~tflearn.metrics.score_models`) and
-        applied in order up to the first removal, the rest dropped: the same decisions as
-        one at a time, since each motion's simulation is then independent of its batch;
-        the window doubles after trials that all keep their field, and starts again at one
-        after a removal."""
+        worse (:func:`no_worse`): first with every field refitted by EM (:meth:`_trial`;
+        ``solver.reduce.refit``), then, if that breaks a motion or refitting is off, with
+        every other field held where it is (:meth:`_held_trial`: only the motions that
+        used it re-solve their weights and are simulated again); with model.fields = M
+        the smallest-share fields go until M remain (refitted). With
+        ``solver.path.batch: each`` (one process) the refitted trials of the next fields
+        are checked together in one simulation
+        (:func:`~tflearn.metrics.score_models`) and applied in order up to the first
+        removal, the rest dropped: the same decisions as one at a time, since each
+        motion's simulation is then independent of its batch; the window doubles after
+        trials that all keep their field, and starts again at one after a removal."""
         fixed = self.cfg.model.fields
         basis, weights = model_from_state(state.model)
         if state.order is None:
@@ -431,16 +435,47 @@ class Run:
         if basis.M <= floor or k >= len(state.order):
             self.log.end_stage()
             return self._advance(state)
-        together = not fixed and self.options.batch == "each" and parallel.size() == 1
+        refit = fixed or self.cfg.solver.reduce.refit
+        together = refit and not fixed and self.options.batch == "each" and parallel.size() == 1
         window = self._window if together else 1
-        trials = [self._trial(basis, weights, tg, state, victim)
-                  for victim in state.order[k:total(basis.M)][:window]]
-        checks = self._checks([t["model"] for t in trials], tg) if not fixed else [None] * len(trials)
-        for trial, check in zip(trials, checks):
-            if self._apply_trial(state, trial, check, tg, total):
+        victims = state.order[k:total(basis.M)][:window]
+        trials = [self._trial(basis, weights, tg, state, victim) for victim in victims] if refit else []
+        checks = ([None] * len(trials) if fixed or not trials
+                  else self._checks([t["model"] for t in trials], tg))
+        for i, victim in enumerate(victims):         # each field: refitted, else held
+            trial = {**trials[i], "check": checks[i]} if refit else None
+            if not (refit and self._accepts(state, trial)) and not fixed:
+                held = self._held_trial(basis, weights, tg, state, victim)
+                trial = held if self._accepts(state, held) or not refit else trial
+            if self._apply_trial(state, trial, tg, total):
                 self._window = 1
                 return
         self._window = 2 * window
+
+    def _held_trial(self, basis, weights, tg: Targets, state: RunState, victim: int) -> dict:
+        """The basis without field ``victim``, every other field held: the motions with a
+        weight on it (a, b or c) get their weights re-solved by NNLS over the fields left
+        and are checked by simulation; the others keep their weights, paths and scores."""
+        pos = state.ids.index(victim)
+        keep = [i for i in range(basis.M) if i != pos]
+        nb, nw = basis.select(keep), weights.select_fields(keep)
+        support = self._support_without(state, pos, keep)
+        with torch.no_grad():
+            used = weights.a[:, pos] + weights.b[:, pos] + weights.c[:, pos].sum(-1)
+        users = [j for j in range(tg.N) if float(used[j]) > 0]
+        self.log.busy(M=basis.M, holding=victim, motions=len(users))
+        check = None
+        if users:
+            sub, one = nw.select_motions(users), tg.select(users)
+            torque.solve_weights(nb, sub, one, None if support is None else
+                                 _weight_support([support[j] for j in users], nw.P))
+            keys = ("a_raw", "b_raw", "c_raw")
+            nw.set_flat(keys, sub.flat(keys), users)
+            check = self._check(nb, sub, one)
+        with torch.no_grad():
+            cost = float(torque.torque_cost(nb, nw, tg).sum())
+        return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support, "cost": cost,
+                "em_steps": 0, "check": check, "motions": users, "trial": "held"}
 
     def _trial(self, basis, weights, tg: Targets, state: RunState, victim: int) -> dict:
         """The basis without field ``victim``, refitted by EM (its EM steps counted, to
@@ -448,13 +483,20 @@ class Run:
         pos = state.ids.index(victim)
         keep = [i for i in range(basis.M) if i != pos]
         nb, nw = basis.select(keep), weights.select_fields(keep)
-        support = None if state.support is None else [        # who lost a field may use any
-            [True] * len(keep) if row[pos] else [row[i] for i in keep] for row in state.support]
+        support = self._support_without(state, pos, keep)
         self.log.busy(M=basis.M, trying=victim)
         steps = SimpleNamespace(step=0)          # _em ticks it; the run's step when applied
         cost = self._em(nb, nw, tg, steps, support=support)[-1]
         return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support,
-                "cost": cost, "em_steps": steps.step}
+                "cost": cost, "em_steps": steps.step, "motions": list(range(tg.N)), "trial": "refit"}
+
+    @staticmethod
+    def _support_without(state: RunState, pos: int, keep: list) -> Optional[list]:
+        """The fields each motion may use once field ``pos`` is gone (``keep`` left):
+        a motion that lost it may use any."""
+        if state.support is None:
+            return None
+        return [[True] * len(keep) if row[pos] else [row[i] for i in keep] for row in state.support]
 
     def _checks(self, models: list, tg: Targets) -> list:
         """(scores, success) of each model: one batch for several, else :meth:`_check`."""
@@ -463,14 +505,23 @@ class Run:
         return [(s, s.succeeded(self.cfg.success.rmse, self.cfg.success.tip))
                 for s in score_models(self.body, models, tg, self.options)]
 
-    def _apply_trial(self, state: RunState, trial: dict, check, tg: Targets, total) -> bool:
-        """Decide a trial (accepted without a check at a fixed M), log it, record it and
-        save; whether the field was removed."""
+    @staticmethod
+    def _accepts(state: RunState, trial: dict) -> bool:
+        """Whether a trial's check keeps every motion it simulated (``trial["motions"]``)
+        no worse than the reference; a trial without a check (a fixed M, or a field no
+        motion used) is accepted."""
+        if trial["check"] is None:
+            return True
+        ref = {k: [state.reference[k][j] for j in trial["motions"]] for k in ("rmse", "tip", "ok")}
+        return no_worse(ref, *trial["check"])
+
+    def _apply_trial(self, state: RunState, trial: dict, tg: Targets, total) -> bool:
+        """Decide a trial, log it, record it and save; whether the field was removed."""
         state.step += trial["em_steps"]
         state.cursor += 1
-        accept = check is None or no_worse(state.reference, *check)
+        accept = self._accepts(state, trial)
         nb, nw = trial["model"]
-        cost, victim = trial["cost"], trial["victim"]
+        cost, victim, check = trial["cost"], trial["victim"], trial["check"]
         step = self._tick(state)
         self.log.scalar("torque_cost/reduce", cost, step)
         self.log.scalar("reduce/removed", float(accept), step)
@@ -480,14 +531,18 @@ class Run:
             state.support = trial["support"]
             self.log.model(nb, nw, step)
             if check is not None:
-                state.reference = _reference(*check)
-                self.log.scores(check[0], tg, step)
+                scores, ok = check
+                for i, j in enumerate(trial["motions"]):
+                    for key, x in (("rmse", scores.rmse), ("tip", scores.tip), ("ok", ok)):
+                        state.reference[key][j] = x[i]
+                self.log.scores(scores, tg.select(trial["motions"]), step,
+                                overview=len(trial["motions"]) == tg.N)
             else:
                 self.log.scalar("0_overview/torque_cost", cost, step)
         self.log.status(total=total(len(state.ids)), M=len(state.ids), field=victim,
-                        removed=bool(accept), cost=cost)
+                        removed=bool(accept), trial=trial["trial"], cost=cost)
         state.history.setdefault("reduce", []).append(
-            {"field": victim, "removed": bool(accept), "M_after": len(state.ids)})
+            {"field": victim, "removed": bool(accept), "trial": trial["trial"], "M_after": len(state.ids)})
         self.save(state)
         return accept
 
