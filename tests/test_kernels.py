@@ -118,6 +118,26 @@ def test_joint_rotations_are_read_as_given(rng):
     assert np.isfinite(fast.numpy()).all()
 
 
+def test_compiled_rotations_from_rotation_vectors_equal_torchs(rng):
+    """The kernels' exp([v]×) (what forward_dynamics and rnea hand them: rotation vectors)
+    against configspace.rotvec_to_rotmat to the last bit or so: at zero, at tiny angles,
+    on both sides of the switch to sinc's series (θ = 4ε^⅙), near and at π, beyond."""
+    from tflearn import kernels
+    from tflearn.configspace import rotvec_to_rotmat
+    switch = 2 * kernels._SINC_SERIES
+    angles = np.concatenate([[0.0, 1e-12, 1e-8, 1e-4, 0.999 * switch, switch, 1.001 * switch,
+                              0.5, np.pi - 1e-7, np.pi, np.pi + 1e-9, 5.0],
+                             rng.uniform(0, 2 * np.pi, 100)])
+    axes = rng.normal(size=(angles.size, 3))
+    v = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None]
+    ref = rotvec_to_rotmat(torch.as_tensor(v, dtype=DT)).numpy()
+    mine = np.array([kernels._rodrigues(*x) for x in v]).reshape(-1, 3, 3)
+    assert np.abs(mine - ref).max() <= 2 * np.finfo(np.float64).eps
+    n = v[9] / np.pi                                      # at π: R = 2 n nᵀ − 1
+    assert np.abs(mine[0] - np.eye(3)).max() == 0
+    assert np.abs(mine[9] - (2 * np.outer(n, n) - np.eye(3))).max() < 1e-15
+
+
 @pytest.mark.parametrize("name", BODY_NAMES + ["free0", "free3"])
 def test_compiled_state_reading_equals_torchs(name, rng):
     """configspace.unpack and position_rate, compiled (no gradient) and in torch: the same
