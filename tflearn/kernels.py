@@ -227,16 +227,22 @@ def _cross_motion(V, i, s, out, k):
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
+def _rigid_times(inertia, i, x, j):
+    """I x[j] (6 scalars) for a rigid body's spatial inertia I = inertia[i] =
+    [[Ī, m [c]×], [m [c]×ᵀ, m 1]] and a motion x = (ω, v): (Ī ω + h × v, m v − h × ω),
+    h = m c read off I's upper-right block."""
+    m, h0, h1, h2 = inertia[i, 3, 3], inertia[i, 2, 4], inertia[i, 0, 5], inertia[i, 1, 3]
+    w0, w1, w2, v0, v1, v2 = x[j, 0], x[j, 1], x[j, 2], x[j, 3], x[j, 4], x[j, 5]
+    return (inertia[i, 0, 0] * w0 + inertia[i, 0, 1] * w1 + inertia[i, 0, 2] * w2 + h1 * v2 - h2 * v1,
+            inertia[i, 1, 0] * w0 + inertia[i, 1, 1] * w1 + inertia[i, 1, 2] * w2 + h2 * v0 - h0 * v2,
+            inertia[i, 2, 0] * w0 + inertia[i, 2, 1] * w1 + inertia[i, 2, 2] * w2 + h0 * v1 - h1 * v0,
+            m * v0 - (h1 * w2 - h2 * w1), m * v1 - (h2 * w0 - h0 * w2), m * v2 - (h0 * w1 - h1 * w0))
+
+
+@njit(cache=True, fastmath=_FAST, inline="always")
 def _bias_force(inertia, i, V, out, k):
-    """out[k] = V ×* I V = (ω × n + v × f, ω × f), (n, f) = I V, I = inertia[i]."""
-    n0 = n1 = n2 = f0 = f1 = f2 = 0.0
-    for m in range(6):
-        n0 += inertia[i, 0, m] * V[i, m]
-        n1 += inertia[i, 1, m] * V[i, m]
-        n2 += inertia[i, 2, m] * V[i, m]
-        f0 += inertia[i, 3, m] * V[i, m]
-        f1 += inertia[i, 4, m] * V[i, m]
-        f2 += inertia[i, 5, m] * V[i, m]
+    """out[k] = V ×* I V = (ω × n + v × f, ω × f), (n, f) = I V (:func:`_rigid_times`)."""
+    n0, n1, n2, f0, f1, f2 = _rigid_times(inertia, i, V, i)
     w0, w1, w2, v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2], V[i, 3], V[i, 4], V[i, 5]
     out[k, 0] = w1 * n2 - w2 * n1 + v1 * f2 - v2 * f1
     out[k, 1] = w2 * n0 - w0 * n2 + v2 * f0 - v0 * f2
@@ -297,10 +303,11 @@ def aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, q, V0, A0, v, t
     """The articulated-body algorithm (module docstring) for every sample b. Per link i:
     kind (0 fixed, 1 hinge, 2 ball, 3 free), rot (its index in R, −1 for none), R0
     (L×3×3) and origin (L×3) of the joint, axis (L×3, hinges), offset (first
-    coordinate), parent (−1 for the root; parents before children), inertia (L×6×6,
-    spatial, about the link origin); R (B×nr×3×3) the rotation joints' rotations, or
-    empty (0×0×3×3) to take them from the rotation vectors in q; q, v, tau (B×nv), V0,
-    A0 (B×6, or 1×6 for all samples) → qdd (B×nv), written in place."""
+    coordinate), parent (−1 for the root; parents before children), inertia (L×6×6, the
+    rigid body's spatial inertia about the link origin, :func:`_rigid_times`); R
+    (B×nr×3×3) the rotation joints' rotations, or empty (0×0×3×3) to take them from the
+    rotation vectors in q; q, v, tau (B×nv), V0, A0 (B×6, or 1×6 for all samples) → qdd
+    (B×nv), written in place."""
     B, L = q.shape[0], kind.shape[0]
     E = np.empty((L, 3, 3))
     r = np.empty((L, 3))
@@ -480,11 +487,9 @@ def rnea(kind, rot, R0, origin, axis, offset, parent, inertia, R, q, V0, A0, v, 
                 A[i, m] += F[i, m]
             _velocity(i, b, kind, axis, offset, a, A)   # + S q̈
             _bias_force(inertia, i, V, F, i)
+            IA = _rigid_times(inertia, i, A, i)
             for m in range(6):
-                x = F[i, m]
-                for n in range(6):
-                    x += inertia[i, m, n] * A[i, n]
-                F[i, m] = x
+                F[i, m] += IA[m]
         for i in range(L - 1, -1, -1):
             k, o, p = kind[i], offset[i], parent[i]
             if k == 1:
