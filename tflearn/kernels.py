@@ -28,7 +28,8 @@ Iᵃ = [[0, 0], [0, C − Bᵀ D⁻¹ B]], pᵃ = (τ, …), and A_ω = D⁻¹ (
 pᴬ on. The root's Iᵃ and pᵃ, having no parent to go to, are not formed. A state that
 blew up comes out with non-finite accelerations.
 
-The helpers the loops call take few arrays or are inlined (``inline="always"``): a
+The helpers the loops call are inlined (``inline="always"``) and pass spatial vectors
+and transforms as tuples of scalars (kept in registers) rather than through arrays: a
 shared function taking many arrays, called as such, cost 0.7 µs more per sample
 (reference-counted array structs). Compiled once per machine and kept in numba's
 on-disk cache (``cache=True``): the first call in a fresh checkout takes several
@@ -134,9 +135,9 @@ def _rodrigues(x, y, z):
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E, r):
-    """Link i's E = (R0 J)ᵀ into E[i] and origin in its parent into r[i] at sample b: the
-    motion transform X_i = [[E, 0], [−E [r]×, E]]. The joint rotation J: a hinge's
+def _frame(i, b, kind, rot, R0, origin, axis, R, q, offset):
+    """Link i's E = (R0 J)ᵀ (9 scalars, row-major) and origin r in its parent (3) at sample
+    b: the motion transform X_i = [[E, 0], [−E [r]×, E]]. The joint rotation J: a hinge's
     1 + sin θ [a]× + (1 − cos θ)(a aᵀ − 1); a ball or free joint's R[b, rot[i]], or
     exp([ν]×) of its rotation vector in q when R is empty; r + R0 t for a free joint."""
     o, k = offset[i], kind[i]
@@ -149,107 +150,134 @@ def _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E, r):
     elif k >= 2 and R.shape[0] == 0:
         J = _rodrigues(q[b, o], q[b, o + 1], q[b, o + 2])
     elif k >= 2:
-        Rb = R[b, rot[i]]
-        J = (Rb[0, 0], Rb[0, 1], Rb[0, 2], Rb[1, 0], Rb[1, 1], Rb[1, 2], Rb[2, 0], Rb[2, 1], Rb[2, 2])
+        j = rot[i]
+        J = (R[b, j, 0, 0], R[b, j, 0, 1], R[b, j, 0, 2], R[b, j, 1, 0], R[b, j, 1, 1], R[b, j, 1, 2],
+             R[b, j, 2, 0], R[b, j, 2, 1], R[b, j, 2, 2])
     else:
         J = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     j00, j01, j02, j10, j11, j12, j20, j21, j22 = J
-    for n in range(3):
-        p0, p1, p2 = R0[i, n, 0], R0[i, n, 1], R0[i, n, 2]
-        E[i, 0, n] = p0 * j00 + p1 * j10 + p2 * j20
-        E[i, 1, n] = p0 * j01 + p1 * j11 + p2 * j21
-        E[i, 2, n] = p0 * j02 + p1 * j12 + p2 * j22
-        r[i, n] = origin[i, n]
+    p00, p01, p02 = R0[i, 0, 0], R0[i, 0, 1], R0[i, 0, 2]
+    p10, p11, p12 = R0[i, 1, 0], R0[i, 1, 1], R0[i, 1, 2]
+    p20, p21, p22 = R0[i, 2, 0], R0[i, 2, 1], R0[i, 2, 2]
+    e = (p00 * j00 + p01 * j10 + p02 * j20, p10 * j00 + p11 * j10 + p12 * j20,
+         p20 * j00 + p21 * j10 + p22 * j20, p00 * j01 + p01 * j11 + p02 * j21,
+         p10 * j01 + p11 * j11 + p12 * j21, p20 * j01 + p21 * j11 + p22 * j21,
+         p00 * j02 + p01 * j12 + p02 * j22, p10 * j02 + p11 * j12 + p12 * j22,
+         p20 * j02 + p21 * j12 + p22 * j22)
+    r0, r1, r2 = origin[i, 0], origin[i, 1], origin[i, 2]
     if k == 3:
-        for m in range(3):
-            r[i, m] += R0[i, m, 0] * q[b, o + 3] + R0[i, m, 1] * q[b, o + 4] + R0[i, m, 2] * q[b, o + 5]
+        t0, t1, t2 = q[b, o + 3], q[b, o + 4], q[b, o + 5]
+        r0 += p00 * t0 + p01 * t1 + p02 * t2
+        r1 += p10 * t0 + p11 * t1 + p12 * t2
+        r2 += p20 * t0 + p21 * t1 + p22 * t2
+    return e, (r0, r1, r2)
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _motion(E, r, i, x, j, out, k):
-    """out[k] = X_i x[j] for a motion vector x = (ω, v): (E ω, E (v − r × ω))."""
-    x0, x1, x2 = x[j, 0], x[j, 1], x[j, 2]
-    w0 = x[j, 3] - (r[i, 1] * x2 - r[i, 2] * x1)
-    w1 = x[j, 4] - (r[i, 2] * x0 - r[i, 0] * x2)
-    w2 = x[j, 5] - (r[i, 0] * x1 - r[i, 1] * x0)
-    for m in range(3):
-        out[k, m] = E[i, m, 0] * x0 + E[i, m, 1] * x1 + E[i, m, 2] * x2
-        out[k, 3 + m] = E[i, m, 0] * w0 + E[i, m, 1] * w1 + E[i, m, 2] * w2
+def _store_frame(E, r, i, e, t):
+    """E[i] = e (9 scalars, row-major), r[i] = t (3)."""
+    E[i, 0, 0], E[i, 0, 1], E[i, 0, 2], E[i, 1, 0], E[i, 1, 1], E[i, 1, 2], \
+        E[i, 2, 0], E[i, 2, 1], E[i, 2, 2] = e
+    r[i, 0], r[i, 1], r[i, 2] = t
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _force_back(E, r, i, f, j, out, k):
-    """out[k] += X_iᵀ f[j] for a force f = (n, f): (Eᵀ n + r × Eᵀ f, Eᵀ f)."""
-    g0 = E[i, 0, 0] * f[j, 3] + E[i, 1, 0] * f[j, 4] + E[i, 2, 0] * f[j, 5]
-    g1 = E[i, 0, 1] * f[j, 3] + E[i, 1, 1] * f[j, 4] + E[i, 2, 1] * f[j, 5]
-    g2 = E[i, 0, 2] * f[j, 3] + E[i, 1, 2] * f[j, 4] + E[i, 2, 2] * f[j, 5]
-    r0, r1, r2 = r[i, 0], r[i, 1], r[i, 2]
-    out[k, 0] += E[i, 0, 0] * f[j, 0] + E[i, 1, 0] * f[j, 1] + E[i, 2, 0] * f[j, 2] + r1 * g2 - r2 * g1
-    out[k, 1] += E[i, 0, 1] * f[j, 0] + E[i, 1, 1] * f[j, 1] + E[i, 2, 1] * f[j, 2] + r2 * g0 - r0 * g2
-    out[k, 2] += E[i, 0, 2] * f[j, 0] + E[i, 1, 2] * f[j, 1] + E[i, 2, 2] * f[j, 2] + r0 * g1 - r1 * g0
-    out[k, 3] += g0
-    out[k, 4] += g1
-    out[k, 5] += g2
+def _load_frame(E, r, i):
+    """(E[i] (9 scalars, row-major), r[i] (3))."""
+    return ((E[i, 0, 0], E[i, 0, 1], E[i, 0, 2], E[i, 1, 0], E[i, 1, 1], E[i, 1, 2],
+             E[i, 2, 0], E[i, 2, 1], E[i, 2, 2]), (r[i, 0], r[i, 1], r[i, 2]))
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _velocity(i, b, kind, axis, offset, v, V):
-    """V[i] += s = S_i q̇_i, returning s (6 scalars): (a θ̇, 0) for a hinge, (ω, 0) for a
+def _row(x, j):
+    """x[j] as 6 scalars."""
+    return x[j, 0], x[j, 1], x[j, 2], x[j, 3], x[j, 4], x[j, 5]
+
+
+@njit(cache=True, fastmath=_FAST, inline="always")
+def _put(x, j, y):
+    """x[j] = y (6 scalars)."""
+    x[j, 0], x[j, 1], x[j, 2], x[j, 3], x[j, 4], x[j, 5] = y
+
+
+@njit(cache=True, fastmath=_FAST, inline="always")
+def _add(x, y):
+    """x + y (6 scalars each)."""
+    return x[0] + y[0], x[1] + y[1], x[2] + y[2], x[3] + y[3], x[4] + y[4], x[5] + y[5]
+
+
+@njit(cache=True, fastmath=_FAST, inline="always")
+def _motion(e, t, x):
+    """X x for X = [[E, 0], [−E [r]×, E]] (e = E, t = r) and a motion x = (ω, v):
+    (E ω, E (v − r × ω))."""
+    e00, e01, e02, e10, e11, e12, e20, e21, e22 = e
+    r0, r1, r2 = t
+    x0, x1, x2, x3, x4, x5 = x
+    w0, w1, w2 = x3 - (r1 * x2 - r2 * x1), x4 - (r2 * x0 - r0 * x2), x5 - (r0 * x1 - r1 * x0)
+    return (e00 * x0 + e01 * x1 + e02 * x2, e10 * x0 + e11 * x1 + e12 * x2,
+            e20 * x0 + e21 * x1 + e22 * x2, e00 * w0 + e01 * w1 + e02 * w2,
+            e10 * w0 + e11 * w1 + e12 * w2, e20 * w0 + e21 * w1 + e22 * w2)
+
+
+@njit(cache=True, fastmath=_FAST, inline="always")
+def _force_back(e, t, f):
+    """Xᵀ f for a force f = (n, f): (Eᵀ n + r × Eᵀ f, Eᵀ f)."""
+    e00, e01, e02, e10, e11, e12, e20, e21, e22 = e
+    r0, r1, r2 = t
+    n0, n1, n2, f0, f1, f2 = f
+    g0 = e00 * f0 + e10 * f1 + e20 * f2
+    g1 = e01 * f0 + e11 * f1 + e21 * f2
+    g2 = e02 * f0 + e12 * f1 + e22 * f2
+    return (e00 * n0 + e10 * n1 + e20 * n2 + r1 * g2 - r2 * g1,
+            e01 * n0 + e11 * n1 + e21 * n2 + r2 * g0 - r0 * g2,
+            e02 * n0 + e12 * n1 + e22 * n2 + r0 * g1 - r1 * g0, g0, g1, g2)
+
+
+@njit(cache=True, fastmath=_FAST, inline="always")
+def _joint_motion(i, b, kind, axis, offset, v):
+    """S_i v_i (6 scalars) for the rates v at sample b: (a θ̇, 0) for a hinge, (ω, 0) for a
     ball joint, (ω, u) for a free joint, 0 for a fixed one."""
     o, k = offset[i], kind[i]
-    s0 = s1 = s2 = s3 = s4 = s5 = 0.0
     if k == 1:
-        s0, s1, s2 = axis[i, 0] * v[b, o], axis[i, 1] * v[b, o], axis[i, 2] * v[b, o]
-    elif k >= 2:
-        s0, s1, s2 = v[b, o], v[b, o + 1], v[b, o + 2]
-        if k == 3:
-            s3, s4, s5 = v[b, o + 3], v[b, o + 4], v[b, o + 5]
-    V[i, 0] += s0
-    V[i, 1] += s1
-    V[i, 2] += s2
-    V[i, 3] += s3
-    V[i, 4] += s4
-    V[i, 5] += s5
-    return s0, s1, s2, s3, s4, s5
+        return axis[i, 0] * v[b, o], axis[i, 1] * v[b, o], axis[i, 2] * v[b, o], 0.0, 0.0, 0.0
+    if k == 2:
+        return v[b, o], v[b, o + 1], v[b, o + 2], 0.0, 0.0, 0.0
+    if k == 3:
+        return v[b, o], v[b, o + 1], v[b, o + 2], v[b, o + 3], v[b, o + 4], v[b, o + 5]
+    return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _cross_motion(V, i, s, out, k):
-    """out[k] = V[i] ×ₘ s = (ω × s_ω, ω × s_v + v × s_ω) for V = (ω, v), s 6 scalars."""
-    w0, w1, w2, v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2], V[i, 3], V[i, 4], V[i, 5]
+def _cross_motion(V, s):
+    """V ×ₘ s = (ω × s_ω, ω × s_v + v × s_ω) for motions V = (ω, v) and s."""
+    w0, w1, w2, v0, v1, v2 = V
     s0, s1, s2, s3, s4, s5 = s
-    out[k, 0] = w1 * s2 - w2 * s1
-    out[k, 1] = w2 * s0 - w0 * s2
-    out[k, 2] = w0 * s1 - w1 * s0
-    out[k, 3] = w1 * s5 - w2 * s4 + v1 * s2 - v2 * s1
-    out[k, 4] = w2 * s3 - w0 * s5 + v2 * s0 - v0 * s2
-    out[k, 5] = w0 * s4 - w1 * s3 + v0 * s1 - v1 * s0
+    return (w1 * s2 - w2 * s1, w2 * s0 - w0 * s2, w0 * s1 - w1 * s0,
+            w1 * s5 - w2 * s4 + v1 * s2 - v2 * s1, w2 * s3 - w0 * s5 + v2 * s0 - v0 * s2,
+            w0 * s4 - w1 * s3 + v0 * s1 - v1 * s0)
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _rigid_times(inertia, i, x, j):
-    """I x[j] (6 scalars) for a rigid body's spatial inertia I = inertia[i] =
+def _cross_force(V, P):
+    """V ×* P = (ω × n + v × f, ω × f) for a motion V = (ω, v) and a force P = (n, f)."""
+    w0, w1, w2, v0, v1, v2 = V
+    n0, n1, n2, f0, f1, f2 = P
+    return (w1 * n2 - w2 * n1 + v1 * f2 - v2 * f1, w2 * n0 - w0 * n2 + v2 * f0 - v0 * f2,
+            w0 * n1 - w1 * n0 + v0 * f1 - v1 * f0, w1 * f2 - w2 * f1, w2 * f0 - w0 * f2,
+            w0 * f1 - w1 * f0)
+
+
+@njit(cache=True, fastmath=_FAST, inline="always")
+def _rigid_times(inertia, i, x):
+    """I x (6 scalars) for a rigid body's spatial inertia I = inertia[i] =
     [[Ī, m [c]×], [m [c]×ᵀ, m 1]] and a motion x = (ω, v): (Ī ω + h × v, m v − h × ω),
     h = m c read off I's upper-right block."""
     m, h0, h1, h2 = inertia[i, 3, 3], inertia[i, 2, 4], inertia[i, 0, 5], inertia[i, 1, 3]
-    w0, w1, w2, v0, v1, v2 = x[j, 0], x[j, 1], x[j, 2], x[j, 3], x[j, 4], x[j, 5]
+    w0, w1, w2, v0, v1, v2 = x
     return (inertia[i, 0, 0] * w0 + inertia[i, 0, 1] * w1 + inertia[i, 0, 2] * w2 + h1 * v2 - h2 * v1,
             inertia[i, 1, 0] * w0 + inertia[i, 1, 1] * w1 + inertia[i, 1, 2] * w2 + h2 * v0 - h0 * v2,
             inertia[i, 2, 0] * w0 + inertia[i, 2, 1] * w1 + inertia[i, 2, 2] * w2 + h0 * v1 - h1 * v0,
             m * v0 - (h1 * w2 - h2 * w1), m * v1 - (h2 * w0 - h0 * w2), m * v2 - (h0 * w1 - h1 * w0))
-
-
-@njit(cache=True, fastmath=_FAST, inline="always")
-def _bias_force(inertia, i, V, out, k):
-    """out[k] = V ×* I V = (ω × n + v × f, ω × f), (n, f) = I V (:func:`_rigid_times`)."""
-    n0, n1, n2, f0, f1, f2 = _rigid_times(inertia, i, V, i)
-    w0, w1, w2, v0, v1, v2 = V[i, 0], V[i, 1], V[i, 2], V[i, 3], V[i, 4], V[i, 5]
-    out[k, 0] = w1 * n2 - w2 * n1 + v1 * f2 - v2 * f1
-    out[k, 1] = w2 * n0 - w0 * n2 + v2 * f0 - v0 * f2
-    out[k, 2] = w0 * n1 - w1 * n0 + v0 * f1 - v1 * f0
-    out[k, 3] = w1 * f2 - w2 * f1
-    out[k, 4] = w2 * f0 - w0 * f2
-    out[k, 5] = w0 * f1 - w1 * f0
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
@@ -317,86 +345,82 @@ def aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, q, V0, A0, v, t
     IA = np.empty((L, 6, 6))
     pA = np.empty((L, 6))
     U = np.empty((L, 6))                                # hinge: Iᴬ S
-    Dinv = np.empty((L, 6, 6))                          # hinge: [0, 0]; ball: 3×3
+    Dinv = np.empty((L, 6, 6))                          # hinge: 1 × 1, ball: 3 × 3, free: 6 × 6
     u = np.empty((L, 6))
     Ia = np.empty((1, 6, 6))                            # a hinge's Iᵃ
-    pa = np.empty((1, 6))
     W = np.empty((6, 6))
     Z = np.empty((3, 6, 6))
     for b in range(B):
         bv, ba = b if V0.shape[0] > 1 else 0, b if A0.shape[0] > 1 else 0
         for i in range(L):
             p = parent[i]
-            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E, r)
-            if p < 0:
-                _motion(E, r, i, V0, bv, V, i)
-            else:
-                _motion(E, r, i, V, p, V, i)
-            s = _velocity(i, b, kind, axis, offset, v, V)
-            _cross_motion(V, i, s, c, i)
-            _bias_force(inertia, i, V, pA, i)
+            e, t = _frame(i, b, kind, rot, R0, origin, axis, R, q, offset)
+            _store_frame(E, r, i, e, t)
+            s = _joint_motion(i, b, kind, axis, offset, v)
+            Vi = _add(_motion(e, t, _row(V0, bv) if p < 0 else _row(V, p)), s)
+            _put(V, i, Vi)
+            _put(c, i, _cross_motion(Vi, s))
+            _put(pA, i, _cross_force(Vi, _rigid_times(inertia, i, Vi)))
             for m in range(6):
                 for n in range(6):
                     IA[i, m, n] = inertia[i, m, n]
         for i in range(L - 1, -1, -1):
             k, o, p = kind[i], offset[i], parent[i]
             if k == 2:
-                _ball_back(i, b, o, p, E, r, c, IA, pA, Dinv, u, tau, pa, W, Z)
+                pa = _ball_back(i, b, o, p, E, r, c, IA, pA, Dinv, u, tau, W, Z)
             elif k == 1:
-                _hinge_back(i, b, o, p, axis, E, r, c, IA, pA, U, Dinv, u, tau, Ia, pa, W, Z)
-            elif k == 3:
+                pa = _hinge_back(i, b, o, p, axis, E, r, c, IA, pA, U, Dinv, u, tau, Ia, W, Z)
+            elif k == 3:                                # Iᵃ = 0, pᵃ = τ
                 _cholesky_inverse(IA[i], Dinv[i], W, Z[0])
                 for m in range(6):
                     u[i, m] = tau[b, o + m] - pA[i, m]
-                if p >= 0:                              # Iᵃ = 0, pᵃ = τ
-                    for m in range(6):
-                        pa[0, m] = tau[b, o + m]
-                    _force_back(E, r, i, pa, 0, pA, p)
-            elif p >= 0:                                # fixed: Iᵃ = Iᴬ, pᵃ = pᴬ
-                _rotate(E, i, IA, i, 0, 0, W, Z, 0)
-                _rotate(E, i, IA, i, 0, 3, W, Z, 1)
-                _rotate(E, i, IA, i, 3, 3, W, Z, 2)
-                _inertia_shift(r, i, Z, True, IA, p, W)
-                _force_back(E, r, i, pA, i, pA, p)
+                pa = tau[b, o], tau[b, o + 1], tau[b, o + 2], tau[b, o + 3], tau[b, o + 4], tau[b, o + 5]
+            else:                                       # fixed: Iᵃ = Iᴬ, pᵃ = pᴬ
+                if p >= 0:
+                    _rotate(E, i, IA, i, 0, 0, W, Z, 0)
+                    _rotate(E, i, IA, i, 0, 3, W, Z, 1)
+                    _rotate(E, i, IA, i, 3, 3, W, Z, 2)
+                    _inertia_shift(r, i, Z, True, IA, p, W)
+                pa = _row(pA, i)
+            if p >= 0:
+                e, t = _load_frame(E, r, i)
+                _put(pA, p, _add(_row(pA, p), _force_back(e, t, pa)))
         for i in range(L):
             k, o, p = kind[i], offset[i], parent[i]
-            if p < 0:
-                _motion(E, r, i, A0, ba, A, i)
-            else:
-                _motion(E, r, i, A, p, A, i)
-            for m in range(6):
-                A[i, m] += c[i, m]
+            e, t = _load_frame(E, r, i)
+            a0, a1, a2, a3, a4, a5 = _add(_motion(e, t, _row(A0, ba) if p < 0 else _row(A, p)), _row(c, i))
             if k == 2:                          # A_ω = D⁻¹ (u − B a'_v), q̈ = A_ω − a'_ω
-                for m in range(3):
-                    pa[0, m] = u[i, m] - (IA[i, m, 3] * A[i, 3] + IA[i, m, 4] * A[i, 4]
-                                          + IA[i, m, 5] * A[i, 5])
-                for m in range(3):
-                    x = Dinv[i, m, 0] * pa[0, 0] + Dinv[i, m, 1] * pa[0, 1] + Dinv[i, m, 2] * pa[0, 2]
-                    qdd[b, o + m] = x - A[i, m]
-                    A[i, m] = x
+                y0 = u[i, 0] - (IA[i, 0, 3] * a3 + IA[i, 0, 4] * a4 + IA[i, 0, 5] * a5)
+                y1 = u[i, 1] - (IA[i, 1, 3] * a3 + IA[i, 1, 4] * a4 + IA[i, 1, 5] * a5)
+                y2 = u[i, 2] - (IA[i, 2, 3] * a3 + IA[i, 2, 4] * a4 + IA[i, 2, 5] * a5)
+                x0 = Dinv[i, 0, 0] * y0 + Dinv[i, 0, 1] * y1 + Dinv[i, 0, 2] * y2
+                x1 = Dinv[i, 1, 0] * y0 + Dinv[i, 1, 1] * y1 + Dinv[i, 1, 2] * y2
+                x2 = Dinv[i, 2, 0] * y0 + Dinv[i, 2, 1] * y1 + Dinv[i, 2, 2] * y2
+                qdd[b, o], qdd[b, o + 1], qdd[b, o + 2] = x0 - a0, x1 - a1, x2 - a2
+                a0, a1, a2 = x0, x1, x2
             elif k == 1:                        # q̈ = (u − Uᵀ a') / D, A = a' + S q̈
-                x = u[i, 0]
-                for m in range(6):
-                    x -= U[i, m] * A[i, m]
-                x *= Dinv[i, 0, 0]
+                x = (u[i, 0] - (U[i, 0] * a0 + U[i, 1] * a1 + U[i, 2] * a2 + U[i, 3] * a3
+                                + U[i, 4] * a4 + U[i, 5] * a5)) * Dinv[i, 0, 0]
                 qdd[b, o] = x
-                for m in range(3):
-                    A[i, m] += axis[i, m] * x
+                a0, a1, a2 = a0 + axis[i, 0] * x, a1 + axis[i, 1] * x, a2 + axis[i, 2] * x
             elif k == 3:                        # A = D⁻¹ u, q̈ = A − a'
+                a = (a0, a1, a2, a3, a4, a5)
                 for m in range(6):
                     x = 0.0
                     for n in range(6):
                         x += Dinv[i, m, n] * u[i, n]
-                    qdd[b, o + m] = x - A[i, m]
-                for m in range(6):
-                    A[i, m] += qdd[b, o + m]
+                    qdd[b, o + m] = x - a[m]
+                    A[i, m] = x
+                a0, a1, a2, a3, a4, a5 = _row(A, i)
+            _put(A, i, (a0, a1, a2, a3, a4, a5))
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _ball_back(i, b, o, p, E, r, c, IA, pA, Dinv, u, tau, pa, W, Z):
+def _ball_back(i, b, o, p, E, r, c, IA, pA, Dinv, u, tau, W, Z):
     """A ball joint's step leaves → root: S = [1; 0], so with Iᴬ = [[D, B], [Bᵀ, C]],
-    U = [D; Bᵀ], Iᵃ = [[0, 0], [0, C − Bᵀ D⁻¹ B]] and pᵃ = (τ, pᴬ_f + Iᵃ_C c_v + Bᵀ D⁻¹ u);
-    D⁻¹ (symmetric, by its adjugate) and u = τ − pᴬ_n kept for the pass root → leaves."""
+    U = [D; Bᵀ], Iᵃ = [[0, 0], [0, C − Bᵀ D⁻¹ B]] (added to the parent's Iᴬ here) and
+    pᵃ = (τ, pᴬ_f + Iᵃ_C c_v + Bᵀ D⁻¹ u) (returned); D⁻¹ (symmetric, by its adjugate)
+    and u = τ − pᴬ_n kept for the pass root → leaves."""
     d00, d01, d02 = IA[i, 0, 0], IA[i, 0, 1], IA[i, 0, 2]
     d11, d12, d22 = IA[i, 1, 1], IA[i, 1, 2], IA[i, 2, 2]
     a00, a01, a02 = d11 * d22 - d12 * d12, d02 * d12 - d01 * d22, d01 * d12 - d02 * d11
@@ -409,7 +433,7 @@ def _ball_back(i, b, o, p, E, r, c, IA, pA, Dinv, u, tau, pa, W, Z):
     for m in range(3):
         u[i, m] = tau[b, o + m] - pA[i, m]
     if p < 0:
-        return
+        return _row(pA, i)                      # the root's: not used
     for m in range(3):                          # W = [D⁻¹ B | D⁻¹ u]
         for n in range(3):
             W[m, n] = Dinv[i, m, 0] * IA[i, 0, 3 + n] + Dinv[i, m, 1] * IA[i, 1, 3 + n] \
@@ -419,21 +443,20 @@ def _ball_back(i, b, o, p, E, r, c, IA, pA, Dinv, u, tau, pa, W, Z):
         for n in range(3):
             Z[0, 3 + m, 3 + n] = IA[i, 3 + m, 3 + n] - (IA[i, 0, 3 + m] * W[0, n] + IA[i, 1, 3 + m] * W[1, n]
                                                         + IA[i, 2, 3 + m] * W[2, n])
-    for m in range(3):
-        pa[0, m] = tau[b, o + m]
-        pa[0, 3 + m] = pA[i, 3 + m] + IA[i, 0, 3 + m] * W[0, 3] + IA[i, 1, 3 + m] * W[1, 3] \
-            + IA[i, 2, 3 + m] * W[2, 3]
-        for n in range(3):
-            pa[0, 3 + m] += Z[0, 3 + m, 3 + n] * c[i, 3 + n]
+    for m in range(3):                          # pᵃ_f into W[3]
+        W[3, m] = pA[i, 3 + m] + IA[i, 0, 3 + m] * W[0, 3] + IA[i, 1, 3 + m] * W[1, 3] \
+            + IA[i, 2, 3 + m] * W[2, 3] + Z[0, 3 + m, 3] * c[i, 3] + Z[0, 3 + m, 4] * c[i, 4] \
+            + Z[0, 3 + m, 5] * c[i, 5]
     _rotate(E, i, Z, 0, 3, 3, W, Z, 2)
     _inertia_shift(r, i, Z, False, IA, p, W)
-    _force_back(E, r, i, pa, 0, pA, p)
+    return tau[b, o], tau[b, o + 1], tau[b, o + 2], W[3, 0], W[3, 1], W[3, 2]
 
 
 @njit(cache=True, fastmath=_FAST, inline="always")
-def _hinge_back(i, b, o, p, axis, E, r, c, IA, pA, U, Dinv, u, tau, Ia, pa, W, Z):
+def _hinge_back(i, b, o, p, axis, E, r, c, IA, pA, U, Dinv, u, tau, Ia, W, Z):
     """A hinge's step leaves → root: S = (a, 0), U = Iᴬ S, D = aᵀ U_n (scalar),
-    u = τ − aᵀ pᴬ_n, Iᵃ = Iᴬ − U Uᵀ / D, pᵃ = pᴬ + Iᵃ c + U u / D."""
+    u = τ − aᵀ pᴬ_n, Iᵃ = Iᴬ − U Uᵀ / D (added to the parent's Iᴬ here),
+    pᵃ = pᴬ + Iᵃ c + U u / D (returned)."""
     a0, a1, a2 = axis[i, 0], axis[i, 1], axis[i, 2]
     for m in range(6):
         U[i, m] = IA[i, m, 0] * a0 + IA[i, m, 1] * a1 + IA[i, m, 2] * a2
@@ -441,20 +464,20 @@ def _hinge_back(i, b, o, p, axis, E, r, c, IA, pA, U, Dinv, u, tau, Ia, pa, W, Z
     Dinv[i, 0, 0] = dinv
     u[i, 0] = tau[b, o] - (a0 * pA[i, 0] + a1 * pA[i, 1] + a2 * pA[i, 2])
     if p < 0:
-        return
+        return _row(pA, i)                      # the root's: not used
     for m in range(6):
         for n in range(6):
             Ia[0, m, n] = IA[i, m, n] - U[i, m] * U[i, n] * dinv
-    for m in range(6):
+    for m in range(6):                          # pᵃ into W[3]
         x = pA[i, m] + U[i, m] * u[i, 0] * dinv
         for n in range(6):
             x += Ia[0, m, n] * c[i, n]
-        pa[0, m] = x
+        W[3, m] = x
     _rotate(E, i, Ia, 0, 0, 0, W, Z, 0)
     _rotate(E, i, Ia, 0, 0, 3, W, Z, 1)
     _rotate(E, i, Ia, 0, 3, 3, W, Z, 2)
     _inertia_shift(r, i, Z, True, IA, p, W)
-    _force_back(E, r, i, pa, 0, pA, p)
+    return _row(W, 3)
 
 
 @njit(cache=True, fastmath=_FAST)
@@ -474,22 +497,15 @@ def rnea(kind, rot, R0, origin, axis, offset, parent, inertia, R, q, V0, A0, v, 
         bv, ba = b if V0.shape[0] > 1 else 0, b if A0.shape[0] > 1 else 0
         for i in range(L):
             p = parent[i]
-            _frame(i, b, kind, rot, R0, origin, axis, R, q, offset, E, r)
-            if p < 0:
-                _motion(E, r, i, V0, bv, V, i)
-                _motion(E, r, i, A0, ba, A, i)
-            else:
-                _motion(E, r, i, V, p, V, i)
-                _motion(E, r, i, A, p, A, i)
-            s = _velocity(i, b, kind, axis, offset, v, V)
-            _cross_motion(V, i, s, F, i)                # F[i]: scratch for V ×ₘ s
-            for m in range(6):
-                A[i, m] += F[i, m]
-            _velocity(i, b, kind, axis, offset, a, A)   # + S q̈
-            _bias_force(inertia, i, V, F, i)
-            IA = _rigid_times(inertia, i, A, i)
-            for m in range(6):
-                F[i, m] += IA[m]
+            e, t = _frame(i, b, kind, rot, R0, origin, axis, R, q, offset)
+            _store_frame(E, r, i, e, t)
+            s = _joint_motion(i, b, kind, axis, offset, v)
+            Vi = _add(_motion(e, t, _row(V0, bv) if p < 0 else _row(V, p)), s)
+            Ai = _add(_add(_motion(e, t, _row(A0, ba) if p < 0 else _row(A, p)),
+                           _joint_motion(i, b, kind, axis, offset, a)), _cross_motion(Vi, s))
+            _put(V, i, Vi)
+            _put(A, i, Ai)
+            _put(F, i, _add(_rigid_times(inertia, i, Ai), _cross_force(Vi, _rigid_times(inertia, i, Vi))))
         for i in range(L - 1, -1, -1):
             k, o, p = kind[i], offset[i], parent[i]
             if k == 1:
@@ -498,7 +514,10 @@ def rnea(kind, rot, R0, origin, axis, offset, parent, inertia, R, q, V0, A0, v, 
                 for m in range(3 if k == 2 else 6):
                     tau[b, o + m] = F[i, m]
             if p >= 0:
-                _force_back(E, r, i, F, i, F, p)
+                e, t = _load_frame(E, r, i)
+                _put(F, p, _add(_row(F, p), _force_back(e, t, _row(F, i))))
+
+
 # ------------------------------------------------------------- the simulator's state
 
 @njit(cache=True, fastmath=_FAST)
