@@ -104,6 +104,20 @@ def test_a_blown_up_state_gives_non_finite_accelerations(rng):
     assert not torch.isfinite(a[1]).all() and torch.isfinite(a[[0, 2]]).all()
 
 
+def test_a_singular_joint_inertia_gives_non_finite_accelerations(rng):
+    """A massless leaf behind a ball joint (D = 0): NaN from the kernel, not an exception."""
+    from tflearn import kernels
+    body = make_body("arm")
+    tables = list(D._kernel_tables(body))
+    tables[7] = tables[7].copy()
+    tables[7][-1] = 0.0                                  # the last link's spatial inertia
+    assert body.links[-1].joint == "ball"
+    q = random_coords(body, rng, 2)
+    qdd = np.empty_like(q)
+    kernels.aba(*tables, np.zeros((0, 0, 3, 3)), q, *D._kernel_root(body, True), q, q, qdd)
+    assert np.isnan(qdd).all()
+
+
 def test_joint_rotations_are_read_as_given(rng):
     """forward_dynamics_rot takes the rotations from the caller (the simulator's
     quaternions): the compiled path reads the same ones."""

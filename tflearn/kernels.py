@@ -26,7 +26,8 @@ so that with Iᴬ = [[D, B], [Bᵀ, C]] only one block of Iᵃ is left,
 Iᵃ = [[0, 0], [0, C − Bᵀ D⁻¹ B]], pᵃ = (τ, …), and A_ω = D⁻¹ (u − B a'_v); a free joint
 (S = 1₆) has Iᵃ = 0, pᵃ = τ, A = D⁻¹ u (D⁻¹ by Cholesky); a fixed joint passes Iᴬ and
 pᴬ on. The root's Iᵃ and pᵃ, having no parent to go to, are not formed. A state that
-blew up comes out with non-finite accelerations.
+blew up, or a singular D (:func:`aba` divides as numpy does: no exception), comes out
+with non-finite accelerations.
 
 The helpers the loops call are inlined (``inline="always"``) and pass spatial vectors
 and transforms as tuples of scalars (kept in registers) rather than through arrays: a
@@ -326,7 +327,7 @@ def _inertia_shift(r, i, Z, full, out, p, W):
             out[p, 3 + m, 3 + n] += Z[2, m, n]
 
 
-@njit(cache=True, fastmath=_FAST)
+@njit(cache=True, fastmath=_FAST, error_model="numpy")
 def aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, q, V0, A0, v, tau, qdd):
     """The articulated-body algorithm (module docstring) for every sample b. Per link i:
     kind (0 fixed, 1 hinge, 2 ball, 3 free), rot (its index in R, −1 for none), R0
