@@ -104,6 +104,20 @@ def test_a_blown_up_state_gives_non_finite_accelerations(rng):
     assert not torch.isfinite(a[1]).all() and torch.isfinite(a[[0, 2]]).all()
 
 
+def test_a_singular_joint_inertia_gives_non_finite_accelerations(rng):
+    """A massless leaf behind a ball joint (D = 0): NaN from the kernel, not an exception."""
+    from tflearn import kernels
+    body = make_body("arm")
+    tables = list(D._kernel_tables(body))
+    tables[7] = tables[7].copy()
+    tables[7][-1] = 0.0                                  # the last link's spatial inertia
+    assert body.links[-1].joint == "ball"
+    q = random_coords(body, rng, 2)
+    qdd = np.empty_like(q)
+    kernels.aba(*tables, np.zeros((0, 0, 3, 3)), q, *D._kernel_root(body, True), q, q, qdd)
+    assert np.isnan(qdd).all()
+
+
 def test_joint_rotations_are_read_as_given(rng):
     """forward_dynamics_rot takes the rotations from the caller (the simulator's
     quaternions): the compiled path reads the same ones."""
@@ -116,6 +130,26 @@ def test_joint_rotations_are_read_as_given(rng):
     slow = D.forward_dynamics_rot(body, rots, q.clone().requires_grad_(), v, tau).detach()
     _close(fast, slow)
     assert np.isfinite(fast.numpy()).all()
+
+
+def test_compiled_rotations_from_rotation_vectors_equal_torchs(rng):
+    """The kernels' exp([v]×) (what forward_dynamics and rnea hand them: rotation vectors)
+    against configspace.rotvec_to_rotmat to the last bit or so: at zero, at tiny angles,
+    on both sides of the switch to sinc's series (θ = 4ε^⅙), near and at π, beyond."""
+    from tflearn import kernels
+    from tflearn.configspace import rotvec_to_rotmat
+    switch = 2 * kernels._SINC_SERIES
+    angles = np.concatenate([[0.0, 1e-12, 1e-8, 1e-4, 0.999 * switch, switch, 1.001 * switch,
+                              0.5, np.pi - 1e-7, np.pi, np.pi + 1e-9, 5.0],
+                             rng.uniform(0, 2 * np.pi, 100)])
+    axes = rng.normal(size=(angles.size, 3))
+    v = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None]
+    ref = rotvec_to_rotmat(torch.as_tensor(v, dtype=DT)).numpy()
+    mine = np.array([kernels._rodrigues(*x) for x in v]).reshape(-1, 3, 3)
+    assert np.abs(mine - ref).max() <= 2 * np.finfo(np.float64).eps
+    n = v[9] / np.pi                                      # at π: R = 2 n nᵀ − 1
+    assert np.abs(mine[0] - np.eye(3)).max() == 0
+    assert np.abs(mine[9] - (2 * np.outer(n, n) - np.eye(3))).max() < 1e-15
 
 
 @pytest.mark.parametrize("name", BODY_NAMES + ["free0", "free3"])

@@ -369,12 +369,12 @@ def position_rate(body: Body, rots: list, quats: torch.Tensor, v: torch.Tensor) 
     L = _layout(body, v.device)
     if kernels.applies(quats, v, *rots) and v.shape[:-1] == quats.shape[:-2]:
         B, nr = v[..., 0].numel(), quats.shape[-2]
-        kind, rot, offset, dof, _ = kernels.link_tables(body)
+        kind, rot, offset, _ = kernels.link_tables(body)
         R = [r for r in rots if r is not None]             # read for free joints only
         R = (kernels.as_numpy(torch.stack(R, -3).reshape(B, nr, 3, 3)) if (kind == 3).any()
              else np.zeros((1, 0, 3, 3)))
         out = np.empty((B, L["position"].numel()))
-        kernels.position_rate(kind, rot, offset, dof, R, kernels.as_numpy(quats.reshape(B, nr, 4)),
+        kernels.position_rate(kind, rot, offset, R, kernels.as_numpy(quats.reshape(B, nr, 4)),
                               kernels.as_numpy(v.reshape(B, -1)), L["numpy"]["position"], out)
         return torch.from_numpy(out).reshape(v.shape[:-1] + out.shape[-1:])
     rates = [quat_rate(quats, v[..., L["rate"]]).flatten(-2)]

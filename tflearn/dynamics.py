@@ -391,28 +391,26 @@ def forward_dynamics_rot(body: Body, rots: list, q: torch.Tensor, v: torch.Tenso
 @lru_cache(maxsize=64)
 def _kernel_tables(body: Body) -> tuple:
     """The body's constants for :func:`tflearn.kernels.aba`, per link: joint kind, index
-    among the rotation joints, R0, origin, axis, S padded to 6 columns, dof, first
-    coordinate, parent, spatial inertia."""
+    among the rotation joints, R0, origin, axis, first coordinate, parent, spatial inertia."""
     C = _constants(body, torch.float64, torch.device("cpu"))
-    S = np.zeros((len(body.links), 6, 6))
-    for i, Si in enumerate(C["S"]):
-        S[i, :, :Si.shape[1]] = Si.numpy()
-    kind, rot, offset, dof, parent = kernels.link_tables(body)
+    kind, rot, offset, parent = kernels.link_tables(body)
     stack = lambda xs: np.ascontiguousarray(np.stack([x.numpy() for x in xs]))
-    return (kind, rot, stack(C["R0"]), stack(C["origin"]), stack(C["axis"]), S, dof, offset,
-            parent, stack(C["inertia6"]))
+    return (kind, rot, stack(C["R0"]), stack(C["origin"]), stack(C["axis"]), offset, parent,
+            stack(C["inertia6"]))
 
 
-def _compiled_call(name: str, body: Body, rots: list, q, v, x, gravity, base) -> torch.Tensor:
+def _compiled_call(name: str, body: Body, rots, q, v, x, gravity, base) -> torch.Tensor:
     """:func:`tflearn.kernels.aba` (x = τ → q̈) or :func:`tflearn.kernels.rnea` (x = q̈ → τ),
-    (...×nv). The arrays go to the kernel as numpy views, with few torch operations: a
-    call at batch 1 is then mostly the kernel itself."""
-    if v.shape == q.shape == x.shape and all(R is None or R.shape[:-2] == q.shape[:-1] for R in rots):
+    (...×nv); ``rots`` the joint rotations, or None for the kernel to compute them from
+    the rotation vectors in q. The arrays go to the kernel as numpy views, with few torch
+    operations: a call at batch 1 is then mostly the kernel itself."""
+    given = [] if rots is None else rots
+    if v.shape == q.shape == x.shape and all(R is None or R.shape[:-2] == q.shape[:-1] for R in given):
         batch = q.shape[:-1]                             # nothing to broadcast (the simulator)
-        rots = [None if R is None else R.reshape(-1, 3, 3) for R in rots]
+        given = [None if R is None else R.reshape(-1, 3, 3) for R in given]
         q, v, x = (y.reshape(-1, y.shape[-1]) for y in (q, v, x))
     else:
-        batch, rots, q, v, x = _flatten(rots, q, v, x)
+        batch, given, q, v, x = _flatten(given, q, v, x)
     B = q.shape[0]
     if base is None and not isinstance(gravity, torch.Tensor):
         root = _kernel_root(body, bool(gravity))         # the same V_0, A_0 for every sample
@@ -420,8 +418,8 @@ def _compiled_call(name: str, body: Body, rots: list, q, v, x, gravity, base) ->
         V0, A0 = _root_motion(B, _per_sample(_gravity(body, q, gravity), batch, B),
                               None if base is None else tuple(_per_sample(b, batch, B) for b in base))
         root = (np.zeros((1, 6)) if V0 is None else kernels.as_numpy(V0), kernels.as_numpy(A0))
-    R = [kernels.as_numpy(y) for y in rots if y is not None]
-    R = np.ascontiguousarray(np.stack(R, 1)) if R else np.zeros((B, 0, 3, 3))
+    R = [kernels.as_numpy(y) for y in given if y is not None]
+    R = np.ascontiguousarray(np.stack(R, 1)) if R else np.zeros((0, 0, 3, 3))
     out = np.empty((B, body.nv))
     q, v, x = (kernels.as_numpy(y) for y in (q, v, x))
     getattr(kernels, name)(*_kernel_tables(body), R, q, *root, v, x, out)
@@ -542,7 +540,10 @@ def potential_energy_rot(body: Body, rots: list, q: torch.Tensor) -> torch.Tenso
 # Public API on rotation-vector coordinates.
 
 def rnea(body: Body, q, v, a, gravity: bool = True, base=None):
-    """Inverse dynamics τ(q, v, a) (...×nv), optionally on a moving base; see :func:`rnea_rot`."""
+    """Inverse dynamics τ(q, v, a) (...×nv), optionally on a moving base; see :func:`rnea_rot`.
+    Compiled, the kernel turns the rotation vectors into rotations itself."""
+    if kernels.applies(q, v, a, gravity, *(base or ())):
+        return _compiled_call("rnea", body, None, q, v, a, gravity, base)
     return rnea_rot(body, joint_rotations(body, q), q, v, a, gravity, base)
 
 
@@ -558,7 +559,10 @@ def bias_forces(body: Body, q, v):
 
 def forward_dynamics(body: Body, q, v, tau, gravity=None, base=None):
     """Accelerations a = M⁻¹(τ − h) (...×nv); damping is not included here. ``gravity``
-    and ``base``: see :func:`forward_dynamics_rot`."""
+    and ``base``: see :func:`forward_dynamics_rot`. Compiled, the kernel turns the rotation
+    vectors into rotations itself."""
+    if kernels.applies(q, v, tau, gravity, *(base or ())):
+        return _compiled_call("aba", body, None, q, v, tau, True if gravity is None else gravity, base)
     return forward_dynamics_rot(body, joint_rotations(body, q), q, v, tau, gravity, base)
 
 

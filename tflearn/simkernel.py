@@ -156,10 +156,10 @@ def _rate(m, t, y, out, work, tables, root, damping, orders, n_pos, program, s):
     _torque(m, t, coords[0], v[0], program, tau, d, Kd, win)
     for k in range(nv):
         total[0, k] = tau[k] - damping * v[0, k]
-    kind, rot, R0, origin, axis, S, dof, offset, parent, inertia = tables
-    kernels.aba(kind, rot, R0, origin, axis, S, dof, offset, parent, inertia, R, coords,
-                root[0], root[1], v, total, qdd)
-    kernels.position_rate(kind, rot, offset, dof, R, quats, v, position_order, pos)
+    kind, rot, R0, origin, axis, offset, parent, inertia = tables
+    kernels.aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, coords, root[0], root[1],
+                v, total, qdd)
+    kernels.position_rate(kind, rot, offset, R, quats, v, position_order, pos)
     for k in range(n_pos):
         out[k] = pos[0, k]
     for k in range(nv):
