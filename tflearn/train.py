@@ -456,10 +456,7 @@ class Run:
         """The basis without field ``victim``, every other field held: the motions with a
         weight on it (a, b or c) get their weights re-solved by NNLS over the fields left
         and are checked by simulation; the others keep their weights, paths and scores."""
-        pos = state.ids.index(victim)
-        keep = [i for i in range(basis.M) if i != pos]
-        nb, nw = basis.select(keep), weights.select_fields(keep)
-        support = self._support_without(state, pos, keep)
+        pos, keep, nb, nw, support = self._without(basis, weights, state, victim)
         with torch.no_grad():
             used = weights.a[:, pos] + weights.b[:, pos] + weights.c[:, pos].sum(-1)
         users = [j for j in range(tg.N) if float(used[j]) > 0]
@@ -480,10 +477,7 @@ class Run:
     def _trial(self, basis, weights, tg: Targets, state: RunState, victim: int) -> dict:
         """The basis without field ``victim``, refitted by EM (its EM steps counted, to
         be logged when the trial is applied)."""
-        pos = state.ids.index(victim)
-        keep = [i for i in range(basis.M) if i != pos]
-        nb, nw = basis.select(keep), weights.select_fields(keep)
-        support = self._support_without(state, pos, keep)
+        _, keep, nb, nw, support = self._without(basis, weights, state, victim)
         self.log.busy(M=basis.M, trying=victim)
         steps = SimpleNamespace(step=0)          # _em ticks it; the run's step when applied
         cost = self._em(nb, nw, tg, steps, support=support)[-1]
@@ -491,12 +485,14 @@ class Run:
                 "cost": cost, "em_steps": steps.step, "motions": list(range(tg.N)), "trial": "refit"}
 
     @staticmethod
-    def _support_without(state: RunState, pos: int, keep: list) -> Optional[list]:
-        """The fields each motion may use once field ``pos`` is gone (``keep`` left):
-        a motion that lost it may use any."""
-        if state.support is None:
-            return None
-        return [[True] * len(keep) if row[pos] else [row[i] for i in keep] for row in state.support]
+    def _without(basis, weights, state: RunState, victim: int) -> tuple:
+        """(its position, the positions kept, basis, weights, support) once field
+        ``victim`` is gone; a motion that lost it may use any field left."""
+        pos = state.ids.index(victim)
+        keep = [i for i in range(basis.M) if i != pos]
+        support = None if state.support is None else [
+            [True] * len(keep) if row[pos] else [row[i] for i in keep] for row in state.support]
+        return pos, keep, basis.select(keep), weights.select_fields(keep), support
 
     def _checks(self, models: list, tg: Targets) -> list:
         """(scores, success) of each model: one batch for several, else :meth:`_check`."""
