@@ -186,28 +186,33 @@ def scale_section(d: dict) -> list:
 
 
 def learn_many_section(d: dict) -> list:
+    shared = (f", their fields drawn from G = {d['library']} shared ones (`--library {d['library']}`)"
+              if d.get("library") else ", each with its own fields")
+    procs = {r.get("nproc", 1) for r in d["rows"]}
     lines = heading("Many motions learned end to end",
-                    "`bench/learn_many.py`: N random supported programs (each stepped alone and "
-                    "sampled at the lowest of 100·2ᵏ Hz that resolves it, written as .npz), then "
-                    "`train configs/gestures.yaml data=DIR` in a fresh process; each stage's time "
-                    "from its progress bar"
+                    "`bench/learn_many.py`: N random supported programs" + shared + " (each stepped "
+                    "alone and sampled at the lowest of 100·2ᵏ Hz that resolves it, written as .npz), "
+                    "then `train configs/gestures.yaml data=DIR` in a fresh process"
+                    + (f" ({', '.join(map(str, sorted(procs)))} processes, torchrun)" if procs != {1} else "")
+                    + "; each stage's time from its progress bar"
                     + (f"; at commit {d['commit']}" if d.get("commit") else "")
                     + (f", overrides {' '.join(d['overrides'])}." if d.get("overrides") else "."),
-                    ["motions N", "samples", "making them", "training", "each motion alone", "pool and merge",
-                     "reduce", "path matching", "M", "reproduced", "worst RMSE (rad)",
-                     "worst tip (cm)"])
+                    ["motions N", "G", "samples", "making them", "training", "each motion alone",
+                     "pool and merge", "reduce", "path matching", "M", "reproduced", "worst RMSE (rad)",
+                     "worst tip (cm)", "peak memory"])
     stages = ("each motion alone", "pool and merge", "reduce", "path matching")
     for r in d["rows"]:
-        head = (f"| {r['motions']:,} | {r['samples']:,} | " if "samples" in r
-                else f"| {r['motions']:,} | – | ") + f"{r['make_s']:.0f} s | {r['train_s']:.0f} s | "
+        head = (f"| {r['motions']:,} | {r.get('G', '–')} | {r['samples']:,} | " if "samples" in r
+                else f"| {r['motions']:,} | – | – | ") + f"{r['make_s']:.0f} s | {r['train_s']:.0f} s | "
         if "error" in r:
-            lines.append(head + f"{r['error']} |" + " |" * 7)
+            lines.append(head + f"{r['error']} |" + " |" * 8)
             continue
         st = r["stages_s"]
-        cells = [f"{st[k]} s" if k in st else "–" for k in stages]
+        cells = [f"{st[k]:,} s" if k in st else "–" for k in stages]
         lines.append(head
                      + " | ".join(cells) + f" | {r['M']} | {r['reproduced']}/{r['motions']} | "
-                     f"{r['worst_rmse_rad']:.4f} | {100 * r['worst_tip_m']:.2f} |")
+                     f"{r['worst_rmse_rad']:.4f} | {100 * r['worst_tip_m']:.2f} | "
+                     f"{r['max_rss_mb_so_far'] / 1024:.1f} GiB |")
     return lines + exponents(d) + [""]
 
 

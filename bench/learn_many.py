@@ -10,6 +10,7 @@ training process' peak memory, and the fitted exponent of each time (cost ∝ N^
 squares on log–log). One torch thread.
 
     python bench/learn_many.py --sizes 5,10 --out runs/bench/learn_many.json
+    python bench/learn_many.py --sizes 100 --library 10 --nproc 2 solver.reduce.refit=false
 """
 from __future__ import annotations
 
@@ -31,9 +32,10 @@ ROOT = Path(__file__).resolve().parents[1]
 _BAR = re.compile(r"\[\d+/\d+\] (.+?): .*?\[(?:(\d+):)?(\d+):(\d+)<")
 
 
-def make(n: int, seed: int, folder: Path) -> dict:
-    """Write n random programs' motions into ``folder``: the seconds it took, the number
-    of motions at each sampling rate and the samples in all."""
+def make(n: int, seed: int, folder: Path, library: int = 0) -> dict:
+    """Write n random programs' motions into ``folder`` (``library`` = G > 0: their fields
+    drawn from G shared ones): the seconds it took, the number of motions at each
+    sampling rate, the samples in all and the number of generating fields G."""
     import torch
 
     from tflearn import gestures
@@ -41,11 +43,13 @@ def make(n: int, seed: int, folder: Path) -> dict:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     rates, samples = {}, 0
-    for motion, _ in gestures.generate_resolved(gestures.random_gestures(n, seed=seed)):
+    programs = gestures.random_gestures(n, seed=seed, library=library)
+    for motion, _ in gestures.generate_resolved(programs):
         save(motion, folder / f"{motion.name}.npz")
         rates[f"{motion.rate:.0f}"] = rates.get(f"{motion.rate:.0f}", 0) + 1
         samples += motion.T
-    return {"make_s": time.perf_counter() - t0, "motions_at_hz": rates, "samples": samples}
+    G = len({(e, k) for p in programs for e, k in zip(p.eta, p.k)})
+    return {"make_s": time.perf_counter() - t0, "motions_at_hz": rates, "samples": samples, "G": G}
 
 
 def stage_seconds(stderr: str) -> dict:
@@ -59,10 +63,13 @@ def stage_seconds(stderr: str) -> dict:
     return out
 
 
-def learn(data: Path, out: Path, overrides=()) -> dict:
-    """``train configs/gestures.yaml data=DATA`` in a fresh process; what it found."""
+def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
+    """``train configs/gestures.yaml data=DATA`` in a fresh process (``nproc`` > 1: that
+    many under ``torchrun --standalone``); what it found."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "tflearn.cli", "train", "configs/gestures.yaml", f"data={data}",
+    launch = ([sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}"]
+              if nproc > 1 else [sys.executable])
+    cmd = [*launch, "-m", "tflearn.cli", "train", "configs/gestures.yaml", f"data={data}",
            f"out={out}", "log.progress=true", *overrides]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -84,6 +91,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sizes", default="5,10")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--library", type=int, default=0,
+                   help="G > 0: the programs' fields drawn from G shared ones (0: each its own)")
+    p.add_argument("--nproc", type=int, default=1, help="training processes (torchrun)")
     p.add_argument("--out", type=Path)
     p.add_argument("overrides", nargs="*", help="config overrides for train (KEY=VALUE)")
     args = p.parse_args(argv)
@@ -93,16 +103,16 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             data, out = Path(tmp) / "data", Path(tmp) / "run"
             data.mkdir()
-            row = {"motions": n, **make(n, args.seed, data)}
-            row.update(learn(data, out, args.overrides))
+            row = {"motions": n, "nproc": args.nproc, **make(n, args.seed, data, args.library)}
+            row.update(learn(data, out, args.overrides, args.nproc))
         rows.append(row)
         print(json.dumps(row), flush=True)
-        write(args.out, commit, args.overrides, rows)       # after every size: a long run keeps its rows
+        write(args.out, commit, args.overrides, rows, args.library)   # after every size
     return 0
 
 
-def write(path: Path | None, commit: str, overrides: list, rows: list) -> None:
-    doc = {"commit": commit, "overrides": overrides, "rows": rows}
+def write(path: Path | None, commit: str, overrides: list, rows: list, library: int = 0) -> None:
+    doc = {"commit": commit, "overrides": overrides, "library": library, "rows": rows}
     done = [r for r in rows if "error" not in r]
     if len(done) > 1:
         doc["exponents"] = {k: exponent(done, k) for k in ("make_s", "train_s")}

@@ -133,6 +133,30 @@ def test_path_step_rejects_a_diverged_point_naming_the_motion(pair):
     assert torch.isfinite(w.a_raw).all()
 
 
+def test_path_step_on_some_motions_leaves_the_others_untouched(pair):
+    """``motions=[1], fields=False`` (the path stage's ``solver.path.motions:
+    unreproduced``): the loss and the step are motion 1's alone, as if it were the only
+    motion, while motion 0 — not simulated — and the fields keep every value bit for bit."""
+    body, basis, weights, tg = pair
+    kw = dict(options=S.SimOptions(rtol=1e-5, atol=1e-7, max_evals=20000), fields=False)
+    both, alone = weights.select_motions([0, 1]), weights.select_motions([1])
+    with torch.no_grad():
+        for w in (both, alone):
+            w.a_raw.mul_(1.1)
+    before = {k: v.clone() for k, v in both.state_dict().items()}
+    eta, raw = basis.eta.detach().clone(), basis.stiffness.raw.detach().clone()
+    calls = S.calls
+    res = path_fit.path_step(body, basis, both, tg, lr=1e-3, motions=[1], **kw)
+    assert S.calls - calls == 1                                   # one simulation: motion 1's
+    ref = path_fit.path_step(body, basis, alone, tg.select([1]), lr=1e-3, **kw)
+    assert res.failure is None and res.loss == pytest.approx(ref.loss, rel=1e-12) and res.loss > 1e-6
+    assert torch.allclose(both.a_raw[1], alone.a_raw[0], rtol=1e-12, atol=0)
+    assert not torch.equal(both.a_raw[1], before["a_raw"][1])    # motion 1 moved
+    for key, value in before.items():
+        assert torch.equal(getattr(both, key)[0], value[0]), key   # motion 0 did not
+    assert torch.equal(basis.eta, eta) and torch.equal(basis.stiffness.raw, raw)
+
+
 def test_path_step_failing_at_the_start_changes_nothing(pair):
     body, basis, weights, tg = pair
     w = weights.select_motions([0])

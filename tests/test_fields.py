@@ -309,6 +309,29 @@ def test_random_programs_with_diagonal_stiffness():
 
 
 @pytest.mark.parametrize("stiffness", ["scalar", "diag"])
+def test_random_programs_over_a_shared_library(stiffness):
+    """random_gestures(library=G): every program's one or two fields are distinct members
+    of one set of G fields drawn within SUPPORTED, each program with its own weights and
+    duration; 40 programs use every one of the G = 5 and both sizes; library = 0 keeps
+    the programs of own fields, and a negative library is refused."""
+    from tflearn import gestures
+    programs = gestures.random_gestures(40, seed=4, stiffness=stiffness, library=5)
+    tag = "dL5" if stiffness == "diag" else "L5"
+    assert [p.name for p in programs] == [f"random4{tag}_{i}" for i in range(40)]
+    fields = [(e, k) for p in programs for e, k in zip(p.eta, p.k)]
+    assert len(set(fields)) == 5
+    assert all(len(set(zip(p.eta, p.k))) == len(p.eta) for p in programs)
+    assert {len(p.eta) for p in programs} == {1, 2}
+    lo, hi = gestures.SUPPORTED["duration"]
+    assert len({p.duration for p in programs}) > 10 and all(lo <= p.duration <= hi for p in programs)
+    assert len({p.a[0] for p in programs}) == 40
+    own = gestures.random_gestures(40, seed=4, stiffness=stiffness)
+    assert len({(e, k) for p in own for e, k in zip(p.eta, p.k)}) == sum(len(p.eta) for p in own)
+    with pytest.raises(ValueError, match="library must be ≥ 0"):
+        gestures.random_gestures(1, library=-1)
+
+
+@pytest.mark.parametrize("stiffness", ["scalar", "diag"])
 def test_own_fields_program_gives_the_library_programs_torques(stiffness):
     """gestures.own_fields_program evaluates each motion's own fields only; its torques are
     the whole library program's, bit for bit, at a scalar time, sample times and a time

@@ -332,6 +332,23 @@ def test_summarize_has_a_units_block():
     assert metrics.UNITS["tip"] == "m"         # a copy per document
 
 
+def test_figures_of_the_motions_furthest_from_their_paths(tmp_path):
+    """``log.figures``: Scores.worst orders the motions by joint RMSE, a failed
+    simulation first; write_figures draws only those."""
+    from tflearn import metrics, train
+    from tflearn.fit.targets import prepare
+    programs = gestures.random_gestures(4, seed=3, ranges={"duration": (0.3, 0.4)})
+    motions = [m for m, _ in gestures.generate(tb.arm(), gestures=programs)]
+    tg = prepare(tb.arm(), motions)
+    s = metrics.Scores([0.02, 0.5, 0.01, float("inf")], [0.0] * 4, [0.0] * 4, tg.q.clone(),
+                       [None, None, None, "budget"])
+    assert s.worst(2) == [3, 1] and s.worst(None) == [0, 1, 2, 3] and s.worst(0) == []
+    assert s.worst(9) == [3, 1, 0, 2]
+    train.write_figures(tb.arm(), tg, s, tmp_path, 2)
+    assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == sorted(
+        f"{tg.names[j]}.png" for j in (3, 1))
+
+
 # ------------------------------------------------------------------ render
 
 @pytest.fixture(scope="module")

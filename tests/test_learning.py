@@ -18,7 +18,7 @@ from torch.func import functional_call
 
 from tflearn import config, data, gestures, metrics, train
 from tflearn import motion as motion_mod
-from tflearn.fields import FieldBasis, MotionWeights, model_from_state
+from tflearn.fields import FieldBasis, MotionWeights, model_from_state, model_state
 from tflearn.fit import path as path_fit
 from tflearn.fit import targets, torque
 from tflearn.io import basis as bio
@@ -466,6 +466,65 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert alone["check"][0].rmse[0] > 0.03
 
 
+def test_reuse_takes_a_motion_onto_the_fields_found_before(tmp_path):
+    """``solver.each.reuse`` (:meth:`train.Run._library`, :meth:`train.Run._reuse`): the
+    fields fitted for earlier motions — come_here's twice (a copy 1e-9 rad off, merged)
+    and tuck's — carry a new motion of come_here's field with its own weight and duration
+    (a = 2.2, λ = 2.4 s): its fit is that one field, weight 2.2, and simulation reproduces
+    it; planar_line, whose fields are not among them, is left to its own search (None)."""
+    import dataclasses
+    come, tuck = gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]
+    new = dataclasses.replace(come, name="come_again", a=(2.2,), duration=2.4)
+    pairs = gestures.generate(gestures=[new, gestures.GESTURES["planar_line"]])
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    lib, _, _ = gestures.library_model([come, tuck, come])
+    eta, K = lib.eta.detach().clone(), lib.K().detach()
+    eta[2, 0] += 1e-9
+    run = train.Run(small_config("gestures", tmp_path / "run", "solver.each.reuse=3", "log.tensorboard=true"))
+    timing = MotionWeights.zeros(1, tg.duration[:1]).timing(0)
+    state = train.RunState(config={}, stage="each", rng=torch.Generator().get_state(),
+                           fits=[(eta[i:i + 1], K[i:i + 1], timing) for i in range(3)])
+    library = run._library(state, tg, 3)
+    assert library.M == 2 and float((library.eta.detach()[0] - lib.eta.detach()[0]).abs().max()) < 1e-9
+    fit = run._reuse(library, tg, 0)
+    assert fit["reused"] and fit["reproduced"] and fit["M"] == 1 and fit["cost"] <= 1e-5
+    assert torch.equal(fit["fit"][0], library.eta.detach()[:1])
+    assert float(fit["weights"].a.detach()[0, 0]) == pytest.approx(2.2, rel=1e-4)
+    assert run._reuse(library, tg, 1) is None
+    assert run._library(state, tg, 0) is None
+
+
+def test_pool_restores_the_fields_a_motion_was_reproduced_with(tmp_path):
+    """:meth:`train.Run._restore`: tuck, reproduced by its own fit (its generating field,
+    a = 2), is not by a pooled model whose copy of its field was moved 0.2 rad (as a merge
+    can): its own field comes back as a third field, with its own weight, for it alone,
+    and it is reproduced again; come_here keeps its weights, scores and fields."""
+    programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
+    pairs = gestures.generate(gestures=programs)
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    lib, w0, _ = gestures.library_model(programs)
+    eta, K = lib.eta.detach(), lib.K().detach()
+    fits = [(eta[j:j + 1], K[j:j + 1], w0.select_fields([j]).timing(j, weights=True)) for j in range(2)]
+    moved = FieldBasis(torch.stack([eta[0], eta[1] + 0.2]), K, kind="scalar")
+    weights = MotionWeights.zeros(2, tg.duration, tg.names)
+    torque.solve_weights(moved, weights, tg)
+    run = train.Run(small_config("gestures", tmp_path / "run"))
+    scores, ok = run._check(moved, weights, tg)
+    assert ok == [True, False]
+    state = train.RunState(config={}, stage="pool", rng=torch.Generator().get_state(), fits=fits,
+                           model=model_state(moved, weights),
+                           history={"each": {"reproduced": [True, True], "reused": []},
+                                    "pool": {"M": 2, "success": ok}})
+    after, fine = run._restore(state, tg, scores, ok)
+    assert fine == [True, True] and after.rmse[1] < 1e-3 and after.rmse[0] == scores.rmse[0]
+    basis, w = model_from_state(state.model)
+    assert basis.M == 3 and torch.equal(basis.eta.detach()[2], eta[1])
+    assert w.a.detach()[1].tolist() == [0.0, 0.0, 2.0]
+    assert torch.equal(w.a.detach()[0, :2], weights.a.detach()[0])
+    assert state.support == [[True, True, False], [False, False, True]]
+    assert state.history["pool"]["restored"] == ["tuck"] and state.history["pool"]["M"] == 3
+
+
 def test_training_warns_of_an_unresolved_motion():
     """A wrist twisting at 25 Hz sampled at 100 Hz (4 samples per period) is named in a
     warning; the same twist at 1 Hz is not."""
@@ -812,3 +871,59 @@ def test_pool_keeps_each_motions_learned_timing(come_here):
     cost_reset = torque.solve_weights(*reset, tg)
     assert float(cost_kept.max()) <= 1e-6
     assert float(cost_reset[1]) >= 1e3 * float(cost_kept[1])
+
+
+def test_merge_close_joins_every_copy_of_a_field():
+    """Four copies of one field (centres within 0.02 rad, stiffness within 1%), a pair,
+    and a field too stiff to join its neighbour: the copies become one field at their mean
+    centre and stiffness in the first copy's place, the pair one, the stiff one stays;
+    the weights kept are the first members'."""
+    from tflearn.fit import search
+    eye = torch.eye(7, dtype=DT)
+    base, other = torch.full((7,), 0.3, dtype=DT), torch.full((7,), -0.5, dtype=DT)
+    shift = torch.zeros(7, dtype=DT)
+    shift[0] = 0.006
+    eta = torch.stack([base, other, base + shift, base - shift, other + shift, base + 2 * shift,
+                       base + shift])
+    k = torch.tensor([1.0, 2.0, 1.01, 0.99, 2.0, 1.0, 1.5], dtype=DT)
+    basis = FieldBasis(eta, k[:, None, None] * eye, kind="diag")
+    weights = MotionWeights.zeros(7, torch.tensor([1.0], dtype=DT), ["m"])
+    with torch.no_grad():
+        weights.a_raw[0] = torch.arange(7, dtype=DT)
+    nb, nw, merged = search.merge_close(basis, weights, distance=0.05, stiffness=0.05)
+    assert merged == [(0, 2), (0, 3), (0, 5), (1, 4)]
+    assert nb.M == 3
+    assert torch.allclose(nb.eta.detach()[0], eta[[0, 2, 3, 5]].mean(0), rtol=0, atol=1e-15)
+    assert torch.allclose(nb.eta.detach()[1], eta[[1, 4]].mean(0), rtol=0, atol=1e-15)
+    assert torch.equal(nb.eta.detach()[2], eta[6])
+    assert torch.allclose(nb.K().detach()[:, 0, 0], torch.tensor([1.0, 2.0, 1.5], dtype=DT), rtol=1e-12)
+    assert nw.a_raw.detach()[0].tolist() == [0.0, 1.0, 6.0]
+    assert basis.M == 7                                          # the inputs are left unchanged
+
+
+def test_em_and_weights_a_chunk_of_motions_at_a_time(monkeypatch):
+    """Three gestures on their generating fields, moved off them (a diag basis): NNLS
+    weights and six EM steps taken one motion at a time (CHUNK_BYTES so small that every
+    chunk holds one motion) end where the whole batch does, and a support is honoured."""
+    chosen = [gestures.GESTURES[k] for k in ("come_here", "tuck", "planar_line")]
+    pairs = gestures.generate(gestures=chosen)
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    true, w0, _ = gestures.library_model(chosen)
+    support = torch.cat([w0.a != 0, w0.b != 0], -1)
+    support[0] = True                                   # come_here may use every field
+    runs = []
+    for chunk_bytes in (targets.CHUNK_BYTES, 1):
+        monkeypatch.setattr(targets, "CHUNK_BYTES", chunk_bytes)
+        basis, weights = _fresh(true.eta.detach() + ETA_SHIFT, K_FACTOR * true.K().detach(), tg, "diag")
+        assert len(targets.chunks(tg, 4 * 14)) == (1 if chunk_bytes > 1 else 3)
+        cost = torque.solve_weights(basis, weights, tg, support)
+        history = torque.em(basis, weights, tg, steps=6, support=support)
+        runs.append((cost, history, basis.eta.detach(), basis.K().detach(), weights.vector().detach()))
+    (c0, h0, e0, k0, x0), (c1, h1, e1, k1, x1) = runs
+    assert torch.allclose(c1, c0, rtol=1e-10, atol=1e-15) and float(c0.max()) > 1e-4
+    assert h1 == pytest.approx(h0, rel=1e-9) and h0[-1] < 0.5 * h0[0]
+    # summation order only (measured: centres 2.5e-12 rad, stiffness 1.7e-9 relative on a
+    # weakly excited wrist axis, weights 5.7e-13)
+    assert torch.allclose(e1, e0, rtol=0, atol=1e-10) and torch.allclose(k1, k0, rtol=1e-7, atol=0)
+    assert torch.allclose(x1, x0, rtol=0, atol=1e-10)
+    assert float(x1[1:][~support[1:]].abs().max()) == 0.0   # outside the support: zero

@@ -50,6 +50,11 @@ class InitSection(Section):
 class EachSection(Section):                     # per-motion growth
     max_fields: int = Field(3, ge=1)
     tol: float = Field(1e-5, ge=0)               # relative torque cost
+    # B > 0: motions in blocks of B; a motion first tries the fields found for the motions
+    # of the blocks before its own (near-duplicates merged) — NNLS weights, within tol and
+    # reproduced by simulation: those fields are its fit — and is searched only if they
+    # do not do; 0: every motion searched alone (for many motions of a shared basis)
+    reuse: int = Field(0, ge=0)
 
 
 class EMSection(Section):                       # Levenberg–Marquardt steps per EM refinement
@@ -68,6 +73,10 @@ class PathSection(Section):                     # simulation options and path ma
     adjoint: bool = False
     velocity_weight: float = Field(0.1, ge=0)
     batch: Literal["shared", "each"] = "shared"  # each: every motion its own steps (dopri5)
+    # the path stage's Adam steps: all = every motion simulated, fields and weights moved;
+    # unreproduced = only the motions not reproduced when it starts, their weights only
+    # (the fields held, so the reproduced motions stay exactly as they are: for many motions)
+    motions: Literal["all", "unreproduced"] = "all"
 
     def options(self):
         """These settings as :class:`tflearn.simulate.SimOptions`."""
@@ -156,6 +165,9 @@ class SuccessSection(Section):
 class LogSection(Section):
     tensorboard: bool = True
     progress: bool = True
+    # path figures (TensorBoard, RUN/figures/) of at most this many motions each time,
+    # those furthest from their paths first; null: every motion
+    figures: Optional[int] = Field(16, ge=0)
 
 
 def _body_builds(body: dict) -> dict:
@@ -252,6 +264,10 @@ class SimulationSection(Section):
     atol: float = Field(1e-8, gt=0)
     max_evals: int = Field(400_000, ge=1)
     batch: Literal["shared", "each"] = "shared"  # each: every motion its own steps (dopri5)
+    # the path stage's Adam steps: all = every motion simulated, fields and weights moved;
+    # unreproduced = only the motions not reproduced when it starts, their weights only
+    # (the fields held, so the reproduced motions stay exactly as they are: for many motions)
+    motions: Literal["all", "unreproduced"] = "all"
 
     def options(self):
         """These settings as :class:`tflearn.simulate.SimOptions`."""

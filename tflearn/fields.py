@@ -390,10 +390,12 @@ class MotionWeights(nn.Module):
         return self._with({k: v[idx] for k, v in self._arrays().items()},
                           duration=self.duration[idx], names=[self.names[i] for i in idx.tolist()])
 
-    def timing(self, j: int) -> dict:
+    def timing(self, j: int, weights: bool = False) -> dict:
         """Motion j's activation timing (detached copies): {name: (M,)} over :attr:`TIMING`
-        and {name: (P,)} over :attr:`WINDOWS`."""
-        return {k: getattr(self, k).detach()[j].clone() for k in self.TIMING + self.WINDOWS}
+        and {name: (P,)} over :attr:`WINDOWS`; with ``weights`` its weights too (a_raw,
+        b_raw: (M,); c_raw: (M×P))."""
+        keys = self.TIMING + self.WINDOWS + (("a_raw", "b_raw", "c_raw") if weights else ())
+        return {k: getattr(self, k).detach()[j].clone() for k in keys}
 
     @property
     def a(self) -> torch.Tensor:

@@ -76,13 +76,19 @@ STIFFNESS_KINDS = ("scalar", "diag")
 
 
 def random_gestures(count: int, seed: int = 0, ranges: dict | None = None,
-                    stiffness: str = "scalar") -> list:
+                    stiffness: str = "scalar", library: int = 0) -> list:
     """``count`` random torque-field programs within :data:`SUPPORTED` (or ``ranges``):
     one step field, and with probability ½ a second, pulse field; from rest at ν = 0.
     ``stiffness``: ``scalar`` (K = k·I; names ``random{seed}_{i}``) or ``diag`` (seven
-    independent diagonal entries; names ``random{seed}d_{i}``)."""
+    independent diagonal entries; names ``random{seed}d_{i}``). ``library`` = G > 0:
+    the fields are shared, as the model assumes — G fields are drawn first and each
+    program takes its one or two (distinct) fields from them, with its own weights and
+    duration (names ``random{seed}L{G}_{i}``, ``…dL{G}_…`` for diag); 0: every program
+    draws its own fields."""
     if stiffness not in STIFFNESS_KINDS:
         raise ValueError(f"random_gestures: stiffness must be one of {STIFFNESS_KINDS}, got {stiffness!r}")
+    if library < 0:
+        raise ValueError(f"random_gestures: library must be ≥ 0, got {library}")
     per_axis = stiffness == "diag"
     r = dict(SUPPORTED, **(ranges or {}))
     g = torch.Generator().manual_seed(seed)
@@ -90,12 +96,19 @@ def random_gestures(count: int, seed: int = 0, ranges: dict | None = None,
     def u(key, shape=()):
         lo, hi = r[key]
         return (lo + (hi - lo) * torch.rand(shape, generator=g, dtype=torch.float64)).tolist()
+
+    def fields(m):                      # m centres, then m stiffnesses
+        eta = [tuple(u("shoulder", (3,)) + [u("elbow")] + u("wrist", (3,))) for _ in range(m)]
+        return list(zip(eta, [tuple(u("k", (7,))) if per_axis else u("k") for _ in range(m)]))
+    shared = fields(library)
+    tag = f"{'d' if per_axis else ''}{f'L{library}' if library else ''}"
     out = []
     for i in range(count):
-        m = int(torch.randint(r["fields"][0], r["fields"][1] + 1, (), generator=g))
-        eta = tuple(tuple(u("shoulder", (3,)) + [u("elbow")] + u("wrist", (3,))) for _ in range(m))
-        k = tuple(tuple(u("k", (7,))) if per_axis else u("k") for _ in range(m))
-        out.append(Gesture(f"random{seed}{'d' if per_axis else ''}_{i}", eta=eta, k=k,
+        most = min(r["fields"][1], library) if library else r["fields"][1]
+        m = int(torch.randint(r["fields"][0], most + 1, (), generator=g))
+        chosen = [shared[int(x)] for x in torch.randperm(library, generator=g)[:m]] if library else fields(m)
+        out.append(Gesture(f"random{seed}{tag}_{i}", eta=tuple(f[0] for f in chosen),
+                           k=tuple(f[1] for f in chosen),
                            a=(u("a"),) + (0.0,) * (m - 1), b=(0.0,) + tuple(u("b") for _ in range(m - 1)),
                            duration=round(u("duration"), 2)))
     return out

@@ -72,8 +72,9 @@ class RunLog:
     ``sequence``: the run's stages (for the "[i/n]" of the bar)."""
 
     def __init__(self, out, tensorboard: bool, progress: bool, body=None,
-                 sequence=("each", "pool", "reduce", "path", "done")):
+                 sequence=("each", "pool", "reduce", "path", "done"), figures: int | None = None):
         self.out = Path(out)
+        self.figures = figures
         self.tensorboard = tensorboard
         self.progress = progress
         self.body = body
@@ -217,8 +218,8 @@ class RunLog:
             self.scalar("0_overview/torque_cost", sum(t * t for t in scores.torque), step)
         if figures:
             from . import plots
-            for j, name in enumerate(tg.names):
-                k = int(tg.mask[j].sum())
+            for j in scores.worst(self.figures):
+                name, k = tg.names[j], int(tg.mask[j].sum())
                 fig = plots.motion_sheet(self.body, tg.t[j, :k],
                                          {"target": tg.q[j, :k], "simulated": scores.q_sim[j, :k]},
                                          title=name)

@@ -44,6 +44,15 @@ class Scores:
     q_sim: torch.Tensor
     failure: list
 
+    def worst(self, count: Optional[int]) -> list:
+        """The indices of the ``count`` motions furthest from their paths (joint RMSE; a
+        failed simulation counts as furthest), worst first; None: every motion, in order."""
+        if count is None:
+            return list(range(len(self.rmse)))
+        key = [math.inf if f is not None or not math.isfinite(r) else r
+               for r, f in zip(self.rmse, self.failure)]
+        return sorted(range(len(key)), key=lambda j: -key[j])[:count]
+
     def succeeded(self, rmse: float, tip: float) -> list:
         """Per motion: simulated, joint RMSE ≤ rmse and maximum tip error ≤ tip."""
         return [f is None and r <= rmse and p <= tip

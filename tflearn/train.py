@@ -107,7 +107,7 @@ class RunState:
     cursor: int = 0
     step: int = 0
     elapsed: float = 0.0
-    fits: list = field(default_factory=list)          # [(η, K, timing)]: search.pool
+    fits: list = field(default_factory=list)          # [(η, K, timing and weights)]: search.pool
     model: Optional[dict] = None
     history: dict = field(default_factory=dict)
     reference: Optional[dict] = None                   # {"rmse", "tip", "ok"} per motion
@@ -171,6 +171,7 @@ class Run:
         self.stop_after = stop_after
         self.checkpoints = 0
         self._window = 1                             # reduce: trials checked together
+        self._fields_before = (0, None)              # each: (upto, library) of _library
         self.progress = cfg.log.progress if progress is None else progress
         self.ckpt_path = self.out / "checkpoint.pt"
         self.log = RunLog(self.out, tensorboard=False, progress=False)
@@ -262,7 +263,8 @@ class Run:
             state = RunState(config=self.cfg.model_dump(), stage=self.sequence[0], rng=gen.get_state())
         lead = parallel.rank() == 0
         self.log = RunLog(self.out, tensorboard=self.cfg.log.tensorboard and lead,
-                          progress=self.progress and lead, body=self.body, sequence=self.sequence)
+                          progress=self.progress and lead, body=self.body, sequence=self.sequence,
+                          figures=self.cfg.log.figures)
         if self.imported is not None:
             self.log.message(f"imported {len(self.imported['clips'])} BVH clip(s) into {self.cfg.data} "
                              f"(report.json there); body: the performer's arm")
@@ -320,21 +322,67 @@ class Run:
             state.rng = gen.get_state()
             self.log.end_stage()
             return self._advance(state)
-        batch = list(range(j, min(j + parallel.size(), tg.N)))
-        mine = [self._fit_one(tg, batch[i], seeds[batch[i]]) for i in parallel.mine(len(batch))]
+        B = self.cfg.solver.each.reuse
+        batch = list(range(j, min(j + parallel.size(), tg.N, (j // B + 1) * B if B else tg.N)))
+        library = self._library(state, tg, B * (j // B) if B else 0)
+        mine = [self._reuse(library, tg, batch[i]) or self._fit_one(tg, batch[i], seeds[batch[i]])
+                for i in parallel.mine(len(batch))]
+        alone = state.history.setdefault("each", {"reproduced": [], "reused": []})
         for k, fit in zip(batch, parallel.gather_motions(len(batch), mine)):
             state.fits.append(fit["fit"])
+            alone["reproduced"].append(fit["reproduced"])
+            if fit.get("reused"):
+                alone["reused"].append(tg.names[k])
             step = self._tick(state)
             if fit["scores"] is not None:
                 one = tg.select([k])
                 self.log.scalar("torque_cost/each", fit["cost"], step)
-                self.log.scores(fit["scores"], one, step, figures=True, overview=False)
+                figures = self.cfg.log.figures is None or k < self.cfg.log.figures
+                self.log.scores(fit["scores"], one, step, figures=figures, overview=False)
                 self.log.fields(sum(f[1].shape[0] for f in state.fits), step,
                                 torch.cat([f[1] for f in state.fits]), fit["weights"])
             self.log.status(motion=tg.names[k], M=fit["M"], cost=fit["cost"],
-                            reproduced=fit["reproduced"])
+                            reproduced=fit["reproduced"], reused=len(alone["reused"]))
         state.cursor = batch[-1] + 1
         self.save(state)
+
+    def _library(self, state: RunState, tg: Targets, upto: int) -> Optional[FieldBasis]:
+        """The fields fitted for motions 0 … ``upto`` − 1, near-duplicates merged
+        (:func:`~tflearn.fit.search.merge_close`), for ``solver.each.reuse``; None when
+        there are none. Kept until ``upto`` changes."""
+        if not upto:
+            return None
+        if self._fields_before[0] != upto:
+            fits, merge = state.fits[:upto], self.cfg.solver.merge
+            basis = self.template().like(torch.cat([f[0] for f in fits]), torch.cat([f[1] for f in fits]))
+            stub = MotionWeights.zeros(basis.M, tg.duration[:1])
+            self._fields_before = (upto, search.merge_close(basis, stub, merge.distance, merge.stiffness)[0])
+        library = self._fields_before[1]
+        return library if library.M else None
+
+    def _reuse(self, library: Optional[FieldBasis], tg: Targets, k: int) -> Optional[dict]:
+        """Motion k on the ``library``'s fields (:meth:`_library`): its NNLS weights over
+        them; if its relative torque cost is within ``solver.each.tol`` and simulation
+        reproduces it, its fit (as :meth:`_fit_one`'s) is the fields it uses, else None."""
+        if library is None:
+            return None
+        one = tg.select([k])
+        self.log.busy(motion=tg.names[k], reusing=library.M)
+        w = MotionWeights.zeros(library.M, one.duration, one.names,
+                                submovement_windows(one, self.cfg.model.windows))
+        cost = float(torque.solve_weights(library, w, one)[0])
+        with torch.no_grad():
+            used = ((w.a + w.b)[0] + w.c[0].sum(-1) > 0).nonzero().flatten().tolist()
+        if not used or not cost <= self.cfg.solver.each.tol:
+            return None
+        basis, w = library.select(used), w.select_fields(used)
+        scores, ok = self._check(basis, w, one, distributed=False)
+        if not all(ok):
+            return None
+        board = self.cfg.log.tensorboard
+        return {"fit": (basis.eta.detach().clone(), basis.K().detach().clone(), w.timing(0, weights=True)),
+                "cost": cost, "M": basis.M, "reproduced": True, "reused": True,
+                "scores": scores if board else None, "weights": w if board else None}
 
     def _fit_one(self, tg: Targets, k: int, seed: int) -> dict:
         """Motion k's own search (:func:`tflearn.fit.search.grow`) with a generator
@@ -363,7 +411,7 @@ class Run:
         scores = None
         if self.cfg.log.tensorboard:
             scores = last[1] if fresh else self._check(b, w, one, distributed=False)[0]
-        return {"fit": (b.eta.detach().clone(), b.K().detach().clone(), w.timing(0)),
+        return {"fit": (b.eta.detach().clone(), b.K().detach().clone(), w.timing(0, weights=True)),
                 "cost": float(costs[0]), "M": b.M, "reproduced": bool(fresh and all(last[2])),
                 "scores": scores, "weights": w if self.cfg.log.tensorboard else None}
 
@@ -386,11 +434,10 @@ class Run:
         self.log.stage("pool", 1)
         basis, weights = search.pool(tg, state.fits, self.template())
         if self.cfg.solver.pool.sharing == "own":       # each motion on its own fields
-            sizes = [len(f[0]) for f in state.fits]
-            state.support = [[sum(sizes[:j]) <= i < sum(sizes[:j + 1]) for i in range(basis.M)]
-                             for j in range(tg.N)]
+            ends = torch.tensor([len(f[0]) for f in state.fits]).cumsum(0).tolist()
+            state.support = [[lo <= i < hi for i in range(basis.M)] for lo, hi in zip([0] + ends, ends)]
         basis, weights, merged = search.merge_close(basis, weights, merge.distance, merge.stiffness)
-        if merged and state.support is not None:        # a merged pair: either motion may use it
+        if merged and state.support is not None:        # a merged cluster: its motions may use it
             drop = {k for _, k in merged}
             for row in state.support:
                 for i, k in merged:
@@ -401,11 +448,59 @@ class Run:
         cost = float(torque.solve_weights(basis, weights, tg,
                                           _weight_support(state.support, weights.P)).sum())
         scores, ok = self._adopt(state, tg, "pool", basis, weights, cost, merged=merged)
+        scores, ok = self._restore(state, tg, scores, ok)
         state.reference = _reference(scores, ok)
-        self.log.status(M=basis.M, merged=len(merged), cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
+        pooled = state.history["pool"]
+        self.log.status(M=pooled["M"], merged=len(merged), cost=cost,
+                        restored=len(pooled.get("restored", [])), reproduced=f"{sum(ok)}/{tg.N}")
         self.log.end_stage()
         self._advance(state)
         self.save(state)
+
+    def _restore(self, state: RunState, tg: Targets, scores: Scores, ok: list) -> tuple:
+        """Motions their own fits reproduced (the ``each`` stage) that the pooled model
+        does not — merging or refitting moved a field their path needs to the digit —
+        get their own fields back as fields of their own: such a motion's weights and
+        timing are its own fit's, on those fields only, and no other motion uses them
+        (:attr:`RunState.support`); elimination may still remove them, by its rule.
+        Changes ``state.model`` and ``state.support``; returns the (scores, success) of
+        every motion."""
+        alone = state.history.get("each", {}).get("reproduced", [])
+        broken = [j for j, (a, o) in enumerate(zip(alone, ok)) if a and not o]
+        if not broken:
+            return scores, ok
+        basis, weights = model_from_state(state.model)
+        M0, own = basis.M, [state.fits[j] for j in broken]
+        nb = basis.extend(torch.cat([f[0] for f in own]), torch.cat([f[1] for f in own]))
+        nw = weights.extend_fields(nb.M - M0)
+        rows = state.support or [[True] * M0 for _ in range(tg.N)]
+        support = [row + [False] * (nb.M - M0) for row in rows]
+        start = M0
+        with torch.no_grad():
+            for j, (eta, _, fit) in zip(broken, own):
+                for key in ("a_raw", "b_raw", "c_raw"):
+                    getattr(nw, key)[j] = 0.0
+                for key, row in fit.items():
+                    target = getattr(nw, key)
+                    if key in MotionWeights.WINDOWS:
+                        target[j] = row
+                    else:
+                        target[j, start:start + len(eta)] = row
+                support[j] = [start <= i < start + len(eta) for i in range(nb.M)]
+                start += len(eta)
+        check, fine = self._check(nb, nw.select_motions(broken), tg.select(broken))
+        scores = replace(scores, q_sim=scores.q_sim.clone(),
+                         **{k: list(getattr(scores, k)) for k in ("rmse", "tip", "torque", "failure")})
+        ok = list(ok)
+        for i, j in enumerate(broken):
+            for key in ("rmse", "tip", "torque", "failure"):
+                getattr(scores, key)[j] = getattr(check, key)[i]
+            scores.q_sim[j] = check.q_sim[i, :scores.q_sim.shape[1]]
+            ok[j] = fine[i]
+        state.model, state.support = model_state(nb, nw), support
+        state.history["pool"].update(M=nb.M, success=ok, restored=[tg.names[j] for j in broken])
+        self.log.model(nb, nw, self._tick(state))
+        return scores, ok
 
     def _reduce(self, state: RunState, tg: Targets):
         """Backward elimination. With model.fields = 0 a field goes only if no motion gets
@@ -469,8 +564,7 @@ class Run:
             keys = ("a_raw", "b_raw", "c_raw")
             nw.set_flat(keys, sub.flat(keys), users)
             check = self._check(nb, sub, one)
-        with torch.no_grad():
-            cost = float(torque.torque_cost(nb, nw, tg).sum())
+        cost = float(torque.by_chunks(torque.torque_cost, nb, nw, tg).sum())
         return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support, "cost": cost,
                 "em_steps": 0, "check": check, "motions": users, "trial": "held"}
 
@@ -555,7 +649,9 @@ class Run:
                 scores, ok = self._check(basis, weights, tg)
                 self.log.scores(scores, tg, self._tick(state))
                 state.model = model_state(basis, weights)
-            state.path = {"needed": not all(ok), "lr": p.lr, "optimizer": None, "best": None}
+            state.path = {"needed": not all(ok), "lr": p.lr, "optimizer": None, "best": None,
+                          "motions": ([j for j, x in enumerate(ok) if not x]
+                                      if p.motions == "unreproduced" else None)}
             if not state.path["needed"]:
                 self.log.status(advance=0, total=0, skipped="every motion reproduced")
             if shoot:                        # its own unit: a resumed run does not shoot again
@@ -568,7 +664,8 @@ class Run:
                                  best=state.path["best"], optimizer_state=state.path["optimizer"],
                                  velocity_weight=p.velocity_weight,
                                  phases=self.cfg.model.phases == "variable", options=self.options,
-                                 distributed=True)
+                                 fields=state.path.get("motions") is None,
+                                 motions=state.path.get("motions"), distributed=True)
         if res.best is None:                 # the simulation fails at the starting point
             state.history["path"] = res.failure
             self.log.status(advance=0, failed="the simulation fails at the start")
@@ -676,7 +773,7 @@ class Run:
 
     def _write(self, state: RunState, tg: Targets, scores: Scores, lb, metrics: dict) -> None:
         """The artefacts of a finished run (rank 0)."""
-        write_figures(self.body, tg, scores, self.out)
+        write_figures(self.body, tg, scores, self.out, self.cfg.log.figures)
         config_mod.dump(self.cfg, self.out / "config.yaml")
         write_text(self.out / "metrics.json", json.dumps(metrics, indent=1))
         basis_io.save(lb, self.out / "basis.json")
@@ -686,12 +783,14 @@ class Run:
         self._write_checkpoint(state)
 
 
-def write_figures(body, tg: Targets, scores: Scores, out: Path) -> None:
+def write_figures(body, tg: Targets, scores: Scores, out: Path, count: Optional[int] = None) -> None:
+    """OUT/figures/NAME.png: the target and simulated paths of the ``count`` motions
+    furthest from their paths (None: every motion)."""
     from . import plots
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
-    for j, name in enumerate(tg.names):
-        k = int(tg.mask[j].sum())
+    for j in scores.worst(count):
+        name, k = tg.names[j], int(tg.mask[j].sum())
         plots.save(plots.motion_sheet(body, tg.t[j, :k], {"target": tg.q[j, :k],
                                                           "simulated": scores.q_sim[j, :k]},
                                       title=f"{name}: rmse {scores.rmse[j]:.4f} rad, "

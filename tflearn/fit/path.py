@@ -78,18 +78,21 @@ def _loss(body, basis, weights, tg, velocity_weight, options, motions=None):
     return losses, (f"non-finite path loss for {', '.join(bad)}" if bad else None)
 
 
-def _summed_loss(body, basis, weights, tg, velocity_weight, options, shared: bool):
-    """(this process' part of Σ_j L_j to backpropagate, Σ_j L_j over all motions (∞ on a
-    failure), failure message or None). ``shared``: each rank of a run of several
-    processes simulates its own motions (:func:`tflearn.parallel.mine`); the losses and
-    failures are gathered, so that every rank gets the same sum and failure."""
+def _summed_loss(body, basis, weights, tg, velocity_weight, options, shared: bool, motions=None):
+    """(this process' part of Σ_j L_j over ``motions`` (indices, None: all) to
+    backpropagate, the whole sum (∞ on a failure), failure message or None). Only
+    ``motions`` are simulated.
+    ``shared``: each rank of a run of several processes simulates its own share of them
+    (:func:`tflearn.parallel.mine`); the losses and failures are gathered, so that every
+    rank gets the same sum and failure."""
     if not shared:
-        losses, failure = _loss(body, basis, weights, tg, velocity_weight, options)
+        losses, failure = _loss(body, basis, weights, tg, velocity_weight, options, motions)
         return (None, math.inf, failure) if failure else (losses.sum(), float(losses.sum().detach()), None)
-    idx, losses, failure = parallel.mine(tg.N), None, None
+    motions = list(range(tg.N)) if motions is None else motions
+    idx, losses, failure = [motions[i] for i in parallel.mine(len(motions))], None, None
     if idx:
         losses, failure = _loss(body, basis, weights, tg, velocity_weight, options, idx)
-    rows = parallel.gather_motions(tg.N, [failure] * len(idx) if failure else
+    rows = parallel.gather_motions(len(motions), [failure] * len(idx) if failure else
                                    losses.detach().tolist() if idx else [])
     failures = list(dict.fromkeys(x for x in rows if isinstance(x, str)))   # one per rank that failed
     if failures:
@@ -108,7 +111,7 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
               best: Optional[dict] = None, optimizer_state: Optional[dict] = None, *,
               fields: bool = True, phases: bool = False, velocity_weight: float = 0.1,
               options: SimOptions = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000),
-              distributed: bool = False) -> PathStep:
+              motions: Optional[list] = None, distributed: bool = False) -> PathStep:
     """One safeguarded Adam step on the summed path loss Σ_j L_j.
 
     The loss is evaluated at the current parameters; if it is worse than the best point
@@ -116,7 +119,10 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
     the best point and the learning rate halves; otherwise the point becomes the best and
     Adam steps from it. Gradients come from backpropagation through the solver or, with
     ``options.adjoint``, the adjoint method. ``fields=False`` freezes the basis (weights
-    only: held-out synthesis). A failure at the starting point (no best point yet)
+    only: held-out synthesis). ``motions``: sum over these motions only (indices; the
+    others are not simulated, and their weights, with no gradient, do not move; with
+    ``fields`` also held their paths stay exactly as they were). A failure at the
+    starting point (no best point yet)
     leaves the parameters as they are and is returned with ``best`` None.
     ``distributed``: the ranks of a run (:mod:`tflearn.parallel`) simulate their own
     motions and sum the gradients, and every rank takes the same step."""
@@ -125,7 +131,8 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
     if optimizer_state is not None:
         opt.load_state_dict(optimizer_state)
     shared = distributed and parallel.size() > 1
-    local, value, failure = _summed_loss(body, basis, weights, tg, velocity_weight, options, shared)
+    local, value, failure = _summed_loss(body, basis, weights, tg, velocity_weight, options, shared,
+                                         motions)
     if not failure and (best is None or value <= best["loss"]):
         best = {"loss": value, "model": model_state(basis, weights)}
         opt.zero_grad()
@@ -139,7 +146,8 @@ def path_step(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
                 basis.project_()
             weights.project_()
             return PathStep(value, lr, best, opt.state_dict())
-        failure = f"non-finite path-loss gradient (motions {', '.join(tg.names)})"
+        names = tg.names if motions is None else [tg.names[j] for j in motions]
+        failure = f"non-finite path-loss gradient (motions {', '.join(names)})"
     if failure:
         warnings.warn(f"path matching: step rejected: {failure}", DivergenceWarning, stacklevel=2)
     if best is not None:

@@ -30,7 +30,7 @@ import torch
 from ..fields import FieldBasis, MotionWeights, step_profile
 from .nnls import nnls
 from .targets import Targets
-from .torque import DivergenceWarning, design, normal_equations
+from .torque import DivergenceWarning, by_chunks, design, normal_equations
 
 
 def residual_torques(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
@@ -153,38 +153,49 @@ def _finite(costs: torch.Tensor, tg: Targets) -> torch.Tensor:
     return torch.where(bad, torch.full_like(costs, float("inf")), costs)
 
 
-@torch.no_grad()
 def field_shares(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
-    """Share of each field in the total model torque energy (M), summing to ≤ 1 per motion."""
+    """Each field's largest share (M) of a motion's model torque energy (the shares of
+    one motion sum to ≤ 1), a chunk of motions at a time."""
+    return by_chunks(_shares, basis, weights, tg).amax(0)
+
+
+def _shares(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
     Phi = design(basis, weights, tg) * weights.vector()[:, None, None]    # N×T×n×M(2+P)
     M = basis.M
     per = Phi[..., :M] + Phi[..., M:2 * M] + Phi[..., 2 * M:].unflatten(-1, (M, weights.P)).sum(-1)
     e = (tg.wt[..., None] * (per ** 2).sum(-2)).sum(1)                                 # N×M
-    return (e / e.sum(-1, keepdim=True).clamp_min(1e-300)).amax(0)
+    return e / e.sum(-1, keepdim=True).clamp_min(1e-300)
 
 
 @torch.no_grad()
 def merge_close(basis: FieldBasis, weights: MotionWeights, distance: float, stiffness: float):
-    """Merge pairs of fields whose centres are within ``distance`` (rad, Euclidean) and
-    whose stiffnesses differ by less than the fraction ``stiffness`` (‖K_i − K_k‖_F <
-    stiffness · ‖K_i‖_F); the merged field takes the mean centre and stiffness and the
-    first field's place and weights. Returns new (basis, weights, merged pairs); the
-    inputs are left unchanged."""
+    """Merge fields that nearly coincide: field k joins the cluster of the first field i <
+    k that has not joined another's and whose centre is within
+    ``distance`` of its own (rad, Euclidean) and whose stiffness differs from its own by
+    less than the fraction ``stiffness`` (‖K_i − K_k‖_F < stiffness · ‖K_i‖_F); a
+    cluster becomes one field with the mean centre and stiffness of its members, in its
+    first member's place and with that member's weights. Many motions fitted alone find
+    the same shared field many times over: each copy joins the first one's cluster.
+    Returns new (basis, weights, merged pairs (first, other member)); the inputs are
+    left unchanged."""
     eta, K = basis.eta.detach(), basis.K().detach()
+    flat, exact = K.flatten(1), "donot_use_mm_for_euclid_dist"
+    near = torch.cdist(eta, eta, compute_mode=exact) < distance
+    alike = torch.cdist(flat, flat, compute_mode=exact) < stiffness * flat.norm(dim=1, keepdim=True)
+    close = (near & alike).triu(1)
     merged, used = [], set()
     for i in range(basis.M):
-        for k in range(i + 1, basis.M):
-            if i in used or k in used:
-                continue
-            if (eta[i] - eta[k]).norm() < distance and (K[i] - K[k]).norm() < stiffness * K[i].norm():
-                merged.append((i, k))
-                used |= {i, k}
+        if i in used:
+            continue
+        members = [k for k in close[i].nonzero().flatten().tolist() if k not in used]
+        merged += [(i, k) for k in members]
+        used |= {i, *members}
     if not merged:
         return basis, weights, []
     new_eta, new_K = eta.clone(), K.clone()
-    for i, k in merged:
-        new_eta[i] = 0.5 * (eta[i] + eta[k])
-        new_K[i] = 0.5 * (K[i] + K[k])
+    for i in {i for i, _ in merged}:
+        cluster = [i] + [k for j, k in merged if j == i]
+        new_eta[i], new_K[i] = eta[cluster].mean(0), K[cluster].mean(0)
     keep = [i for i in range(basis.M) if i not in {k for _, k in merged}]
     return basis.like(new_eta[keep], new_K[keep]), weights.select_fields(keep), merged
 
@@ -262,13 +273,14 @@ def grow(tg: Targets, template: FieldBasis, max_fields: int, tol: float, candida
 def pool(tg: Targets, fits: list, template: FieldBasis):
     """One basis like ``template`` (an empty basis: kind, blocks, damping) holding the
     fields of the per-motion fits [(η M_j×n, K M_j×n×n, timing)], fit j being motion
-    j's, with every motion's weights solved over all of them.
+    j's, and every motion's weights over them, zero (to be solved: after
+    :func:`merge_close`, which keeps the many copies of a shared field from ever being
+    in one design matrix).
 
-    Motion j keeps the activation timing it learned on its own fields (``timing``, from
-    :meth:`MotionWeights.timing`) and its P sub-movement windows (P read from the
-    timings); on the other motions' fields it starts at the default phases (step from
-    t = 0, pulse over the whole motion)."""
-    from .torque import solve_weights
+    Motion j keeps the activation timing (and, where the fit holds them, the weights) it
+    learned on its own fields (``timing``, from :meth:`MotionWeights.timing`) and its P
+    sub-movement windows (P read from the timings); on the other motions' fields it
+    starts at the default phases (step from t = 0, pulse over the whole motion)."""
     eta = torch.cat([fit[0] for fit in fits])
     K = torch.cat([fit[1] for fit in fits])
     basis = template.like(eta, K)
@@ -283,5 +295,4 @@ def pool(tg: Targets, fits: list, template: FieldBasis):
                 else:
                     getattr(weights, key)[j, start:start + len(e)] = row
             start += len(e)
-    solve_weights(basis, weights, tg)
     return basis, weights

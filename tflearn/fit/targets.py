@@ -63,17 +63,44 @@ class Targets:
         s = self.coord_weight.sqrt()[:, None, :]
         return x * (s if x.ndim == 3 else s[..., None])
 
-    def select(self, idx) -> Targets:
+    def select(self, idx, trim: bool = False) -> Targets:
         """The targets of some motions (a list of indices), on their own time grid (the
         union of their sample times only, so a simulation of them ends with the longest
-        of them)."""
+        of them); ``trim``: padded only to the longest of them (T shorter)."""
         idx = torch.as_tensor(idx, dtype=torch.long)
-        sub = {k: getattr(self, k)[idx] for k in ("t", "mask", "w", "wt", "q", "v", "tau", "duration",
-                                                  "q0", "qd0")}
+        T = int(self.mask[idx].any(0).nonzero().max()) + 1 if trim else self.mask.shape[1]
+        sub = {k: getattr(self, k)[idx, :T] for k in ("t", "mask", "w", "wt", "q", "v", "tau")}
+        sub.update({k: getattr(self, k)[idx] for k in ("duration", "q0", "qd0")})
         if self.coord_weight is not None:
             sub["coord_weight"] = self.coord_weight[idx]
         grid, index = union_grid(sub["t"])
         return Targets(names=[self.names[i] for i in idx.tolist()], grid=grid, index=index, **sub)
+
+
+CHUNK_BYTES = 1 << 28
+"""What one chunk of motions' per-sample arrays may hold (bytes): :func:`chunks`."""
+
+
+def chunks(tg: Targets, width: int, keys: Optional[list] = None) -> list:
+    """The motions cut into chunks (lists of indices), motions of like length together
+    (longest first), each chunk's per-sample arrays of ``width`` float64 columns per
+    torque entry (chunk × its longest T × n × width) under :data:`CHUNK_BYTES`, at least
+    one motion per chunk; one chunk of every motion, in order, when they all fit.
+    ``keys`` (N, sortable): motions of one key together, a chunk never holding two.
+    Design matrices and Jacobians of many motions are built a chunk at a time (with
+    :meth:`Targets.select` ``trim``), so that memory stays bounded and padding small."""
+    per = 8 * tg.tau.shape[-1] * width                 # bytes per sample
+    lengths = tg.mask.sum(-1).tolist()
+    if tg.N * tg.mask.shape[1] * per <= CHUNK_BYTES:
+        return [list(range(tg.N))]
+    keys = [()] * tg.N if keys is None else keys
+    out, part = [], []
+    for j in sorted(range(tg.N), key=lambda j: (keys[j], -lengths[j], j)):
+        if part and (keys[j] != keys[part[0]] or (len(part) + 1) * lengths[part[0]] * per > CHUNK_BYTES):
+            out.append(part)
+            part = []
+        part.append(j)
+    return out + [part]
 
 
 def union_grid(t: torch.Tensor):

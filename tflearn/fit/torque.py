@@ -33,7 +33,7 @@ import torch
 from .. import parallel
 from ..fields import FieldBasis, MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
 from .nnls import nnls, warn_unconverged
-from .targets import Targets
+from .targets import Targets, chunks
 
 
 class DivergenceWarning(RuntimeWarning):
@@ -89,7 +89,21 @@ def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
 
     ``support`` (N×M(2+P) bool, [a | b | c]) restricts the optimum to those weights, the others
     held at 0 (their rows of the normal equations become x_i = 0 with a negative
-    gradient, so Lawson–Hanson never frees them)."""
+    gradient, so Lawson–Hanson never frees them). Many motions are solved a chunk at a
+    time (:func:`~.targets.chunks`)."""
+    parts = chunks(tg, weights.a_raw.shape[1] * (2 + weights.P))
+    if len(parts) == 1:
+        return _solve_weights(basis, weights, tg, support)
+    costs, keys = torch.empty(tg.N, dtype=torch.float64), ("a_raw", "b_raw", "c_raw")
+    for idx in parts:
+        sub = weights.select_motions(idx)
+        costs[idx] = _solve_weights(basis, sub, tg.select(idx, trim=True),
+                                    None if support is None else support[idx])
+        weights.set_flat(keys, sub.flat(keys), idx)
+    return costs
+
+
+def _solve_weights(basis, weights, tg, support):
     G, h = normal_equations(basis, weights, tg)
     if support is not None:
         both = support.unsqueeze(-1) & support.unsqueeze(-2)
@@ -109,10 +123,24 @@ def torque_cost(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch
     return (tg.wt * r).sum(-1) / tg.torque_scale()
 
 
+def by_chunks(f, basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
+    """``f(basis, weights, targets)``, a per-motion quantity (N×…), evaluated a chunk of
+    motions at a time (:func:`~.targets.chunks`; one chunk: the whole ``weights`` and
+    ``tg``), so that no design matrix of every motion is built at once. No gradient."""
+    parts = chunks(tg, weights.a_raw.shape[1] * (2 + weights.P))
+    with torch.no_grad():
+        if len(parts) == 1:
+            return f(basis, weights, tg)
+        rows = [f(basis, weights.select_motions(i), tg.select(i, trim=True)) for i in parts]
+        out = rows[0].new_empty((tg.N,) + rows[0].shape[1:])
+        for i, x in zip(parts, rows):
+            out[i] = x
+        return out
+
+
 def relative_rms_torque_error(basis, weights, tg: Targets) -> torch.Tensor:
     """sqrt(C_j): RMS torque error relative to the RMS torque, per motion (N)."""
-    with torch.no_grad():
-        return torque_cost(basis, weights, tg).clamp_min(0).sqrt()
+    return by_chunks(torque_cost, basis, weights, tg).clamp_min(0).sqrt()
 
 
 def field_parameters(basis: FieldBasis, weights: MotionWeights, phases: bool) -> list:
@@ -183,13 +211,20 @@ class _FieldParameters:
         act, _ = self._activation(i, ph, x, slopes=False)
         return (-self.scale * act.unsqueeze(-1) * chi).reshape(-1)
 
-    def jacobian(self, theta, x) -> torch.Tensor:
-        """∂r/∂θ (R × Mp), field by field (:meth:`field_jacobian`)."""
+    def jacobian(self, theta, x, fields: Optional[list] = None) -> torch.Tensor:
+        """∂r/∂θ (R × Mp), field by field (:meth:`field_jacobian`); ``fields``: the
+        columns of these fields only (R × len(fields)·p)."""
         th = theta.reshape(self.M, self.p)
-        J = torch.empty(self.tg.tau.shape + (self.M, self.p), dtype=theta.dtype)
-        for i in range(self.M):
-            self.field_jacobian(i, th[i], x, J[..., i, :])
-        return J.reshape(-1, self.M * self.p)
+        fields = range(self.M) if fields is None else fields
+        J = torch.empty(self.tg.tau.shape + (len(fields), self.p), dtype=theta.dtype)
+        for col, i in enumerate(fields):
+            self.field_jacobian(i, th[i], x, J[..., col, :])
+        return J.reshape(-1, len(fields) * self.p)
+
+    def active(self, x) -> list:
+        """The fields some motion has a weight on (a, b or c of ``x`` > 0): the others'
+        columns of ∂r/∂θ are zero, their torque being multiplied by zero."""
+        return _used(x, self.M).any(0).nonzero().flatten().tolist()
 
     def field_jacobian(self, i: int, th: torch.Tensor, x: torch.Tensor, out: torch.Tensor) -> None:
         """∂(:meth:`field_term`)/∂θ_i in closed form, written into ``out`` (N×T×n×p, a
@@ -262,6 +297,12 @@ class _FieldParameters:
         return act, torch.stack(grads, dim=-1)[..., None] * eye[:, None, None, :]
 
 
+def _used(x: torch.Tensor, M: int) -> torch.Tensor:
+    """Which of M fields each motion has a weight on (N×M bools) in weights x (N×M(2+P),
+    the layout of :meth:`MotionWeights.vector`)."""
+    return (x[:, :M] > 0) | (x[:, M:2 * M] > 0) | (x[:, 2 * M:].reshape(len(x), M, -1) > 0).any(-1)
+
+
 def _projected_normal(J, Phi, r, x):
     """The Gauss–Newton terms (JₚᵀJₚ, Jₚᵀr) of Kaufman's variable-projection Jacobian
     Jₚ = J − Φ_a (Φ_aᵀΦ_a)⁻¹ Φ_aᵀ J per motion, Φ_a the scaled design columns of the
@@ -286,23 +327,73 @@ class _Motions:
     """The motions one process handles in :func:`em`: all of them, or with ``shared``
     (a run of many processes, :mod:`tflearn.parallel`) this rank's own
     (:func:`~tflearn.parallel.mine`), whose weights it solves and whose terms of JᵀJ and
-    Jᵀr it adds to the other ranks' (all-reduce); the costs and weights are gathered."""
+    Jᵀr it adds to the other ranks' (all-reduce); the costs and weights are gathered.
+    Without ``phases`` (θ then holds the fields alone) they are taken a chunk at a time
+    (:func:`~.targets.chunks`), each chunk's Jacobian built, projected and summed before
+    the next, so that memory stays bounded however many motions there are; the motions
+    that use the same fields at their first NNLS weights go together, so that a chunk's
+    Jacobian has the columns of few fields (:meth:`normal`)."""
 
-    def __init__(self, weights: MotionWeights, tg: Targets, support, shared: bool):
+    def __init__(self, basis: FieldBasis, weights: MotionWeights, tg: Targets, support, shared: bool,
+                 phases: bool):
         self.all, self.N, self.shared = weights, tg.N, shared
-        self.idx = parallel.mine(tg.N) if shared else None
-        self.weights = weights.select_motions(self.idx) if shared else weights
-        self.tg = tg.select(self.idx) if shared else tg
-        self.support = support[self.idx] if shared and support is not None else support
+        self.idx = parallel.mine(tg.N) if shared else list(range(tg.N))
+        mine = tg.select(self.idx) if shared else tg
+        width = basis.M * (basis.free_size + 2 + weights.P)
+        parts = [list(range(len(self.idx)))] if phases else chunks(mine, width)
+        if len(parts) > 1:
+            parts = chunks(mine, width, self._uses(basis, weights, mine, support))
+        whole = len(parts) == 1 and not shared
+        self.parts = [[self.idx[i] for i in part] for part in parts]
+        self.weights = [weights] if whole else [weights.select_motions(p) for p in self.parts]
+        tgs = [tg] if whole else [tg.select(p, trim=True) for p in self.parts]
+        self.support = [support if whole or support is None else support[p] for p in self.parts]
+        self.fps = [_FieldParameters(basis, w, t, phases) for w, t in zip(self.weights, tgs)]
+
+    def _uses(self, basis, weights, tg, support) -> list:
+        """The fields (a tuple) each of this process' motions has a weight on at its
+        NNLS optimum."""
+        w = weights.select_motions(self.idx)
+        solve_weights(basis, w, tg, None if support is None else support[self.idx])
+        return [tuple(row.nonzero().flatten().tolist()) for row in _used(w.vector().detach(), basis.M)]
+
+    def vector(self) -> torch.Tensor:
+        return self.fps[0].vector()
+
+    def assign(self, theta: torch.Tensor) -> None:
+        for fp in self.fps:
+            fp.assign(theta)
 
     def solve(self, basis: FieldBasis) -> torch.Tensor:
         """C_j (N) of every motion at its NNLS weights."""
-        costs = solve_weights(basis, self.weights, self.tg, self.support)
+        costs = torch.empty(self.N, dtype=torch.float64)
+        for fp, support, part in zip(self.fps, self.support, self.parts):
+            costs[part] = solve_weights(basis, fp.weights, fp.tg, support)
         if not self.shared:
             return costs
-        return torch.tensor(parallel.gather_motions(self.N, costs.tolist()), dtype=costs.dtype)
+        return torch.tensor(parallel.gather_motions(self.N, costs[self.idx].tolist()), dtype=costs.dtype)
 
-    def sum(self, A: torch.Tensor, g: torch.Tensor):
+    @torch.no_grad()
+    def normal(self, theta: torch.Tensor):
+        """(JᵀJ, Jᵀr) of every motion (:func:`_projected_normal`), summed chunk by chunk
+        and over the ranks; a chunk computes the columns of the fields it uses only
+        (:meth:`_FieldParameters.active`), the rest being zero."""
+        n = theta.numel()
+        A, g = theta.new_zeros(n, n), theta.new_zeros(n)
+        for fp in self.fps:
+            x = fp.weights.vector().detach()
+            Phi = fp.scaled_design()
+            fields = fp.active(x)
+            if not fields:
+                continue
+            J = fp.jacobian(theta, x, fields).reshape(Phi.shape[:2] + (-1,))
+            a, b = _projected_normal(J, Phi, fp.residual(Phi, x), x)
+            if len(fields) == fp.M:
+                A, g = A + a, g + b
+                continue
+            cols = (torch.tensor(fields)[:, None] * fp.p + torch.arange(fp.p)).flatten()
+            A[cols[:, None], cols] += a
+            g[cols] += b
         if self.shared:
             parallel.all_reduce_sum(A)
             parallel.all_reduce_sum(g)
@@ -310,9 +401,14 @@ class _Motions:
 
     def finish(self) -> None:
         """Every motion's weights into the caller's ``weights``."""
+        if self.weights[0] is self.all:
+            return
+        rows = torch.empty(self.N, self.weights[0].vector().shape[1], dtype=torch.float64)
+        for w, part in zip(self.weights, self.parts):
+            rows[part] = w.vector().detach()
         if self.shared:
-            rows = parallel.gather_motions(self.N, list(self.weights.vector().detach()))
-            self.all.set_vector(torch.stack(rows))
+            rows = torch.stack(parallel.gather_motions(self.N, list(rows[self.idx])))
+        self.all.set_vector(rows)
 
 
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
@@ -345,18 +441,14 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     weights and the ranks sum JᵀJ and Jᵀr (:class:`_Motions`), so every rank takes the
     same steps (not with variable ``phases``, whose θ holds every motion's phases: then
     every rank runs it whole, as with fewer motions than ranks)."""
-    own = _Motions(weights, tg, support, distributed and not phases and 1 < parallel.size() <= tg.N)
-    fp = _FieldParameters(basis, own.weights, own.tg, phases)
-    theta = fp.vector()
+    own = _Motions(basis, weights, tg, support, distributed and not phases and 1 < parallel.size() <= tg.N,
+                   phases)
+    theta = own.vector()
     costs = own.solve(basis)
     history = [float(costs.sum())]
     mu = 1e-3
     for step in range(steps):
-        x = own.weights.vector().detach()
-        with torch.no_grad():
-            Phi = fp.scaled_design()
-            J = fp.jacobian(theta, x).reshape(Phi.shape[:2] + (-1,))
-            A, g = own.sum(*_projected_normal(J, Phi, fp.residual(Phi, x), x))
+        A, g = own.normal(theta)
         d = torch.diagonal(A).clone()
         d = d + 1e-12 * d.max().clamp_min(1e-300)
         accepted = False
@@ -365,16 +457,16 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
             while max_step is not None and float(delta.abs().max()) > max_step:
                 mu *= 4                                      # a trust region in θ's units
                 delta = torch.linalg.solve(A + mu * torch.diag(d), -g)
-            fp.assign(theta + delta)
+            own.assign(theta + delta)
             new_costs = own.solve(basis)
             _warn_nonfinite(new_costs, tg, "EM")
             if float(new_costs.sum()) < history[-1]:         # False for NaN: rejected
-                theta = fp.vector()
+                theta = own.vector()
                 costs, accepted, mu = new_costs, True, max(mu / 3, 1e-9)
                 break
             mu *= 4
         if not accepted:
-            fp.assign(theta)
+            own.assign(theta)
             costs = own.solve(basis)
             break
         gain = history[-1] - float(costs.sum())
