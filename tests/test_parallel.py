@@ -199,3 +199,27 @@ def test_torchrun_resumes_a_one_process_checkpoint(run_dir, tmp_path):
     assert metrics["overall"]["M"] == ref["overall"]["M"] and metrics["history"] == ref["history"]
     for name, row in ref["motions"].items():
         assert abs(metrics["motions"][name]["rmse"] - row["rmse"]) <= 1e-6
+
+
+def test_ranks_leave_the_group_together(tmp_path):
+    """Rank 1 leaves the ``group`` body at once with exit status 1 (as ``train`` does when
+    a motion is not reproduced), rank 0 only after writing a file 2 s later: torchrun,
+    which stops every rank once one exits non-zero, still lets rank 0 finish (the
+    barrier at the end of the body), so the file exists."""
+    script = tmp_path / "ranks.py"
+    script.write_text(f"""import pathlib, sys, time
+from tflearn import parallel
+with parallel.group("cpu"):
+    rank = parallel.rank()
+    if rank == 0:
+        time.sleep(2)
+        pathlib.Path({str(tmp_path / "written")!r}).write_text("rank 0")
+sys.exit(rank)
+""")
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           str(script)]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1, done.stderr[-2000:]
+    assert (tmp_path / "written").read_text() == "rank 0"
+

@@ -62,7 +62,8 @@ def backend(device: str) -> str:
 @contextlib.contextmanager
 def group(device: str = "cpu", timeout_s: float = 1800.0):
     """``with group(device):`` the body runs in the process group torchrun describes
-    (:data:`ENV`), made here and destroyed on leaving. Without those variables, with
+    (:data:`ENV`), made here and destroyed on leaving, every rank waiting for the others
+    at the end of the body (a barrier). Without those variables, with
     ``WORLD_SIZE=1``, or when a process group already exists (made by the caller, who
     also ends it), nothing is made or destroyed."""
     made = False
@@ -78,6 +79,8 @@ def group(device: str = "cpu", timeout_s: float = 1800.0):
         made = True
     try:
         yield
+        if made:           # leave together: torchrun stops every rank once one exits non-zero,
+            dist.barrier()  # and rank 0 may still be writing the run's files
     finally:
         if made:
             dist.destroy_process_group()
