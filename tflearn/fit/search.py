@@ -273,9 +273,9 @@ def grow(tg: Targets, template: FieldBasis, max_fields: int, tol: float, candida
 def pool(tg: Targets, fits: list, template: FieldBasis):
     """One basis like ``template`` (an empty basis: kind, blocks, damping) holding the
     fields of the per-motion fits [(η M_j×n, K M_j×n×n, timing)], fit j being motion
-    j's, and every motion's weights over them, zero (to be solved: after
-    :func:`merge_close`, which keeps the many copies of a shared field from ever being
-    in one design matrix).
+    j's, and every motion's weights over them: its own fit's on its own fields where the
+    fit holds them, zero elsewhere — not solved here, but after :func:`merge_close`,
+    which keeps the many copies of a shared field from ever being in one design matrix.
 
     Motion j keeps the activation timing (and, where the fit holds them, the weights) it
     learned on its own fields (``timing``, from :meth:`MotionWeights.timing`) and its P
