@@ -6,6 +6,8 @@ wall time.
     PYTHONPATH=. python bench/mocap_basis.py [--mocap DIR] [--out runs/mocap_bench]
         [--window 1.0] [--clips TEXT...] [--import-only] [key=value ...]   (config overrides)
 
+``torso=moving`` trains each window on its performer's moving torso (docs/mocap.md).
+
 ``--import-only`` prints the retargeting report of the import as a markdown table and
 stops (the table in docs/mocap.md).
 
@@ -86,7 +88,8 @@ def arguments(description: str) -> argparse.ArgumentParser:
 
 def prepare_windows(args) -> tuple:
     """Import the clips (ARMS, FPS) into OUT/imported and cut each one's busiest window
-    into OUT/windows; returns (report, body, windows folder)."""
+    into OUT/windows (with its torso file, in the window's clock, for ``torso=moving``);
+    returns (report, body, windows folder)."""
     files = sorted(args.mocap.glob("*.bvh"))
     if args.clips:
         files = [f for f in files if any(c in f.stem for c in args.clips)]
@@ -105,12 +108,14 @@ def prepare_windows(args) -> tuple:
     report = mocap.import_frames(frames, imported, mocap.ImportOptions(rate=args.rate))
     body = from_config(report["body"])
     windows = args.out / "windows"
-    windows.mkdir(parents=True, exist_ok=True)
+    (windows / "torso").mkdir(parents=True, exist_ok=True)
     for c in report["clips"]:
         m = motion_mod.load(imported / c["file"], body)
         i, j = busiest_window(m, args.window)
         w = motion_mod.Motion(m.name, m.t[i:j] - m.t[i], m.q[i:j], m.qd[i:j], body)
         motion_mod.save(w, windows / c["file"])
+        with np.load(imported / "torso" / c["file"]) as f:          # the torso in the window's clock
+            np.savez(windows / "torso" / c["file"], t=f["t"] - float(m.t[i]), R=f["R"], x=f["x"])
         c["window_s"] = [float(m.t[i]), float(m.t[j - 1])]
     print(f"imported {len(frames)} clips in {time.time() - t0:.1f} s")
     return report, body, windows

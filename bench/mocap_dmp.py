@@ -73,10 +73,14 @@ def dmp_row(body, m, n_weights: int) -> dict:
 
 
 def tflearn_row(run: Path, name: str, m) -> dict:
+    from tflearn.data import torsos
+    from tflearn.evaluate import run_config
     from tflearn.fields import FieldProgram
     from tflearn.io import basis as basis_io
     from tflearn.simulate import SimOptions, SimulationFailed, simulate
     lb = basis_io.load(run / "basis.json")
+    cfg = run_config(run)[0]
+    base = torsos(cfg.data, [m], cfg.torso)                     # the run's torso, if it moves
     j = lb.index(name)
     M, P = lb.basis.M, lb.weights.P
     # per motion: a, b and the window weights c, and the windows' onsets and durations;
@@ -87,8 +91,8 @@ def tflearn_row(run: Path, name: str, m) -> dict:
     opts = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000)      # the training's options
     try:
         with torch.no_grad():
-            paths = [simulate(lb.body, prog, lb.q0[j:j + 1] + s, lb.qd0[j:j + 1], m.t, opts).q[0].numpy()
-                     for s in (0.0, SHIFT)]
+            paths = [simulate(lb.body, prog, lb.q0[j:j + 1] + s, lb.qd0[j:j + 1], m.t, opts, base=base).q[0]
+                     .numpy() for s in (0.0, SHIFT)]
     except SimulationFailed as err:
         nan = float("nan")
         return {"params": f"{params} ({err.reason})", "rmse": nan, "tip": nan,

@@ -29,6 +29,7 @@ from mocap_basis import arguments, prepare_windows  # noqa: E402
 
 from tflearn import config, train  # noqa: E402
 from tflearn import motion as motion_mod  # noqa: E402
+from tflearn.data import torsos  # noqa: E402
 from tflearn.evaluate import synthesize  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402
 from tflearn.io.basis import LearnedBasis  # noqa: E402
@@ -38,10 +39,16 @@ from tflearn.metrics import score  # noqa: E402
 HELD_OUT = (0.08, 0.05)
 
 
+def targets(cfg, body, motions):
+    """The motions' targets as training prepares them (the config's torque weights, on
+    their torsos with ``torso=moving``)."""
+    return prepare(body, motions, weight=cfg.solver.torque_weight, base=torsos(cfg.data, motions, cfg.torso))
+
+
 def frozen_layout(cfg, body, motions) -> LearnedBasis:
     """The config's spanning layout over ``motions`` (training's layout stage,
     :func:`tflearn.train.layout_model`) with zero weights on its windows."""
-    tg = prepare(body, motions, weight=cfg.solver.torque_weight)
+    tg = targets(cfg, body, motions)
     basis, weights = train.layout_model(cfg, body, tg)
     return LearnedBasis(body, basis, weights, tg.q0, tg.qd0, tg.rate)
 
@@ -72,7 +79,7 @@ def main(argv=None) -> int:
             continue
         t0 = time.time()
         lb = frozen_layout(cfg, body, motions[:j] + motions[j + 1:])
-        tg = prepare(body, [m], weight=cfg.solver.torque_weight)
+        tg = targets(cfg, body, [m])
         weights = synthesize(lb, tg, shoot, options, success)
         s = score(body, lb.basis, weights, tg, options)
         ok, bar = (bool(s.succeeded(*b)[0]) for b in (success, HELD_OUT))

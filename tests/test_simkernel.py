@@ -5,6 +5,7 @@ torchdiffeq): the same paths, step counts, evaluation counts and failures, on ev
 body, for every kind of program it takes; and when each path is taken."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -82,6 +83,38 @@ def test_free_joints_and_a_batch_of_copies(where, rng, monkeypatch):
     fast, slow = _both(monkeypatch, body, program, q0, torch.zeros_like(q0), t)
     assert fast.q.shape == (2, 2, 7, body.nv)
     _same(fast, slow)
+
+
+def _turning_bases(rng, n, T=41, span=1.0):
+    """n random moving bases (tflearn.torso.Bases): each turning about its own axis at a
+    varying rate and its origin swinging, sampled T times over ``span`` s."""
+    import pinocchio as pin
+
+    from tflearn.torso import BaseMotion, Bases
+    t = torch.linspace(0, span, T, dtype=DT).numpy()
+    motions = []
+    for _ in range(n):
+        axis, amp, x0 = rng.normal(size=3), rng.uniform(0.5, 1.5), rng.normal(size=3)
+        R = [pin.exp3(amp * (np.sin(3 * s) + s) * axis / np.linalg.norm(axis)) for s in t]
+        motions.append(BaseMotion(t, R, 0.2 * np.sin(4 * t[:, None] + x0)))
+    return Bases.of(motions)
+
+
+@pytest.mark.parametrize("name", ["arm_offsets", "tree"])
+def test_a_moving_base_per_member(name, rng, monkeypatch):
+    """Each member on its own moving base (tflearn.torso.Bases, members taken in another
+    order and shifted in time, under gravity): the compiled loop's base polynomials and
+    terms equal the torch path's (Bases.terms)."""
+    body = make_body(name, GRAVITY).with_(damping=0.05)
+    shift = torch.tensor([0.0, 0.1, 0.3], dtype=DT)
+    bases = _turning_bases(rng, 2).take(torch.tensor([1, 0, 1]), shift=shift)
+    program = _random_program(body, 3, 2, 1, rng)
+    q0 = torch.as_tensor(0.4 * random_states(body, rng, 3), dtype=DT)
+    t = torch.linspace(0, 0.5, 11, dtype=DT)
+    fast, slow = _both(monkeypatch, body, program, q0, torch.zeros_like(q0), t, base=bases)
+    _same(fast, slow)
+    fixed = simulate(body, program, q0, torch.zeros_like(q0), t, EACH)
+    assert float((fast.q[:, -1] - fixed.q[:, -1]).abs().max()) > 1e-2     # the bases matter
 
 
 def test_the_gesture_library_with_its_work(monkeypatch):

@@ -74,19 +74,24 @@ def _sim(body, program, base=None, T=0.3):
 
 def test_base_motion_derivatives():
     """The spline of a base turning about a fixed axis at ω(t) = ω0 + α t and moving on
-    x(t) = ½ a t² gives ω, ω̇ and the acceleration in the base frame."""
-    from tflearn.torso import BaseMotion
+    x(t) = ½ a t², as tflearn.torso.Bases (members at shifted times, one past the end,
+    clamped there), gives each member gravity Rᵀg, ω, ω̇ and the acceleration in the base
+    frame at its time."""
+    from tflearn.torso import BaseMotion, Bases
     axis = np.array([1.0, 2.0, -2.0]) / 3.0
     t = np.linspace(0, 1, 201)
     ang = 0.5 * t + 0.5 * 1.5 * t ** 2
     R = np.array([pin.exp3(a * axis) for a in ang])
     acc = np.array([0.3, -1.0, 2.0])
-    base = BaseMotion(t, R, 0.5 * t[:, None] ** 2 * acc)
-    Rt, w, dw, a = base(0.37)
-    np.testing.assert_allclose(Rt.numpy(), pin.exp3((0.5 * 0.37 + 0.75 * 0.37 ** 2) * axis), atol=1e-9)
-    np.testing.assert_allclose(w.numpy(), (0.5 + 1.5 * 0.37) * axis, atol=1e-7)
-    np.testing.assert_allclose(dw.numpy(), 1.5 * axis, atol=1e-5)
-    np.testing.assert_allclose(a.numpy(), Rt.numpy().T @ acc, atol=1e-7)
+    bases = Bases.of([BaseMotion(t, R, 0.5 * t[:, None] ** 2 * acc)]).take(
+        torch.zeros(3, dtype=torch.long), shift=torch.tensor([0.0, 0.3, 0.9], dtype=DT))
+    g, (w, dw, a) = bases.terms(GRAVITY, torch.tensor([0.37, 0.07, 0.5], dtype=DT))
+    for k, s in enumerate([0.37, 0.37, 1.0]):
+        Rs = pin.exp3((0.5 * s + 0.75 * s ** 2) * axis)
+        np.testing.assert_allclose(g[k].numpy(), Rs.T @ np.array(GRAVITY), atol=1e-8)
+        np.testing.assert_allclose(w[k].numpy(), (0.5 + 1.5 * s) * axis, atol=1e-7)
+        np.testing.assert_allclose(dw[k].numpy(), 1.5 * axis, atol=1e-5)
+        np.testing.assert_allclose(a[k].numpy(), Rs.T @ acc, atol=1e-7)
 
 
 def test_simulation_on_a_moving_base():
@@ -111,3 +116,134 @@ def test_simulation_on_a_moving_base():
     body = arm(gravity=list(GRAVITY))
     held = _sim(body, gravity_feedforward(body, zero_program))
     assert float((held.q - held.q[0]).abs().max()) < 1e-8
+
+
+def test_bases_of_a_batch():
+    """Simulating a batch on one tflearn.torso.BaseMotion equals the same batch on
+    Bases, one per member, batch each and shared alike; a wrong number of bases is
+    refused."""
+    from tflearn.body import arm
+    from tflearn.simulate import SimOptions, simulate, zero_program
+    from tflearn.torso import BaseMotion, Bases
+    t = np.linspace(0, 0.5, 51)
+    axis = np.array([1.0, 2.0, -2.0]) / 3.0
+    one = BaseMotion(t, np.array([pin.exp3((0.5 * s + 2 * s ** 2) * axis) for s in t]),
+                     0.5 * t[:, None] ** 2 * np.array([1.0, -2.0, 4.0]) + np.sin(5 * t)[:, None])
+    bases = Bases.of([one]).take(torch.zeros(3, dtype=torch.long))
+    body = arm(gravity=list(GRAVITY))
+    q0 = torch.tensor([[0.3, -0.2, 0.1, -0.8, 0.2, 0.1, -0.3],
+                       [0.1, 0.4, -0.2, -1.2, 0.0, 0.3, 0.2]], dtype=DT)
+    ts = torch.linspace(0, 0.4, 9, dtype=DT)
+    for options in (SimOptions(rtol=1e-9, atol=1e-11), SimOptions(rtol=1e-9, atol=1e-11, batch="each")):
+        a = simulate(body, zero_program, q0, torch.zeros_like(q0), ts, options, base=one)
+        b = simulate(body, zero_program, q0, torch.zeros_like(q0), ts, options,
+                     base=Bases.of([one, one]))
+        assert float((a.q - b.q).abs().max()) < 1e-9 and float((a.q[:, -1] - q0).abs().max()) > 0.05
+    with pytest.raises(ValueError, match="3 moving bases for a batch of 2"):
+        simulate(body, zero_program, q0, torch.zeros_like(q0), ts, base=bases)
+
+
+def _on_a_torso(rate=200.0, duration=1.2):
+    """come_here's program simulated on a torso that turns and sways (gravity on, so the
+    base also turns gravity in the arm's frame): (body, basis, weights, motion, its torso
+    BaseMotion, the torso's samples t, R, x)."""
+    from tflearn import gestures
+    from tflearn.body import arm
+    from tflearn.fields import FieldProgram
+    from tflearn.motion import Motion
+    from tflearn.simulate import SimOptions, simulate
+    from tflearn.torso import BaseMotion
+    body = arm(gravity=list(GRAVITY))
+    basis, weights, _ = gestures.library_model([gestures.GESTURES["come_here"]], body=body)
+    ts = np.linspace(0, duration + 0.2, 141)
+    axis = np.array([0.2, 1.0, 0.3]) / np.linalg.norm([0.2, 1.0, 0.3])
+    R = np.array([pin.exp3(0.4 * np.sin(2.5 * s) * axis) for s in ts])
+    x = 0.15 * np.stack([np.sin(3 * ts), np.zeros_like(ts), 0.5 * np.sin(5 * ts)], 1)
+    base = BaseMotion(ts, R, x)
+    t = torch.arange(0, round(duration * rate) + 1, dtype=DT) / rate
+    q0 = torch.zeros(1, body.nv, dtype=DT)
+    from tflearn.torso import Bases, gravity_feedforward
+    with torch.no_grad():
+        fed = gravity_feedforward(body, FieldProgram(basis, weights), Bases.of([base]))
+        tr = simulate(body, fed, q0, q0, t,
+                      SimOptions(rtol=1e-11, atol=1e-12, max_evals=None), base=base)
+    return body, basis, weights, Motion("on_torso", t, tr.q[0], tr.v[0], body), base, (ts, R, x)
+
+
+def test_targets_and_scores_on_each_motions_torso():
+    """A motion made on a moving torso under gravity by come_here's field with its
+    model's gravity torques fed forward: tflearn.fit.targets.prepare with its base gives
+    inverse-dynamics torques equal to the field's plus gravity's, and metrics.score
+    simulates it back onto its path; on a fixed base the same weights miss it. A
+    multiple-shooting residual at those weights (segments started on the path, each on
+    its own stretch of the torso) is zero."""
+    from tflearn.fields import FieldProgram
+    from tflearn.fit import shooting, targets
+    from tflearn.metrics import score
+    from tflearn.simulate import SimOptions
+    from tflearn.torso import Bases
+    body, basis, weights, m, base, _ = _on_a_torso()
+    moving = targets.prepare(body, [m], base=Bases.of([base]))
+    fixed = targets.prepare(body, [m])
+    with torch.no_grad():
+        zero = torch.zeros_like(moving.q)
+        gravity = moving.base.take(torch.zeros(moving.q.shape[1], dtype=torch.long)).terms(
+            body.gravity, moving.t[0])[0]
+        program = FieldProgram(basis, weights)
+        field = torch.cat([program(t, q[None], v[None])
+                           for t, q, v in zip(moving.t[0], moving.q[0], moving.v[0])])
+        ff = D.rnea(body, moving.q[0], zero[0], zero[0], gravity=gravity)
+    inner = moving.wt[0] > 0
+    err = lambda tau: float((tau[0][inner] - (field + ff)[inner]).norm() / (field + ff)[inner].norm())
+    print("relative torque error, moving / fixed base:", err(moving.tau), err(fixed.tau))
+    assert err(moving.tau) < 1e-4 and err(fixed.tau) > 0.1
+    options = SimOptions(rtol=1e-9, atol=1e-10, batch="each")
+    fed = body.with_(gravity=(0.0, 0.0, 0.0))   # gravity fed forward exactly: as none at all
+    on, off = score(fed, basis, weights, moving, options), score(fed, basis, weights, fixed, options)
+    print("rmse moving / fixed base:", on.rmse[0], off.rmse[0])
+    assert on.rmse[0] < 1e-5 and off.rmse[0] > 1e-2
+    seg = shooting.segments(moving, 0.3)
+    assert len(seg.motion) == 4 and float(seg.base.start[1]) == pytest.approx(0.3)
+    q, v = shooting._simulate(fed, basis, weights, seg, options)
+    r = shooting._residuals(fed, moving, seg, q, v, beta=0.1)
+    assert float(r.abs().max()) < 1e-5
+
+
+def test_training_on_each_motions_torso(tmp_path):
+    """``torso: moving``: train reads each motion's torso file (torso/NAME.npz beside it,
+    as tflearn bvh import writes) and learns the motion made on that torso (gravity fed
+    forward exactly, so the gravity-free world) back from no guess, reproduced by
+    simulation on the torso; evaluate and ``tflearn simulate`` of the run ride the torso
+    too, perturb refuses the run (fixed base only); ``torso: fixed`` keeps the fixed
+    base; a motion without a torso file is refused, naming the file."""
+    from tflearn import recovery, train
+    from tflearn.data import torsos
+    from tflearn.errors import InputError
+    from tflearn.evaluate import evaluate_run, simulate_basis_motion
+    from tflearn.motion import MotionFileError, load, save
+
+    from test_learning import small_config
+    *_, m, _, (ts, R, x) = _on_a_torso()
+    data = tmp_path / "data"
+    (data / "torso").mkdir(parents=True)
+    save(m, data / "on_torso.npz")
+    np.savez(data / "torso" / "on_torso.npz", t=ts, R=R, x=x)
+    run = train.Run(small_config(data, tmp_path / "run", "torso=moving"))
+    metrics = run.execute()
+    row = metrics["motions"]["on_torso"]
+    print("on its torso:", row["rmse"], row["tip"], metrics["overall"]["M"])
+    assert row["success"] and row["rmse"] < 0.01                  # measured: 0.0043 rad
+    assert metrics["overall"]["M"] <= 2                             # measured: 2
+    again = evaluate_run(tmp_path / "run")["motions"]["on_torso"]
+    assert again["rmse"] == pytest.approx(row["rmse"], rel=1e-6)
+    played = load(simulate_basis_motion(tmp_path / "run" / "basis.json", "on_torso", tmp_path / "sim.npz",
+                                        rate=200.0, duration=float(m.t[-1])))
+    err = float((played.q - m.q).pow(2).mean().sqrt())
+    print("tflearn simulate on the torso:", err)
+    assert err < 0.01
+    with pytest.raises(InputError, match="ride their torsos"):
+        recovery.targets(tmp_path / "run", ["on_torso"])
+    assert torsos(data, [m], "fixed") is None
+    (data / "torso" / "on_torso.npz").unlink()
+    with pytest.raises(MotionFileError, match=r"torso.on_torso\.npz: no torso file for motion 'on_torso'"):
+        torsos(data, [m], "moving")

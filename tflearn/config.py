@@ -212,6 +212,9 @@ class Config(Section):
     out: str = "runs/gestures"
     seed: int = Field(0, ge=0)
     body: BodySection = {"preset": "arm"}
+    # the shoulder's base: fixed (inertial), or moving — each motion on its performer's torso,
+    # torso/NAME.npz beside the motions (tflearn bvh import writes them; docs/mocap.md)
+    torso: Literal["fixed", "moving"] = "fixed"
     model: ModelSection = ModelSection()
     solver: SolverSection = SolverSection()
     success: SuccessSection = SuccessSection()

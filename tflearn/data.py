@@ -1,5 +1,5 @@
-"""Motions for any command: what a config's ``data`` names, and whether each motion's
-samples resolve its torques."""
+"""Motions for any command: what a config's ``data`` names, their torsos (a moving
+base), and whether each motion's samples resolve its torques."""
 from __future__ import annotations
 
 import warnings
@@ -8,6 +8,7 @@ from pathlib import Path
 from . import gestures as gestures_mod
 from . import motion as motion_mod
 from .body import Body
+from .torso import Bases, load_bases
 
 
 def load_motions(data, body: Body, strict: bool = False) -> list:
@@ -25,6 +26,28 @@ def load_motions(data, body: Body, strict: bool = False) -> list:
     if not data:
         raise motion_mod.MotionFileError("data", "an empty list of motion files")
     return [motion_mod.load(p, body) for p in data]
+
+
+def torsos(data, motions: list, torso: str = "fixed") -> Bases | None:
+    """The motions' moving bases for ``torso: moving`` (None for ``fixed``): each motion's
+    torso file ``torso/NAME.npz`` beside the motion files (``tflearn bvh import`` writes
+    them there; its times in the clock of the motion's own samples), one per motion of
+    :func:`load_motions` ``(data, ...)``, starting at the motion's first sample. Raises
+    :class:`~tflearn.motion.MotionFileError` naming a missing file, or when ``data``
+    names no motion files (the built-in gestures have no torso)."""
+    if torso == "fixed":
+        return None
+    if data == "gestures":
+        raise motion_mod.MotionFileError("gestures", "torso: moving needs motions with torso files (tflearn "
+                                                     "bvh import writes them); the gestures have none")
+    files = [Path(data)] if isinstance(data, (str, Path)) else [Path(p) for p in data]
+    folder = lambda j: files[0] if files[0].is_dir() else files[j if len(files) > 1 else 0].parent
+    paths = [folder(j) / "torso" / f"{m.name}.npz" for j, m in enumerate(motions)]
+    for path, m in zip(paths, motions):
+        if not path.is_file():
+            raise motion_mod.MotionFileError(str(path), f"no torso file for motion {m.name!r} "
+                                                        f"(torso: moving)")
+    return load_bases(paths, start=[float(m.t[0]) for m in motions])
 
 
 def check_resolution(body: Body, motions: list) -> list:

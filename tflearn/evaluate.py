@@ -11,7 +11,8 @@ import torch
 
 from . import config as config_mod
 from .config import Config
-from .data import check_resolution, load_motions
+from .data import check_resolution, load_motions, torsos
+from .errors import InputError
 from .fields import FieldProgram, MotionWeights
 from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
@@ -83,7 +84,8 @@ def evaluate_run(run, data=None, out=None) -> dict:
     for group, synth in ((known, False), (new, True)):
         if not group:
             continue
-        tg = prepare(lb.body, group, weight=cfg.solver.torque_weight)   # the run's cost
+        tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
+                     base=torsos(data if data is not None else cfg.data, group, cfg.torso))
         shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip)) if synth
                    else weights_for(lb, tg))
@@ -105,15 +107,24 @@ def evaluate_run(run, data=None, out=None) -> dict:
 
 
 def simulate_basis_motion(basis_path, name: str, out, rate=None, duration=None) -> Path:
-    """Play motion ``name``'s torque program from (q0, qd0) and write it as an .npz."""
+    """Play motion ``name``'s torque program from (q0, qd0) and write it as an .npz; on
+    its torso when the basis is a run's whose config says ``torso: moving``."""
     lb = basis_io.load(basis_path)
     j = lb.index(name)
     rate = float(rate or lb.rate[j])
     duration = float(duration or lb.weights.duration[j])
     t = torch.arange(0, int(round(duration * rate)) + 1, dtype=torch.float64) / rate
+    base, run = None, Path(basis_path).parent
+    cfg = run_config(run)[0] if (run / "config.yaml").exists() else None
+    if cfg is not None and cfg.torso == "moving":
+        found = [m for m in load_motions(cfg.data, lb.body) if m.name == name]
+        if not found:
+            raise InputError(f"{basis_path}: motion {name!r} rides its torso (torso: moving), but it "
+                             f"is not in the run's data ({cfg.data!r})")
+        base = torsos(cfg.data, found, cfg.torso)
     with torch.no_grad():
         tr = simulate(lb.body, FieldProgram(lb.basis, lb.weights, index=[j]), lb.q0[j:j + 1],
-                      lb.qd0[j:j + 1], t, SimOptions(rtol=1e-9, atol=1e-10, max_evals=None))
+                      lb.qd0[j:j + 1], t, SimOptions(rtol=1e-9, atol=1e-10, max_evals=None), base=base)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_motion(Motion(name, t, tr.q[0], tr.v[0]), out)

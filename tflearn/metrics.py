@@ -133,8 +133,9 @@ def _simulate_models(body, models, tg, options):
     each alone (batch ``each``)."""
     K, N = len(models), tg.N
     program = _Stacked([FieldProgram(b, w) for b, w in models])
+    base = None if tg.base is None else tg.base.take(torch.arange(N).repeat(K))
     tr = simulate(body, program, tg.q0.expand(K, -1, -1), tg.qd0.expand(K, -1, -1), tg.grid,
-                  options, throw=False)
+                  options, throw=False, base=base)
     return [(on_samples(tg, tr.q[k]), tr.failure[k * N:(k + 1) * N]) for k in range(K)]
 
 

@@ -46,8 +46,7 @@ from .body import Body
 from .configspace import align_quaternions, unwrap_rotvec, wrap_rotvec
 from .errors import InputError
 from .io.files import write_text
-from .simulate import base_terms
-from .torso import BaseMotion
+from .torso import BaseMotion, Bases
 
 GRAVITY = (0.0, 0.0, -9.81)
 
@@ -121,9 +120,8 @@ def torso_torque_share(body: Body, m: motion_mod.Motion, base: BaseMotion) -> fl
     RNEA with and without the base terms of :mod:`tflearn.torso`)."""
     q, v, a, rots = motion_mod.MotionSpline(body, m)(m.t)
     fixed = dynamics.rnea_rot(body, rots, q, v, a)
-    terms = [base_terms(body, base, float(t)) for t in m.t]
-    g = torch.stack([x[0] for x in terms])
-    b = tuple(torch.stack([x[1][k] for x in terms]) for k in range(3))
+    t = torch.as_tensor(m.t, dtype=torch.float64)
+    g, b = Bases.of([base]).take(torch.zeros(len(t), dtype=torch.long)).terms(body.gravity, t)
     moving = dynamics.rnea_rot(body, rots, q, v, a, gravity=g, base=b)
     return float((moving - fixed).norm() / fixed.norm().clamp_min(1e-12))
 

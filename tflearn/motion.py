@@ -603,12 +603,14 @@ class MotionSpline:
                 rots.append(dynamics.rotvec_to_rotmat(p))
         return torch.cat(q, -1), torch.cat(v, -1), torch.cat(a, -1), rots
 
-    def torques(self, t):
+    def torques(self, t, base=None):
         """Inverse-dynamics torques at times t (T'): τ = RNEA(ν, ω, ω̇) + c ω (the body's
-        gravity and damping c), with ν, ω, ω̇ from this spline. Returns (τ, ν, ω, ω̇),
-        T'×nv each."""
+        gravity and damping c), with ν, ω, ω̇ from this spline; ``base``: a moving base
+        seen at those times, (g_b, (ω_b, ω̇_b, a_b)), T'×3 each
+        (:meth:`tflearn.torso.Bases.terms`). Returns (τ, ν, ω, ω̇), T'×nv each."""
         q, v, a, rots = self(t)
-        tau = dynamics.rnea_rot(self.body, rots, q, v, a)
+        moving = {} if base is None else dict(zip(("gravity", "base"), base))
+        tau = dynamics.rnea_rot(self.body, rots, q, v, a, **moving)
         if self.body.damping:
             tau = tau + self.body.damping * v
         return tau, q, v, a
@@ -622,7 +624,7 @@ def kinematics(body: Optional[Body], motion: Motion, t=None, method: str = "quat
     return MotionSpline(body, motion, method)(motion.t if t is None else t)[:3]
 
 
-def torques(body: Optional[Body], motion: Motion, t=None, method: str = "quat"):
+def torques(body: Optional[Body], motion: Motion, t=None, method: str = "quat", base=None):
     """Inverse-dynamics torques of a sampled motion (thesis appendix A).
 
     τ = RNEA(ν, ω, ω̇) + c ω with ν, ω, ω̇ from :class:`MotionSpline` at times t (T',
@@ -632,11 +634,12 @@ def torques(body: Optional[Body], motion: Motion, t=None, method: str = "quat"):
     motions), while a cubic Hermite spline through the positions and the exact velocities
     measured 1.5e-3 to 7.6e-3 on the same motions (its second derivative is only
     first-order accurate).
+    ``base``: the terms of a moving base at those times (:meth:`MotionSpline.torques`).
     Returns (τ, ω, ω̇), float64 tensors T'×nv (ω, ω̇ the body-convention velocities and
     accelerations: angular for ball joints, angle rates for hinges).
     """
     body = motion.body if body is None else body
-    tau, _, v, a = MotionSpline(body, motion, method).torques(motion.t if t is None else t)
+    tau, _, v, a = MotionSpline(body, motion, method).torques(motion.t if t is None else t, base)
     return tau, v, a
 
 

@@ -44,7 +44,8 @@ def targets(model, names: list) -> tuple:
     basis.json (the basis' body and program), or a folder of motions without a basis, as
     ``tflearn bvh import`` writes them (NAME.npz and body.yaml, the performer's arm), for
     the tracking controllers only. Raises :class:`InputError` naming a motion the basis
-    or the data does not hold."""
+    or the data does not hold, and for a run whose motions ride their torsos (``torso:
+    moving``: pushes are simulated on a fixed base)."""
     model = Path(model)
     if model.is_dir() and not (model / "basis.json").exists():
         from .config import read_body
@@ -62,6 +63,9 @@ def targets(model, names: list) -> tuple:
     if not (run / "config.yaml").exists():
         return lb.body, lb, _beside(path.parent, names, lb.body, f"{path}: ")
     cfg, _ = run_config(run)
+    if cfg.torso == "moving":
+        raise InputError(f"{path}: its motions ride their torsos (torso: moving); pushes are "
+                         f"simulated on a fixed base only")
     found = {m.name: m for m in load_motions(cfg.data, lb.body) if m.name in names}
     missing = [n for n in names if n not in found]
     if missing:

@@ -2,7 +2,7 @@
 5(4) with a step size of its own for every member, in one loop per member.
 
 :func:`tflearn.simulate.simulate` hands a batch to :func:`integrate` when its members are
-stepped each alone (``SimOptions(batch="each")``), the base is fixed, the program can be
+stepped each alone (``SimOptions(batch="each")``), the program can be
 unrolled per member (:meth:`tflearn.fields.FieldProgram.rows`: field programs, stacks of
 them, the gesture library's own-field programs), the tensors are float64 on the CPU and
 no gradient is to be carried. Otherwise the torch path runs (:func:`tflearn.ode.odeint_each`
@@ -16,7 +16,8 @@ with :class:`tflearn.simulate.ArmODE`) — the same maths, the two agree to roun
 
   (:class:`tflearn.fields.ProgramRows`; a field whose activation is 0 is skipped),
   the body's joint damping −c v, the articulated-body algorithm
-  (:func:`tflearn.kernels.aba`) from a fixed base under the body's gravity, and the
+  (:func:`tflearn.kernels.aba`) from a fixed base under the body's gravity or from each
+  member's moving base (:class:`tflearn.torso.Bases`, :func:`_base_root`), and the
   position rates (:func:`tflearn.kernels.position_rate`); with ``track_work`` one more
   entry, dW/dt = τ · v;
 - the solver of :func:`tflearn.ode.odeint_each`: its tableau, initial step, error norm,
@@ -59,11 +60,14 @@ def applies(program, y0: torch.Tensor) -> bool:
 
 
 def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: float, atol: float,
-              max_evals, track_work: bool = False, groups: torch.Tensor | None = None):
+              max_evals, track_work: bool = False, groups: torch.Tensor | None = None, base=None):
     """The states at t (T×...×D) of y0 (...×D) under ``program`` (see the module), as
     :class:`tflearn.ode.EachSolution`; None when the program cannot be unrolled for this
     batch (run the torch path). ``groups`` (..., integers): members with the same value
-    share every step (see :func:`tflearn.ode.odeint_each`); default: each member alone."""
+    share every step (see :func:`tflearn.ode.odeint_each`); default: each member alone.
+    ``base``: :class:`tflearn.torso.Bases`, one moving base per member (row order), its
+    polynomials evaluated in the loop (:func:`_base_root`, the maths of
+    :meth:`~tflearn.torso.Bases.terms`); None: a fixed base."""
     batch, D = y0.shape[:-1], y0.shape[-1]
     rows = program.rows(batch)
     if rows is None:
@@ -83,9 +87,15 @@ def integrate(body: Body, program, y0: torch.Tensor, t: torch.Tensor, *, rtol: f
     arr = lambda x: np.ascontiguousarray(x.detach().to(torch.float64).numpy())
     program_arrays = (rows.group.numpy().astype(np.int64),    # ProgramRows' fields, in order
                       *(arr(getattr(rows, f.name)) for f in fields(rows)[1:]))
+    if base is None:
+        base_arrays = (np.zeros((0, 2)), np.zeros((0, 1, 6, 7)), np.zeros(0, dtype=np.int64), np.zeros(0))
+    else:
+        base_arrays = (arr(base.breaks), arr(base.coef), base.pieces.numpy().astype(np.int64),
+                       arr(base.start))
     _integrate(arr(t.to(torch.float64)), arr(y0.reshape(B, D)), order, bounds, float(rtol), float(atol),
                -1 if max_evals is None else int(max_evals), bool(track_work),
-               _kernel_tables(body), _kernel_root(body, True), float(body.damping),
+               _kernel_tables(body), _kernel_root(body, True),
+               (*base_arrays, np.asarray(body.gravity, dtype=np.float64)), float(body.damping),
                (L["quat"], L["other"], L["coords"], L["position"]), n_pos, body.nv,
                program_arrays, _TABLEAU, ys, failure, evals, steps)
     as_t = torch.from_numpy
@@ -143,10 +153,58 @@ def _torque(m, t, q, v, program, tau, d, Kd, win):
 
 
 @njit(cache=True, fastmath=_FAST)
-def _rate(m, t, y, out, work, tables, root, damping, orders, n_pos, program, s):
+def _base_root(m, t, base, V0, A0):
+    """V_0 = (ω_b, 0) and A_0 = (ω̇_b, a_b − g_b) (1×6 each, in place) of member m's
+    moving base at its time t: its pose polynomial (p, ṗ, p̈; quaternion XYZW and origin)
+    by Horner, then ω = 2 vec(p̄ ṗ)/|p|², ω̇ = 2 vec(p̄ p̈)/|p|² − ω 2(p·ṗ)/|p|²,
+    a_b = Rᵀ ẍ, g_b = Rᵀ g (:meth:`tflearn.torso.Bases.terms`)."""
+    breaks, coef, pieces, start, g = base
+    P = pieces[m]
+    s = min(max(start[m] + t, breaks[m, 0]), breaks[m, P])
+    lo, hi = 0, P - 1                                   # the last piece i with breaks[i] <= s
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if breaks[m, mid] <= s:
+            lo = mid
+        else:
+            hi = mid - 1
+    u = s - breaks[m, lo]
+    p, pd, pdd = np.zeros(7), np.zeros(7), np.zeros(7)
+    deg = coef.shape[2] - 1
+    for c in range(7):
+        a0, a1, a2 = 0.0, 0.0, 0.0
+        for j in range(deg + 1):
+            cj = coef[m, lo, j, c]
+            a0 = a0 * u + cj
+            if j < deg:
+                a1 = a1 * u + (deg - j) * cj
+            if j < deg - 1:
+                a2 = a2 * u + (deg - j) * (deg - j - 1) * cj
+        p[c], pd[c], pdd[c] = a0, a1, a2
+    n2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2] + p[3] * p[3]
+    dot = 2 * (p[0] * pd[0] + p[1] * pd[1] + p[2] * pd[2] + p[3] * pd[3])
+    x, y, z, w = p[0], p[1], p[2], p[3]
+    for k in range(3):                                  # vec(p̄ ⊗ d) = w d_v − d_w p_v − p_v × d_v
+        k1, k2 = (k + 1) % 3, (k + 2) % 3
+        wk = w * pd[k] - pd[3] * p[k] - (p[k1] * pd[k2] - p[k2] * pd[k1])
+        ak = w * pdd[k] - pdd[3] * p[k] - (p[k1] * pdd[k2] - p[k2] * pdd[k1])
+        V0[0, k] = 2 * wk / n2
+        A0[0, k] = 2 * ak / n2 - V0[0, k] * dot / n2
+        V0[0, 3 + k] = 0.0
+    r = np.sqrt(n2)
+    R = kernels._quat_rotmat(x / r, y / r, z / r, w / r)
+    for k in range(3):                                  # Rᵀ(ẍ − g): column k of R
+        acc = 0.0
+        for j in range(3):
+            acc += R[3 * j + k] * (pdd[4 + j] - g[j])
+        A0[0, 3 + k] = acc
+
+
+@njit(cache=True, fastmath=_FAST)
+def _rate(m, t, y, out, work, tables, root, base, damping, orders, n_pos, program, s):
     """dy/dt (D) of member m at time t and state y (D) into ``out``; s: scratch arrays."""
     quat, other, coords_order, position_order = orders
-    Y, coords, quats, R, v, tau, total, qdd, pos, d, Kd, win = s
+    Y, coords, quats, R, v, tau, total, qdd, pos, d, Kd, win, V0, A0 = s
     nv = coords.shape[1]
     for k in range(y.shape[0]):
         Y[0, k] = y[k]
@@ -157,8 +215,12 @@ def _rate(m, t, y, out, work, tables, root, damping, orders, n_pos, program, s):
     for k in range(nv):
         total[0, k] = tau[k] - damping * v[0, k]
     kind, rot, R0, origin, axis, offset, parent, inertia = tables
-    kernels.aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, coords, root[0], root[1],
-                v, total, qdd)
+    if base[2].shape[0]:
+        _base_root(m, t, base, V0, A0)
+        kernels.aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, coords, V0, A0, v, total, qdd)
+    else:
+        kernels.aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, coords, root[0], root[1],
+                    v, total, qdd)
     kernels.position_rate(kind, rot, offset, R, quats, v, position_order, pos)
     for k in range(n_pos):
         out[k] = pos[0, k]
@@ -194,14 +256,14 @@ def _finite(x):
 
 
 @njit(cache=True, fastmath=_FAST)
-def _rates(members, t, Y, out, work, tables, root, damping, orders, n_pos, program, s):
+def _rates(members, t, Y, out, work, tables, root, base, damping, orders, n_pos, program, s):
     """dy/dt of every member of a group (rows of Y, m×D) at time t into ``out`` (m×D)."""
     for i in range(members.shape[0]):
-        _rate(members[i], t, Y[i], out[i], work, tables, root, damping, orders, n_pos, program, s)
+        _rate(members[i], t, Y[i], out[i], work, tables, root, base, damping, orders, n_pos, program, s)
 
 
 @njit(cache=True, fastmath=_FAST)
-def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, damping, orders,
+def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, base, damping, orders,
                n_pos, nv, program, tableau, ys, failure, evals, steps):
     """Every group of members (rows ``order[bounds[g]:bounds[g+1]]`` of y0, B×D) from t[0]
     to t[-1], its samples into ys (T×B×D, NaN-filled), its failure code, right-hand sides
@@ -212,7 +274,8 @@ def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, 
     T, P, nr = t.shape[0], program[4].shape[2], orders[0].shape[0]
     s = (np.zeros((1, D)), np.zeros((1, nv)), np.zeros((1, nr, 4)), np.zeros((1, nr, 3, 3)),
          np.zeros((1, nv)), np.zeros(nv), np.zeros((1, nv)), np.zeros((1, nv)),
-         np.zeros((1, n_pos)), np.zeros(nv), np.zeros(nv), np.zeros(max(P, 1)))
+         np.zeros((1, n_pos)), np.zeros(nv), np.zeros(nv), np.zeros(max(P, 1)), np.zeros((1, 6)),
+         np.zeros((1, 6)))
     end = t[-1]
     for g in range(bounds.shape[0] - 1):
         members = order[bounds[g]:bounds[g + 1]]
@@ -223,12 +286,12 @@ def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, 
         for i in range(m):
             y[i] = y0[members[i]]
         tb = t[0]
-        _rates(members, tb, y, f, work, tables, root, damping, orders, n_pos, program, s)
+        _rates(members, tb, y, f, work, tables, root, base, damping, orders, n_pos, program, s)
         scale[:] = atol + np.abs(y) * rtol                   # Hairer's initial step
         d0, d1 = _rms(_flat(y), _flat(scale)), _rms(_flat(f), _flat(scale))
         h0 = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
         stage[:] = y + h0 * f
-        _rates(members, tb + h0, stage, k[1], work, tables, root, damping, orders, n_pos, program, s)
+        _rates(members, tb + h0, stage, k[1], work, tables, root, base, damping, orders, n_pos, program, s)
         err[:] = k[1] - f
         d2 = _rms(_flat(err), _flat(scale)) / h0
         big = max(d1, d2)
@@ -249,7 +312,7 @@ def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, 
                             if A[st, r] != 0.0:
                                 acc += A[st, r] * k[r, i, j]
                         stage[i, j] = y[i, j] + h * acc
-                _rates(members, tb + C[st] * h, stage, k[st + 1], work, tables, root, damping,
+                _rates(members, tb + C[st] * h, stage, k[st + 1], work, tables, root, base, damping,
                        orders, n_pos, program, s)
             for i in range(m):
                 for j in range(D):

@@ -28,6 +28,7 @@ from . import dynamics, simkernel
 from .body import Body
 from .configspace import pack, position_rate, unpack
 from .ode import FAILURE_CODES, odeint_each
+from .torso import BaseMotion, Bases
 
 TorqueProgram = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -90,14 +91,6 @@ class SimOptions:
                              "'dopri5', without the adjoint or solver_options")
 
 
-def base_terms(body: Body, base, t, dtype=torch.float64):
-    """(gravity g_b = Rᵀ g, (ω_b, ω̇_b, a_b)) of a moving base at time t, in the base frame,
-    for :func:`tflearn.dynamics.forward_dynamics_rot`; ``base(t)`` → (R, ω_b, ω̇_b, a_b)."""
-    R, w, dw, a = (x.to(dtype) for x in base(t))
-    g = R.T @ torch.as_tensor(body.gravity, dtype=dtype)
-    return g, (w, dw, a)
-
-
 class ArmODE(torch.nn.Module):
     """Right-hand side dy/dt for :func:`simulate` (an nn.Module so the adjoint can see
     the program's parameters). With ``track_work`` the state carries one more entry,
@@ -131,17 +124,18 @@ class ArmODE(torch.nn.Module):
         tau = tau.expand(v.shape) if tau.shape != v.shape else tau
         state = (rots, coords, quats, v, tau)
         if live is None:
-            return self._rate(t, *state)
+            return self._rate(t, *state, base=self.base)
         rows = live.reshape(-1).nonzero().squeeze(-1)
-        out = self._rate(t, *_rows(state, v.shape[:-1], rows))
+        t = t.reshape(-1)[rows] if t.ndim else t
+        out = self._rate(t, *_rows(state, v.shape[:-1], rows),
+                         base=None if self.base is None else self.base.take(rows))
         return out.new_zeros(live.numel(), out.shape[-1]).index_copy(0, rows, out).reshape(
             live.shape + out.shape[-1:])
 
-    def _rate(self, t, rots, coords, quats, v, tau):
+    def _rate(self, t, rots, coords, quats, v, tau, base=None):
         body = self.body
         total = tau - body.damping * v if body.damping else tau
-        moving = {} if self.base is None else dict(zip(("gravity", "base"),
-                                                       base_terms(body, self.base, t, v.dtype)))
+        moving = {} if base is None else dict(zip(("gravity", "base"), _moving(body, base, t, v.shape[:-1])))
         try:
             a = dynamics.forward_dynamics_rot(body, rots, coords, v, total, **moving)
         except torch.linalg.LinAlgError:
@@ -151,6 +145,15 @@ class ArmODE(torch.nn.Module):
         if self.track_work:
             out.append((tau * v).sum(-1, keepdim=True))
         return torch.cat(out, dim=-1)
+
+
+def _moving(body: Body, base: Bases, t, batch: torch.Size):
+    """(g_b, (ω_b, ω̇_b, a_b)) of the batch's members (batch×3 each) at t (a scalar or
+    one time per member)."""
+    t = t.reshape(-1) if torch.is_tensor(t) and t.ndim else t
+    g, terms = base.terms(body.gravity, t)
+    shape = lambda x: x.reshape(batch + (3,))
+    return shape(g), tuple(shape(x) for x in terms)
 
 
 def _rows(state: tuple, batch: torch.Size, rows: torch.Tensor) -> tuple:
@@ -192,10 +195,10 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         t: increasing sample times (T).
         options: :class:`SimOptions` (solver, tolerances, budget, adjoint, batch stepping).
         track_work: also integrate the work done by the program's torques.
-        base: a moving base, :class:`tflearn.torso.BaseMotion` (or any callable
-            t → (R, ω_b, ω̇_b, a_b)); the body's gravity is then a world vector, seen
-            from the base as Rᵀ g. None: the base is fixed (inertial). Not with batch
-            ``each``.
+        base: a moving base, :class:`tflearn.torso.BaseMotion` (the whole batch's)
+            or :class:`tflearn.torso.Bases` (one per member of q0's batch, in row
+            order); the body's gravity is then a world vector, seen from the base as
+            Rᵀ g. None: the base is fixed (inertial).
         throw: raise when the simulation fails. ``False`` (batch ``each`` only): return
             the members that failed in ``Trajectory.failure``, the others' paths intact.
         groups: (batch ``each`` only) an integer per member (q0's batch shape): members
@@ -212,8 +215,10 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
     if t.ndim != 1 or t.numel() < 2 or not bool((t[1:] > t[:-1]).all()):
         raise ValueError("simulate: t must be a strictly increasing 1-D tensor of >= 2 times")
     each = options.batch == "each"
-    if each and base is not None:
-        raise ValueError("simulate: batch 'each' does not take a moving base")
+    if isinstance(base, BaseMotion):
+        base = Bases.of([base]).take(torch.zeros(q0.shape[:-1].numel(), dtype=torch.long))
+    if base is not None and base.B != q0.shape[:-1].numel():
+        raise ValueError(f"simulate: {base.B} moving bases for a batch of {q0.shape[:-1].numel()}")
     if not (throw or each) or (groups is not None and not each):
         raise ValueError("simulate: throw=False and groups need SimOptions(batch='each')")
     global calls
@@ -223,7 +228,7 @@ def simulate(body: Body, program: TorqueProgram, q0: torch.Tensor, v0: torch.Ten
         y0 = torch.cat([y0, torch.zeros_like(y0[..., :1])], dim=-1)
     failure = None
     if each:
-        ys, failure = _integrate_each(body, program, track_work, y0, t, options, throw, groups)
+        ys, failure = _integrate_each(body, program, track_work, y0, t, options, throw, groups, base)
     else:
         ys = _integrate_shared(ArmODE(body, program, track_work, options.max_evals, base), y0, t, options)
     ys = ys.movedim(0, -2)
@@ -256,7 +261,7 @@ _WHY = {"budget": "more than {} right-hand-side evaluations", "solver": "its ste
 
 
 def _integrate_each(body: Body, program, track_work: bool, y0, t, options: SimOptions, throw: bool,
-                    groups=None):
+                    groups=None, base=None):
     """Every member stepped alone: compiled (:func:`tflearn.simkernel.integrate`) where it
     applies, else :func:`tflearn.ode.odeint_each` with :class:`ArmODE`. The states at t
     (T×...×D) and each member's failure (None or a message; members in row order),
@@ -264,9 +269,9 @@ def _integrate_each(body: Body, program, track_work: bool, y0, t, options: SimOp
     tol = dict(rtol=options.rtol, atol=options.atol, max_evals=options.max_evals, groups=groups)
     sol = None
     if simkernel.applies(program, y0):
-        sol = simkernel.integrate(body, program, y0, t, track_work=track_work, **tol)
+        sol = simkernel.integrate(body, program, y0, t, track_work=track_work, base=base, **tol)
     if sol is None:
-        sol = odeint_each(ArmODE(body, program, track_work, strict=False), y0, t, **tol)
+        sol = odeint_each(ArmODE(body, program, track_work, base=base, strict=False), y0, t, **tol)
     errors = [None if not c else SimulationFailed(FAILURE_CODES[c], f"batch member {b}: "
                                                   + _WHY[FAILURE_CODES[c]].format(options.max_evals))
               for b, c in enumerate(sol.failure.reshape(-1).tolist())]

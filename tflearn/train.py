@@ -68,7 +68,7 @@ from . import config as config_mod
 from . import mocap, parallel
 from .body import from_config
 from .config import Config, ConfigError
-from .data import check_resolution, load_motions
+from .data import check_resolution, load_motions, torsos
 from .errors import InputError
 from .fields import FieldBasis, MotionWeights, model_from_state, model_state
 from .fit import layout, search, shooting, slsqp, torque
@@ -256,7 +256,8 @@ class Run:
         self._t0 = time.time()
         motions = load_motions(self.cfg.data, self.body, strict=self.cfg.strict)
         self.resolution = check_resolution(self.body, motions)
-        tg = prepare(self.body, motions, weight=self.cfg.solver.torque_weight)
+        tg = prepare(self.body, motions, weight=self.cfg.solver.torque_weight,
+                     base=torsos(self.cfg.data, motions, self.cfg.torso))
         state = self._start(restart)
         if state is None:
             gen = torch.Generator().manual_seed(self.cfg.seed)

@@ -62,6 +62,7 @@ from ..configspace import difference
 from ..dynamics import tip_position
 from ..fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
 from ..simulate import SimOptions, SimulationFailed, simulate
+from ..torso import Bases
 from .targets import Targets, union_grid
 
 WEIGHTS = ("a_raw", "b_raw", "c_raw")
@@ -121,6 +122,7 @@ class _Segments:
     weight: torch.Tensor
     grid: torch.Tensor
     index: torch.Tensor
+    base: Optional[Bases] = None
 
 
 def segments(tg: Targets, horizon: float, motions=None) -> _Segments:
@@ -143,7 +145,8 @@ def segments(tg: Targets, horizon: float, motions=None) -> _Segments:
     weight = weight / tg.duration[motion, None]
     t0 = tg.t[motion, k0]
     grid, index = union_grid(tg.t[motion[:, None], sample] - t0[:, None])
-    return _Segments(motion, t0, tg.q[motion, k0], tg.v[motion, k0], sample, weight, grid, index)
+    base = None if tg.base is None else tg.base.take(motion, shift=t0)
+    return _Segments(motion, t0, tg.q[motion, k0], tg.v[motion, k0], sample, weight, grid, index, base)
 
 
 def _simulate(body, basis, weights: MotionWeights, seg: _Segments, options: SimOptions,
@@ -153,7 +156,8 @@ def _simulate(body, basis, weights: MotionWeights, seg: _Segments, options: SimO
     rep = lambda x: x.repeat((copies,) + (1,) * (x.ndim - 1))
     program = FieldProgram(basis, weights, start=rep(seg.t0))
     groups = rep(torch.arange(len(seg.motion))) if options.batch == "each" else None
-    tr = simulate(body, program, rep(seg.q0), rep(seg.v0), seg.grid, options, groups=groups)
+    base = None if seg.base is None else seg.base.take(torch.arange(len(seg.motion)).repeat(copies))
+    tr = simulate(body, program, rep(seg.q0), rep(seg.v0), seg.grid, options, groups=groups, base=base)
     idx = rep(seg.index).unsqueeze(-1).expand(-1, -1, body.nv)
     return tr.q.gather(1, idx), tr.v.gather(1, idx)
 

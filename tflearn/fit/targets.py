@@ -11,6 +11,7 @@ from .. import motion as motion_mod
 from ..body import Body
 from ..fields import FieldBasis, FieldProgram, MotionWeights
 from ..simulate import SimOptions, simulate
+from ..torso import Bases
 
 
 @dataclass
@@ -25,7 +26,9 @@ class Targets:
     sample times, index (N×T) each sample's position in it (for batched simulation);
     coord_weight (N×n) or None: each coordinate's weight ω in the torque costs,
     Σ_t w Σ_k ω_k (τ_k − F_k)² (None: ω = 1, the thesis' cost; :func:`inertia_weights`
-    measures torque errors by the accelerations they cause)."""
+    measures torque errors by the accelerations they cause); base: each motion's moving
+    base (:class:`tflearn.torso.Bases`, N members, motion time t at its base's
+    start + t), which its torques include and its simulations ride on, or None (fixed)."""
 
     names: list
     t: torch.Tensor
@@ -41,6 +44,7 @@ class Targets:
     grid: torch.Tensor
     index: torch.Tensor
     coord_weight: Optional[torch.Tensor] = None
+    base: Optional[Bases] = None
 
     @property
     def N(self) -> int:
@@ -73,6 +77,8 @@ class Targets:
         sub.update({k: getattr(self, k)[idx] for k in ("duration", "q0", "qd0")})
         if self.coord_weight is not None:
             sub["coord_weight"] = self.coord_weight[idx]
+        if self.base is not None:
+            sub["base"] = self.base.take(idx)
         grid, index = union_grid(sub["t"])
         return Targets(names=[self.names[i] for i in idx.tolist()], grid=grid, index=index, **sub)
 
@@ -117,7 +123,8 @@ def simulate_targets(body: Body, basis: FieldBasis, weights: MotionWeights, tg: 
     :meth:`Targets.select` of them; default: ``weights``' motions are ``tg``'s), so that
     gradients reach the whole ``weights``.
     Raises :class:`~tflearn.simulate.SimulationFailed` when the batch cannot go on."""
-    tr = simulate(body, FieldProgram(basis, weights, index=motions), tg.q0, tg.qd0, tg.grid, options)
+    tr = simulate(body, FieldProgram(basis, weights, index=motions), tg.q0, tg.qd0, tg.grid, options,
+                  base=tg.base)
     return on_samples(tg, tr.q), on_samples(tg, tr.v)
 
 
@@ -161,13 +168,17 @@ def _trapezoid(t: torch.Tensor) -> torch.Tensor:
     return w
 
 
-def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform") -> Targets:
+def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform",
+            base: Optional[Bases] = None) -> Targets:
     """Inverse-dynamics torques and padded tensors for a list of :class:`~tflearn.motion.Motion`.
 
     ``trim`` samples at each end of a motion are left out of torque costs: a spline's
     second derivative is weakest at its ends, and a fast motion sampled at 100 Hz can
     give end torques far from the true ones. ``weight``: the torque costs' coordinate
-    weights, ``uniform`` (the thesis' cost) or ``inertia`` (:func:`inertia_weights`)."""
+    weights, ``uniform`` (the thesis' cost) or ``inertia`` (:func:`inertia_weights`).
+    ``base``: the motions' moving bases (:class:`tflearn.torso.Bases`, one per motion,
+    each at its motion's first sample at t = 0, as :attr:`Targets.base`): the torques
+    are those on them."""
     if not motions:
         raise ValueError("prepare: no motions")
     N, T, n = len(motions), max(len(m.t) for m in motions), body.nv
@@ -176,10 +187,13 @@ def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform") -
     mask = torch.zeros(N, T, dtype=torch.bool)
     w = torch.zeros(N, T, **z)
     q, v, tau = (torch.zeros(N, T, n, **z) for _ in range(3))
+    if base is not None and base.B != N:
+        raise ValueError(f"prepare: {base.B} moving bases for {N} motions")
     for j, m in enumerate(motions):
         k = len(m.t)
         tj = torch.as_tensor(m.t, **z)
-        tau_j, vel_j, _ = motion_mod.torques(body, m)
+        seen = None if base is None else base.take(torch.full((k,), j)).terms(body.gravity, tj - tj[0])
+        tau_j, vel_j, _ = motion_mod.torques(body, m, base=seen)
         t[j, :k] = tj - tj[0]
         t[j, k:] = t[j, k - 1]
         mask[j, :k] = True
@@ -198,7 +212,7 @@ def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform") -
             wt[j, k - trim:k] = 0
     tg = Targets(names=[m.name for m in motions], t=t, mask=mask, w=w, wt=wt, q=q, v=v, tau=tau,
                  duration=duration, q0=q[:, 0].clone(), qd0=v[:, 0].clone(),
-                 grid=grid, index=inverse)
+                 grid=grid, index=inverse, base=base)
     if weight not in ("uniform", "inertia"):
         raise ValueError(f"prepare: weight must be 'uniform' or 'inertia', not {weight!r}")
     return replace(tg, coord_weight=inertia_weights(body, tg)) if weight == "inertia" else tg
