@@ -80,11 +80,13 @@ def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
         return {"train_s": wall, "error": f"train exited {proc.returncode}: "
                                           + " ".join(proc.stderr.strip().splitlines()[-1:])[-300:]}
     m = json.loads((out / "metrics.json").read_text())
-    motions = m["motions"].values()
+    motions, each = m["motions"].values(), m["history"].get("each", {})
     return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
             "reproduced": sum(bool(x["success"]) for x in motions),
             "worst_rmse_rad": max(x["rmse"] for x in motions),
-            "worst_tip_m": max(x["tip"] for x in motions), "max_rss_mb_so_far": peak}
+            "worst_tip_m": max(x["tip"] for x in motions), "max_rss_mb_so_far": peak,
+            "reproduced_alone": sum(each.get("reproduced", [])), "reused": len(each.get("reused", [])),
+            "declined": each.get("declined", {})}
 
 
 def main(argv=None) -> int:

@@ -471,7 +471,8 @@ def test_reuse_takes_a_motion_onto_the_fields_found_before(tmp_path):
     fields fitted for earlier motions — come_here's twice (a copy 1e-9 rad off, merged)
     and tuck's — carry a new motion of come_here's field with its own weight and duration
     (a = 2.2, λ = 2.4 s): its fit is that one field, weight 2.2, and simulation reproduces
-    it; planar_line, whose fields are not among them, is left to its own search (None)."""
+    it; planar_line, whose fields are not among them, is left to its own search, told why
+    (its torque cost on them)."""
     import dataclasses
     come, tuck = gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]
     new = dataclasses.replace(come, name="come_again", a=(2.2,), duration=2.4)
@@ -486,11 +487,14 @@ def test_reuse_takes_a_motion_onto_the_fields_found_before(tmp_path):
                            fits=[(eta[i:i + 1], K[i:i + 1], timing) for i in range(3)])
     library = run._library(state, tg, 3)
     assert library.M == 2 and float((library.eta.detach()[0] - lib.eta.detach()[0]).abs().max()) < 1e-9
-    fit = run._reuse(library, tg, 0)
-    assert fit["reused"] and fit["reproduced"] and fit["M"] == 1 and fit["cost"] <= 1e-5
+    fit, why = run._reuse(library, tg, 0)
+    assert why is None and fit["reused"] and fit["reproduced"] and fit["M"] == 1 and fit["cost"] <= 1e-5
     assert torch.equal(fit["fit"][0], library.eta.detach()[:1])
     assert float(fit["weights"].a.detach()[0, 0]) == pytest.approx(2.2, rel=1e-4)
-    assert run._reuse(library, tg, 1) is None
+    fit, why = run._reuse(library, tg, 1)
+    print("planar_line on the library:", why)
+    assert fit is None and why.startswith("torque cost ") and why.endswith(" > 1e-05 on 1 of 2 fields")
+    assert float(why.split()[2]) > 0.1            # measured: 0.187
     assert run._library(state, tg, 0) is None
 
 

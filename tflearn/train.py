@@ -326,14 +326,15 @@ class Run:
         B = self.cfg.solver.each.reuse
         batch = list(range(j, min(j + parallel.size(), tg.N, (j // B + 1) * B if B else tg.N)))
         library = self._library(state, tg, B * (j // B) if B else 0)
-        mine = [self._reuse(library, tg, batch[i]) or self._fit_one(tg, batch[i], seeds[batch[i]])
-                for i in parallel.mine(len(batch))]
-        alone = state.history.setdefault("each", {"reproduced": [], "reused": []})
+        mine = [self._alone(library, tg, batch[i], seeds[batch[i]]) for i in parallel.mine(len(batch))]
+        alone = state.history.setdefault("each", {"reproduced": [], "reused": [], "declined": {}})
         for k, fit in zip(batch, parallel.gather_motions(len(batch), mine)):
             state.fits.append(fit["fit"])
             alone["reproduced"].append(fit["reproduced"])
             if fit.get("reused"):
                 alone["reused"].append(tg.names[k])
+            if fit.get("declined"):
+                alone.setdefault("declined", {})[tg.names[k]] = fit["declined"]
             step = self._tick(state)
             if fit["scores"] is not None:
                 one = tg.select([k])
@@ -361,29 +362,42 @@ class Run:
         library = self._fields_before[1]
         return library if library.M else None
 
-    def _reuse(self, library: Optional[FieldBasis], tg: Targets, k: int) -> Optional[dict]:
+    def _alone(self, library: Optional[FieldBasis], tg: Targets, k: int, seed: int) -> dict:
+        """Motion k's fit in the per-motion stage: on the ``library``'s fields where they
+        do (:meth:`_reuse`), else its own search (:meth:`_fit_one`), which then records
+        why the library did not do (``"declined"``)."""
+        fit, why = self._reuse(library, tg, k)
+        if fit is None:
+            fit = self._fit_one(tg, k, seed)
+            fit["declined"] = why
+        return fit
+
+    def _reuse(self, library: Optional[FieldBasis], tg: Targets, k: int):
         """Motion k on the ``library``'s fields (:meth:`_library`): its NNLS weights over
         them; if its relative torque cost is within ``solver.each.tol`` and simulation
-        reproduces it, its fit (as :meth:`_fit_one`'s) is the fields it uses, else None."""
+        reproduces it, (its fit (as :meth:`_fit_one`'s) on the fields it uses, None), else
+        (None, why not: a line naming the cost or the simulation's errors; None without a
+        library)."""
         if library is None:
-            return None
+            return None, None
         one = tg.select([k])
         self.log.busy(motion=tg.names[k], reusing=library.M)
         w = MotionWeights.zeros(library.M, one.duration, one.names,
                                 submovement_windows(one, self.cfg.model.windows))
-        cost = float(torque.solve_weights(library, w, one)[0])
+        cost, tol = float(torque.solve_weights(library, w, one)[0]), self.cfg.solver.each.tol
         with torch.no_grad():
             used = ((w.a + w.b)[0] + w.c[0].sum(-1) > 0).nonzero().flatten().tolist()
-        if not used or not cost <= self.cfg.solver.each.tol:
-            return None
+        if not used or not cost <= tol:
+            return None, f"torque cost {cost:.3g} > {tol:g} on {len(used)} of {library.M} fields"
         basis, w = library.select(used), w.select_fields(used)
         scores, ok = self._check(basis, w, one, distributed=False)
         if not all(ok):
-            return None
+            why = scores.failure[0] or f"rmse {scores.rmse[0]:.3g} rad, tip {100 * scores.tip[0]:.3g} cm"
+            return None, f"simulation on {len(used)} fields (torque cost {cost:.3g}): {why}"
         board = self.cfg.log.tensorboard
         return {"fit": (basis.eta.detach().clone(), basis.K().detach().clone(), w.timing(0, weights=True)),
                 "cost": cost, "M": basis.M, "reproduced": True, "reused": True,
-                "scores": scores if board else None, "weights": w if board else None}
+                "scores": scores if board else None, "weights": w if board else None}, None
 
     def _fit_one(self, tg: Targets, k: int, seed: int) -> dict:
         """Motion k's own search (:func:`tflearn.fit.search.grow`) with a generator
