@@ -215,7 +215,8 @@ def test_training_on_each_motions_torso(tmp_path):
     forward exactly, so the gravity-free world) back from no guess, reproduced by
     simulation on the torso; evaluate and ``tflearn simulate`` of the run ride the torso
     too, perturb refuses the run (fixed base only); ``torso: fixed`` keeps the fixed
-    base; a motion without a torso file is refused, naming the file."""
+    base; a motion without a torso file, or with one that does not cover its times, is
+    refused, naming the file."""
     from tflearn import recovery, train
     from tflearn.data import torsos
     from tflearn.errors import InputError
@@ -244,6 +245,10 @@ def test_training_on_each_motions_torso(tmp_path):
     with pytest.raises(InputError, match="ride their torsos"):
         recovery.targets(tmp_path / "run", ["on_torso"])
     assert torsos(data, [m], "fixed") is None
+    np.savez(data / "torso" / "on_torso.npz", t=ts[:50], R=R[:50], x=x[:50])
+    short = "the torso covers 0.000–0.490 s, motion 'on_torso' 0.000–1.200 s"
+    with pytest.raises(MotionFileError, match=short):
+        torsos(data, [m], "moving")
     (data / "torso" / "on_torso.npz").unlink()
     with pytest.raises(MotionFileError, match=r"torso.on_torso\.npz: no torso file for motion 'on_torso'"):
         torsos(data, [m], "moving")

@@ -8,7 +8,7 @@ from pathlib import Path
 from . import gestures as gestures_mod
 from . import motion as motion_mod
 from .body import Body
-from .torso import Bases, load_bases
+from .torso import BaseMotion, Bases
 
 
 def load_motions(data, body: Body, strict: bool = False) -> list:
@@ -47,7 +47,14 @@ def torsos(data, motions: list, torso: str = "fixed") -> Bases | None:
         if not path.is_file():
             raise motion_mod.MotionFileError(str(path), f"no torso file for motion {m.name!r} "
                                                         f"(torso: moving)")
-    return load_bases(paths, start=[float(m.t[0]) for m in motions])
+    bases = [BaseMotion.load(p) for p in paths]
+    for path, m, b in zip(paths, motions, bases):
+        lo, hi = b.span
+        t0, t1 = float(m.t[0]), float(m.t[-1])
+        if t0 < lo - 1e-6 or t1 > hi + 1e-6:
+            raise motion_mod.MotionFileError(str(path), f"the torso covers {lo:.3f}–{hi:.3f} s, motion "
+                                                        f"{m.name!r} {t0:.3f}–{t1:.3f} s")
+    return Bases.of(bases, start=[float(m.t[0]) for m in motions])
 
 
 def check_resolution(body: Body, motions: list) -> list:

@@ -13,8 +13,8 @@ quaternions through :func:`tflearn.motion.quat_body_motion`, positions directly)
 polynomials that torch (:meth:`Bases.terms`) and the compiled simulator
 (:mod:`tflearn.simkernel`) evaluate alike; :func:`tflearn.simulate.simulate` takes either
 as ``base``. The mocap import writes the clip's base as ``torso/NAME.npz`` (t, R, x)
-beside the motion (:mod:`tflearn.mocap`); :func:`load_bases` reads those of a set of
-motions for training (``torso: moving``).
+beside the motion (:mod:`tflearn.mocap`); :func:`tflearn.data.torsos` reads those of a
+set of motions for training (``torso: moving``).
 
 :func:`gravity_feedforward` is the thesis' gravity-free world made explicit the other
 way: with gravity on, the program's torques get the model's own gravity torques g(ν)
@@ -44,13 +44,14 @@ class BaseMotion:
     """A base pose path through samples t (T), R (T×3×3), x (T×3, metres): a quintic
     interpolating spline (cubic below 6 samples) of the sign-aligned unit quaternions
     and the origin, which :class:`Bases` evaluates (with its derivatives, clamped to
-    [t[0], t[-1]])."""
+    ``span`` = (t[0], t[-1]))."""
 
     def __init__(self, t, R, x):
         t = np.asarray(t, dtype=float)
         quat = align_quaternions(roma.rotmat_to_unitquat(torch.tensor(np.array(R, dtype=float))))
         data = np.concatenate([quat.numpy(), np.asarray(x, dtype=float)], axis=1)
         self.spline = make_interp_spline(t, data, k=5 if len(t) >= 6 else 3, axis=0)
+        self.span = (float(t[0]), float(t[-1]))
 
     @classmethod
     def load(cls, path) -> BaseMotion:
@@ -144,12 +145,6 @@ class Bases:
         Rt = R.transpose(-1, -2)
         g = torch.as_tensor(gravity, dtype=DTYPE)
         return Rt @ g, (w, dw, (Rt @ pdd[:, 4:, None])[..., 0])
-
-
-def load_bases(paths: list, start=None) -> Bases:
-    """The torso files ``paths`` (one per motion, :meth:`BaseMotion.load`) as
-    :class:`Bases`; ``start`` (N): each motion's first sample time in its file's clock."""
-    return Bases.of([BaseMotion.load(p) for p in paths], start)
 
 
 def gravity_feedforward(body: Body, program, base: Bases | None = None):
