@@ -33,16 +33,19 @@ def torsos(data, motions: list, torso: str = "fixed") -> Bases | None:
     torso file ``torso/NAME.npz`` beside the motion files (``tflearn bvh import`` writes
     them there; its times in the clock of the motion's own samples), one per motion of
     :func:`load_motions` ``(data, ...)``, starting at the motion's first sample. Raises
-    :class:`~tflearn.motion.MotionFileError` naming a missing file, or when ``data``
-    names no motion files (the built-in gestures have no torso)."""
+    :class:`~tflearn.motion.MotionFileError` naming a missing torso file or one whose
+    times do not cover its motion's, or when ``data`` names no motion files (the
+    built-in gestures have no torso)."""
     if torso == "fixed":
         return None
     if data == "gestures":
         raise motion_mod.MotionFileError("gestures", "torso: moving needs motions with torso files (tflearn "
                                                      "bvh import writes them); the gestures have none")
-    files = [Path(data)] if isinstance(data, (str, Path)) else [Path(p) for p in data]
-    folder = lambda j: files[0] if files[0].is_dir() else files[j if len(files) > 1 else 0].parent
-    paths = [folder(j) / "torso" / f"{m.name}.npz" for j, m in enumerate(motions)]
+    if isinstance(data, (str, Path)):            # a folder, or one file: one folder for all
+        folders = [Path(data) if Path(data).is_dir() else Path(data).parent] * len(motions)
+    else:                                        # a list of files, one per motion
+        folders = [Path(p).parent for p in data]
+    paths = [folder / "torso" / f"{m.name}.npz" for folder, m in zip(folders, motions)]
     for path, m in zip(paths, motions):
         if not path.is_file():
             raise motion_mod.MotionFileError(str(path), f"no torso file for motion {m.name!r} "

@@ -76,7 +76,8 @@ def evaluate_run(run, data=None, out=None) -> dict:
     run = Path(run)
     lb = basis_io.load(run / "basis.json")
     cfg, options = run_config(run)
-    motions = load_motions(data if data is not None else cfg.data, lb.body, strict=cfg.strict)
+    source = data if data is not None else cfg.data
+    motions = load_motions(source, lb.body, strict=cfg.strict)
     resolution = dict(zip([m.name for m in motions], check_resolution(lb.body, motions)))
     known = [m for m in motions if m.name in lb.names]
     new = [m for m in motions if m.name not in lb.names]
@@ -85,7 +86,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
         if not group:
             continue
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
-                     base=torsos(data if data is not None else cfg.data, group, cfg.torso))
+                     base=torsos(source, group, cfg.torso))
         shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip)) if synth
                    else weights_for(lb, tg))
