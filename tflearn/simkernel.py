@@ -153,10 +153,10 @@ def _torque(m, t, q, v, program, tau, d, Kd, win):
 
 
 @njit(cache=True, fastmath=_FAST)
-def _base_root(m, t, base, V0, A0):
+def _base_root(m, t, base, V0, A0, pose):
     """V_0 = (ω_b, 0) and A_0 = (ω̇_b, a_b − g_b) (1×6 each, in place) of member m's
-    moving base at its time t: its pose polynomial (p, ṗ, p̈; quaternion XYZW and origin)
-    by Horner, then ω = 2 vec(p̄ ṗ)/|p|², ω̇ = 2 vec(p̄ p̈)/|p|² − ω 2(p·ṗ)/|p|²,
+    moving base at its time t: its pose polynomial (p, ṗ, p̈ into the rows of ``pose``,
+    3×7; quaternion XYZW and origin) by Horner, then ω = 2 vec(p̄ ṗ)/|p|², ω̇ = 2 vec(p̄ p̈)/|p|² − ω 2(p·ṗ)/|p|²,
     a_b = Rᵀ ẍ, g_b = Rᵀ g (:meth:`tflearn.torso.Bases.terms`)."""
     breaks, coef, pieces, start, g = base
     P = pieces[m]
@@ -169,7 +169,7 @@ def _base_root(m, t, base, V0, A0):
         else:
             hi = mid - 1
     u = s - breaks[m, lo]
-    p, pd, pdd = np.zeros(7), np.zeros(7), np.zeros(7)
+    p, pd, pdd = pose[0], pose[1], pose[2]
     deg = coef.shape[2] - 1
     for c in range(7):
         a0, a1, a2 = 0.0, 0.0, 0.0
@@ -204,7 +204,7 @@ def _base_root(m, t, base, V0, A0):
 def _rate(m, t, y, out, work, tables, root, base, damping, orders, n_pos, program, s):
     """dy/dt (D) of member m at time t and state y (D) into ``out``; s: scratch arrays."""
     quat, other, coords_order, position_order = orders
-    Y, coords, quats, R, v, tau, total, qdd, pos, d, Kd, win, V0, A0 = s
+    Y, coords, quats, R, v, tau, total, qdd, pos, d, Kd, win, V0, A0, pose = s
     nv = coords.shape[1]
     for k in range(y.shape[0]):
         Y[0, k] = y[k]
@@ -216,7 +216,7 @@ def _rate(m, t, y, out, work, tables, root, base, damping, orders, n_pos, progra
         total[0, k] = tau[k] - damping * v[0, k]
     kind, rot, R0, origin, axis, offset, parent, inertia = tables
     if base[2].shape[0]:
-        _base_root(m, t, base, V0, A0)
+        _base_root(m, t, base, V0, A0, pose)
         kernels.aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, coords, V0, A0, v, total, qdd)
     else:
         kernels.aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, coords, root[0], root[1],
@@ -275,7 +275,7 @@ def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, 
     s = (np.zeros((1, D)), np.zeros((1, nv)), np.zeros((1, nr, 4)), np.zeros((1, nr, 3, 3)),
          np.zeros((1, nv)), np.zeros(nv), np.zeros((1, nv)), np.zeros((1, nv)),
          np.zeros((1, n_pos)), np.zeros(nv), np.zeros(nv), np.zeros(max(P, 1)), np.zeros((1, 6)),
-         np.zeros((1, 6)))
+         np.zeros((1, 6)), np.zeros((3, 7)))
     end = t[-1]
     for g in range(bounds.shape[0] - 1):
         members = order[bounds[g]:bounds[g + 1]]
