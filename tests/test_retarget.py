@@ -217,8 +217,9 @@ def test_train_data_names_bvh(mocap, tmp_path):
     """``data:`` naming a BVH clip: the run imports it into OUT/imported with the bvh
     section's options, trains on the folder written and takes the performer's body. The
     window [0.5, 1.25] s at 50 Hz is the whole clip's import cut there (38 samples,
-    coordinates equal to 1e-12, times from 0), and the torso's frames cover it; a window longer than every
-    clip, a config mixing clips and motions, and a replaced body are reported."""
+    coordinates equal to 1e-12, times from 0, clip times 0.5–1.24 s), and the torso's
+    frames cover it; a window longer than every clip, a config mixing clips and motions,
+    and a replaced body are reported."""
     from tflearn import config, motion, train
     from tflearn import mocap as mocap_mod
     from tflearn.errors import InputError
@@ -226,7 +227,7 @@ def test_train_data_names_bvh(mocap, tmp_path):
     base = [f"data={clip}", f"out={tmp_path / 'run'}", "bvh.rate=50"]
     run = train.Run(config.load(None, base + ["bvh.window=[0.5,1.25]"]))
     folder = tmp_path / "run" / "imported"
-    assert run.cfg.data == str(folder) and run.imported["clips"][0]["window_s"] == [0.5, 1.25]
+    assert run.cfg.data == str(folder) and run.imported["clips"][0]["window_s"] == pytest.approx([0.5, 1.24])
     whole = mocap_mod.import_clips([clip], tmp_path / "whole", mocap_mod.ImportOptions(rate=50))
     assert run.cfg.body == whole["body"] == run.imported["body"]
     got = motion.load(folder / "dataset-2_wave-right-hand_normal_001.npz", run.body)
@@ -244,3 +245,41 @@ def test_train_data_names_bvh(mocap, tmp_path):
         train.Run(config.load(None, [f"data=[{clip}, {folder}/x.npz]", f"out={tmp_path}"]))
     with pytest.warns(UserWarning, match="config's body: section is replaced"):
         train.Run(config.load(None, base + ["body.lengths=[0.3,0.3,0.1]"]))
+
+
+def test_split_into_pieces(mocap, tmp_path):
+    """``split``: the wave (6.2 s at 50 Hz) cut into 0.8 s pieces is 8 motions NAME_part00…07
+    (the last 0.58 s), equal to the whole import's samples (1e-12) and sharing each boundary
+    sample, each with a torso file covering it and its clip times as ``window_s``; its
+    window [0.5, 2.4] s in 0.8 s pieces is 2 (the 0.3 s remainder joins the last, 1.1 s),
+    printed as one clip line. A split ≤ 0 is refused."""
+    from tflearn import config, motion
+    from tflearn import mocap as mocap_mod
+    from tflearn.errors import InputError
+    clip = mocap / "dataset-2_wave-right-hand_normal_001.bvh"
+    name = clip.stem
+    whole = mocap_mod.import_clips([clip], tmp_path / "whole", mocap_mod.ImportOptions(rate=50))
+    body = config.read_body(tmp_path / "whole" / "body.yaml")
+    full = motion.load(tmp_path / "whole" / f"{name}.npz", body)
+    report = mocap_mod.import_clips([clip], tmp_path / "split", mocap_mod.ImportOptions(rate=50, split=0.8))
+    assert [c["file"] for c in report["clips"]] == [f"{name}_part{k:02d}.npz" for k in range(8)]
+    assert report["body"] == whole["body"]
+    pieces = [motion.load(tmp_path / "split" / c["file"], body) for c in report["clips"]]
+    first = 0
+    for k, (c, p) in enumerate(zip(report["clips"], pieces)):
+        assert torch.allclose(p.q, full.q[first:first + p.T], atol=1e-12, rtol=0), k
+        assert float(p.t[0]) == 0.0 and c["window_s"] == pytest.approx([float(full.t[first]),
+                                                                        float(full.t[first + p.T - 1])])
+        torso = np.load(tmp_path / "split" / "torso" / c["file"])
+        assert torso["t"][0] <= 0.0 and torso["t"][-1] >= float(p.t[-1])
+        first += p.T - 1                                     # the boundary sample is shared
+    assert first == full.T - 1 and [p.T for p in pieces] == [41] * 7 + [30]
+    report = mocap_mod.import_clips([clip], tmp_path / "window", mocap_mod.ImportOptions(
+        rate=50, window=(0.5, 2.4), split=0.8))
+    assert sum((c["window_s"] for c in report["clips"]), []) == pytest.approx([0.5, 1.3, 1.3, 2.4])
+    lines = mocap_mod.report_lines(report)
+    assert len(lines) == 1 and lines[0].endswith("cut into 2 pieces")
+    with pytest.raises(InputError, match="a split is a piece's length"):
+        mocap_mod.ImportOptions(split=0.0)
+    with pytest.raises(config.ConfigError, match="split"):
+        config.load(None, ["bvh.split=0"])

@@ -235,7 +235,8 @@ def _bvh_import(args) -> int:
         amap = map_from_dict(read(args.map), str(args.map))
     opts = mocap.ImportOptions(side=args.arm, mirror=args.mirror, rate=args.rate, fps=args.fps,
                                gravity=args.gravity, strict=args.strict, amap=amap,
-                               window=None if args.window is None else tuple(args.window))
+                               window=None if args.window is None else tuple(args.window),
+                               split=args.split)
     if not args.out.exists():
         print(f"created {args.out}")
     report = mocap.import_clips(args.clips, args.out, opts)
@@ -289,6 +290,8 @@ def _bvh_args(sub) -> None:
     p.add_argument("--strict", action="store_true", help="stop at a bad file instead of skipping it")
     p.add_argument("--window", type=float, nargs=2, default=None, metavar=("START", "STOP"),
                    help="keep only this part of every clip (seconds; default: all of it)")
+    p.add_argument("--split", type=float, default=None, metavar="SECONDS",
+                   help="cut each clip (or its window) into pieces this long, each a motion NAME_partKK")
     p.add_argument("--map", type=Path, default=None,
                    help="YAML arm map for another skeleton: chest, shoulder, elbow, wrist, up, left, hinge")
     p.set_defaults(func=_bvh_import)

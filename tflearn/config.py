@@ -191,6 +191,9 @@ class BvhSection(Section):
     rate: float = Field(120.0, gt=0, allow_inf_nan=False)   # samples per second after import
     # [start, stop] (s): the part of every clip that is learned; null: the whole clip
     window: Optional[list[float]] = Field(None, min_length=2, max_length=2)
+    # cut what is kept into consecutive pieces of this many seconds, each its own motion
+    # NAME_partKK (a remainder under half a piece joins the last); null: one motion per clip
+    split: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
 
     @field_validator("window")
     @classmethod

@@ -63,7 +63,10 @@ class ImportOptions:
     for a skeleton without a built-in one (:class:`tflearn.retarget.ArmMap`); window:
     (start, stop) in seconds, the part of every clip kept (the arm's samples within it,
     times then from the first of them, and the torso's frames covering those; a clip
-    shorter than stop is refused like a bad file), None: all of it.
+    shorter than stop is refused like a bad file), None: all of it; split: cut what is
+    kept into consecutive pieces of this many seconds, each its own motion NAME_partKK
+    (pieces share their boundary samples; a remainder shorter than half a piece joins
+    the last one), None: one motion per clip.
     """
 
     side: str = "right"
@@ -75,11 +78,14 @@ class ImportOptions:
     cutoffs: tuple = (12.0, 10.0, 8.0, 6.0, 5.0, 4.0, 3.0, 2.0)
     amap: Optional[rt.ArmMap] = None
     window: Optional[tuple] = None
+    split: Optional[float] = None
 
     def __post_init__(self):
         w = self.window
         if w is not None and not (len(w) == 2 and 0 <= w[0] < w[1]):
             raise InputError(f"a window is (start, stop) with 0 ≤ start < stop (seconds), got {tuple(w)}")
+        if self.split is not None and not self.split > 0:
+            raise InputError(f"a split is a piece's length in seconds (> 0), got {self.split}")
 
 
 def _filtered(q: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
@@ -164,13 +170,12 @@ def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -
         if not _window_fits(m, options):
             continue
         sm, filt = smooth(m, options.cutoffs)
-        final, span = _cut(motion_mod.resample(sm, options.rate), options.window)
-        motion_mod.save(final, out / f"{m.name}.npz")
-        base = _save_torso(r.frames, out / "torso" / f"{m.name}.npz", filt["cutoff_hz"], span)
-        r.report["torso"]["torque_share"] = torso_torque_share(body, final, base)
-        clips.append({**r.report, "filter": filt, "rate_hz": options.rate,
-                      "window_s": None if options.window is None else list(options.window),
-                      "file": f"{m.name}.npz"})
+        for final, span in _pieces(motion_mod.resample(sm, options.rate), options.window, options.split):
+            motion_mod.save(final, out / f"{final.name}.npz")
+            base = _save_torso(r.frames, out / "torso" / f"{final.name}.npz", filt["cutoff_hz"], span)
+            torso = {**r.report["torso"], "torque_share": torso_torque_share(body, final, base)}
+            clips.append({**r.report, "torso": torso, "filter": filt, "rate_hz": options.rate,
+                          "window_s": None if span is None else list(span), "file": f"{final.name}.npz"})
     if not clips:
         raise InputError(f"{out}: no clip is as long as the window {list(options.window)} s")
     side = ", ".join(sorted({("mirrored " if f.mirror else "") + f.side for f in frames}))
@@ -222,7 +227,7 @@ def import_config(cfg):
     out = Path(cfg.out) / "imported"
     report = import_clips(clips, out, ImportOptions(
         side=b.arm, mirror=b.mirror, rate=b.rate, strict=cfg.strict,
-        window=None if b.window is None else tuple(b.window)))
+        window=None if b.window is None else tuple(b.window), split=b.split))
     if cfg.body not in ({"preset": "arm"}, report["body"]):
         warnings.warn(f"{cfg.out}: the config's body: section is replaced by the performer's arm "
                       f"imported from the BVH clips ({out / 'body.yaml'})", stacklevel=2)
@@ -242,15 +247,26 @@ def _window_fits(m: motion_mod.Motion, options: ImportOptions) -> bool:
     return False
 
 
-def _cut(m: motion_mod.Motion, window: Optional[tuple]) -> tuple:
-    """(the samples of ``m`` with start ≤ t ≤ stop, times from the first of them; the
-    clip times (first, last) kept); ``window`` None: (``m``, None)."""
-    if window is None:
-        return m, None
+def _cut(m: motion_mod.Motion, window: tuple, name: Optional[str] = None) -> tuple:
+    """(the samples of ``m`` with start ≤ t ≤ stop, times from the first of them, named
+    ``name`` (default ``m``'s); the clip times (first, last) kept)."""
     keep = (m.t >= window[0] - 1e-9) & (m.t <= window[1] + 1e-9)
     t = m.t[keep]
     span = (float(t[0]), float(t[-1]))
-    return motion_mod.Motion(m.name, t - t[0], m.q[keep], m.qd[keep], m.body), span
+    return motion_mod.Motion(name or m.name, t - t[0], m.q[keep], m.qd[keep], m.body), span
+
+
+def _pieces(m: motion_mod.Motion, window: Optional[tuple], split: Optional[float]) -> list:
+    """[(motion, clip times (first, last) or None)]: ``m`` cut to ``window`` and then into
+    pieces of ``split`` seconds (:class:`ImportOptions`); both None: [(``m``, None)]."""
+    if window is None and split is None:
+        return [(m, None)]
+    start, stop = window if window is not None else (0.0, float(m.t[-1]))
+    if split is None:
+        return [_cut(m, (start, stop))]
+    count = max(1, math.floor((stop - start) / split + 0.5))   # a remainder < split/2 joins the last
+    bounds = [start + k * split for k in range(count)] + [stop]
+    return [_cut(m, (a, b), f"{m.name}_part{k:02d}") for k, (a, b) in enumerate(zip(bounds, bounds[1:]))]
 
 
 def _with_fps(skel: bvh.Skeleton, fps: float) -> bvh.Skeleton:
@@ -286,10 +302,16 @@ def _save_torso(frames: rt.ArmFrames, path: Path, cutoff: Optional[float],
 
 
 def report_lines(report: dict) -> list:
-    """One printed line per clip."""
-    lines = []
+    """One printed line per clip (the pieces of a split clip together)."""
+    clips = {}
     for c in report["clips"]:
+        clips.setdefault((c["clip"], c["mirrored"]), []).append(c)
+    lines = []
+    for c, *more in clips.values():
         f, pe, tor = c["filter"], c["position_error_m"], c["torso"]
+        shares = [100 * p["torso"]["torque_share"] for p in (c, *more)]
+        share = f"{shares[0]:.0f}%" if not more else f"{min(shares):.0f}–{max(shares):.0f}%"
+        cut = f"; cut into {len(more) + 1} pieces" if more else ""
         filt = ("unfiltered" if f["cutoff_hz"] is None else
                 f"low-pass {f['cutoff_hz']:g} Hz (changed {math.degrees(f['change_rms_rad']):.2f}° RMS)")
         lines.append(
@@ -300,7 +322,7 @@ def report_lines(report: dict) -> list:
             f"{1000 * pe['wrist_max']:.2f} mm; torque resolution {100 * f['resolution_native']:.2f}% → "
             f"{100 * f['resolution_smoothed']:.2f}% ({filt}); torso moved {100 * tor['travel_m']:.0f} cm, "
             f"≤ {tor['speed_max_m_s']:.2f} m/s, turned ≤ {tor['rotation_max_deg']:.0f}°, changing the "
-            f"arm's torques by {100 * tor['torque_share']:.0f}%")
+            f"arm's torques by {share}{cut}")
     return lines
 
 
