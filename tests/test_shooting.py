@@ -249,6 +249,49 @@ def test_a_motion_that_cannot_be_simulated_stops_alone(problem):
     assert torch.equal(w.a_raw[1].detach(), before)
 
 
+def test_a_motion_lost_at_a_longer_horizon_backs_off_towards_its_start(problem, monkeypatch):
+    """A motion whose segments cannot be simulated from the weights the shorter horizon
+    left (here: declared so at 0.5 s) is not dropped: the stage goes on from half-way back
+    to its starting weights, and the fit still ends on the generating weights. Without the
+    back-off it stopped, named as "cannot be simulated at horizon 0.5 s"."""
+    body, basis, weights, tg = problem
+    calls, real = [], shooting._Problem.cost
+
+    def cost(self, theta, h, motions):
+        c = real(self, theta, h, motions)
+        calls.append((h, list(motions), theta.clone()))
+        if h == 0.5 and sum(call[0] == 0.5 for call in calls) == 1:
+            c[motions.index(1)] = math.inf                # the 0.25 s weights of "twice" are lost
+        return c
+    monkeypatch.setattr(shooting._Problem, "cost", cost)
+    w = _perturbed(weights)
+    start = w.flat(shooting.WEIGHTS)[1].detach().clone()
+    res = shooting.shooting_match(body, basis, w, tg)
+    first = next(c for c in calls if c[0] == 0.5)                     # the stage's entry
+    lost = first[2][first[1].index(1)]
+    trial = next(c[2] for c in calls if c[0] == 0.5 and c[1] == [1])   # its first back-off
+    print("path loss", res.loss, "failures", res.failures)
+    assert torch.allclose(trial[0], start + 0.5 * (lost - start), atol=1e-15)
+    assert not res.failures and max(res.loss) < 1e-9
+    assert torch.allclose(w.a.detach(), weights.a.detach(), atol=1e-5)
+
+
+def test_back_off_takes_the_first_fraction_that_can_be_simulated():
+    """θ₀ + α(θ − θ₀) for α = 1/2, 1/4, …, 0: a motion simulable only within 0.2 of its
+    start goes back to α = 1/8 (θ − θ₀ = 1.2); one simulable nowhere stays lost, its θ
+    unchanged."""
+    class Stub:
+        def cost(self, theta, h, motions):
+            near = (theta - start[motions]).abs().amax(-1) <= 0.2
+            return torch.where(near & torch.tensor([j == 0 for j in motions]), 1.0, math.inf)
+    start = torch.zeros(2, 3, dtype=DT)
+    theta = torch.tensor([[1.2, 0.0, -0.4], [5.0, 5.0, 5.0]], dtype=DT)
+    cost, lost = torch.full((2,), math.inf, dtype=DT), [0, 1]
+    shooting._back_off(Stub(), theta, start, cost, 0.5, lost)
+    assert lost == [1] and cost.tolist() == [1.0, math.inf]
+    assert torch.equal(theta, torch.tensor([[0.15, 0.0, -0.05], [5.0, 5.0, 5.0]], dtype=DT))
+
+
 def test_path_stage_starts_with_multiple_shooting(small_motions, tmp_path, monkeypatch):
     """With a bar no fit meets (1e-6 rad, 1 µm), the path stage takes every motion
     (one field per motion, no Adam steps): multiple shooting gets the model that

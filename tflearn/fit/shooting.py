@@ -26,6 +26,11 @@ cannot build up over a short segment, so the residuals stay nearly linear in θ.
 **Horizon.** Segments start at h = ``ShootingOptions.horizon`` and double, joining
 pairwise, until one segment spans each motion: the last stage minimises the path loss
 itself (single shooting) from a point found where the problem was well-conditioned.
+A motion whose segments cannot be simulated at a new horizon from the parameters the
+last stage left is not dropped: it goes back towards its starting parameters θ₀, to
+θ₀ + α(θ − θ₀) for the first α of ½, ¼, …, 1/16, 0 that can be simulated, and the stage
+goes on from there. θ₀ simulates the whole motion (else the motion is not fitted at all),
+so the last stage always has a point to start from.
 
 **Steps.** At each stage, Levenberg–Marquardt with Marquardt's scaling: δ solves
 (JᵀJ + μ diag(JᵀJ)) δ = −Jᵀr over the parameters not held at a bound (a, b, c ≥ 0,
@@ -315,7 +320,7 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
         result.failures[tg.names[j]] = "cannot be simulated from its starting weights"
     h, after = min(options.horizon, longest), before.clone()
     while active:
-        cost = _stage(prob, theta, mu, h, active, result, callback)
+        cost = _stage(prob, theta, start, mu, h, active, result, callback)
         if h >= longest:             # the last stage's cost is each motion's path loss
             after[active] = cost[active]
             break
@@ -349,14 +354,31 @@ def _normal_equations(prob: _Problem, theta, h, active: list, result: ShootingRe
     return (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])) if parts else None
 
 
-def _stage(prob: _Problem, theta, mu, h, active: list, result: ShootingResult, callback):
+def _back_off(prob: _Problem, theta, start, cost, h, lost: list) -> None:
+    """Move each ``lost`` motion, whose segments at horizon h cannot be simulated from its
+    θ, back towards its starting θ₀: θ ← θ₀ + α(θ − θ₀) for the first α of 1/2, 1/4, …,
+    1/16, 0 at which they can (θ, its cost and ``lost`` are updated in place)."""
+    for alpha in (0.5, 0.25, 0.125, 0.0625, 0.0):
+        if not lost:
+            return
+        trial = start[lost] + alpha * (theta[lost] - start[lost])
+        for j, cj, th in zip(list(lost), prob.cost(trial, h, lost).tolist(), trial):
+            if math.isfinite(cj):
+                theta[j], cost[j] = th, cj
+                lost.remove(j)
+
+
+def _stage(prob: _Problem, theta, start, mu, h, active: list, result: ShootingResult, callback):
     """The Levenberg–Marquardt iterations of one horizon on the ``active`` motions
-    (θ, μ and ``active`` are updated in place). Returns each motion's cost (N) at its
-    final θ (∞ where not active)."""
+    (θ, μ and ``active`` are updated in place), from θ backed off towards ``start`` for
+    the motions whose segments cannot be simulated at it. Returns each motion's cost (N)
+    at its final θ (∞ where not active)."""
     tg = prob.tg
     cost = torch.full((tg.N,), math.inf, dtype=torch.float64)
     cost[active] = prob.cost(theta[active], h, active)
-    for j in [j for j in active if not math.isfinite(float(cost[j]))]:
+    lost = [j for j in active if not math.isfinite(float(cost[j]))]
+    _back_off(prob, theta, start, cost, h, lost)
+    for j in lost:
         result.failures[tg.names[j]] = f"cannot be simulated at horizon {h:.3g} s"
         active.remove(j)
     todo_stage = [j for j in active if float(cost[j]) > prob.opts.floor]
