@@ -1,10 +1,11 @@
 """One shared basis over recorded right-arm movements (left arms mirrored): import the
 clips of the mocap folder, cut each clip's busiest window, train configs/mocap.yaml on
 the windows, and print per window the joint RMSE, the maximum hand-tip error, M and the
-wall time.
+wall time. ``--whole`` learns every clip whole instead, cut into consecutive pieces of
+the window's length (``tflearn bvh import --split``), each piece a motion.
 
     PYTHONPATH=. python bench/mocap_basis.py [--mocap DIR] [--out runs/mocap_bench]
-        [--window 1.0] [--clips TEXT...] [--import-only] [key=value ...]   (config overrides)
+        [--window 1.0] [--whole] [--clips TEXT...] [--import-only] [key=value ...]   (config overrides)
 
 ``torso=moving`` trains each window on its performer's moving torso (docs/mocap.md).
 
@@ -58,9 +59,14 @@ def import_table(report: dict) -> str:
             "shoulder max (°) | elbow / wrist error (mm) | torque resolution native → smoothed "
             "(cutoff) | torso travel (cm) / speed (m/s) / turn (°) / torque change |",
             "|---|---|---:|---|---|---:|---|---|---|"]
-    for c in report["clips"]:
+    clips = {}
+    for c in report["clips"]:                       # the pieces of a clip (--whole) on one row
+        clips.setdefault((c["clip"], c["mirrored"]), []).append(c)
+    for c, *more in clips.values():
         f, pe, t = c["filter"], c["position_error_m"], c["torso"]
         cut = "none" if f["cutoff_hz"] is None else f"{f['cutoff_hz']:g} Hz"
+        shares = [100 * p["torso"]["torque_share"] for p in (c, *more)]
+        share = f"{shares[0]:.0f}%" if not more else f"{min(shares):.0f}–{max(shares):.0f}%"
         rows.append(
             f"| {c['clip']} | {('mirrored ' if c['mirrored'] else '') + c['side']} | {c['fps']:.0f} | "
             f"{c['hinge_lost_deg']['rms']:.3f} / {c['hinge_lost_deg']['max']:.3f} | "
@@ -69,8 +75,21 @@ def import_table(report: dict) -> str:
             f"{1000 * pe['elbow_max']:.4f} / {1000 * pe['wrist_max']:.3f} | "
             f"{100 * f['resolution_native']:.2f}% → {100 * f['resolution_smoothed']:.2f}% ({cut}) | "
             f"{100 * t['travel_m']:.0f} / {t['speed_max_m_s']:.2f} / {t['rotation_max_deg']:.0f} / "
-            f"{100 * t['torque_share']:.0f}% |")
+            f"{share} |")
     return "\n".join(rows)
+
+
+def clip_summary(report: dict, rows: dict) -> dict:
+    """{clip: pieces, reproduced (how many), rmse (root mean square over its pieces), tip
+    (the largest)} from the pieces' rows of metrics.json's motions (a piece's motion is
+    its clip's name with _partKK)."""
+    pieces = {}
+    for c in report["clips"]:
+        name = c["file"][:-4]
+        pieces.setdefault(name.rsplit("_part", 1)[0], []).append(rows[name])
+    return {clip: {"pieces": len(rs), "reproduced": sum(bool(r["success"]) for r in rs),
+                   "rmse": float(np.sqrt(np.mean([r["rmse"] ** 2 for r in rs]))),
+                   "tip": max(r["tip"] for r in rs)} for clip, rs in pieces.items()}
 
 
 def arguments(description: str) -> argparse.ArgumentParser:
@@ -83,6 +102,8 @@ def arguments(description: str) -> argparse.ArgumentParser:
     p.add_argument("--clips", nargs="*", default=None,
                    help="use only the clips whose names contain one of these strings (default: all)")
     p.add_argument("--rate", type=float, default=60.0, help="window sampling rate, Hz")
+    p.add_argument("--whole", action="store_true",
+                   help="every clip whole, cut into consecutive pieces of --window seconds")
     return p
 
 
@@ -103,8 +124,13 @@ def prepare_windows(args) -> tuple:
             skel = replace(skel, frame_time=1.0 / FPS[f.stem])
         side = ARMS.get(f.stem, "right")
         frames.append(rt.arm_frames(skel, side, mirror=side == "left"))
-    imported = args.out / "imported"
     t0 = time.time()
+    if args.whole:                      # every clip, cut into pieces of the window's length
+        windows = args.out / "pieces"
+        report = mocap.import_frames(frames, windows, mocap.ImportOptions(rate=args.rate, split=args.window))
+        print(f"imported {len(frames)} clips as {len(report['clips'])} pieces in {time.time() - t0:.1f} s")
+        return report, from_config(report["body"]), windows
+    imported = args.out / "imported"
     report = mocap.import_frames(frames, imported, mocap.ImportOptions(rate=args.rate))
     body = from_config(report["body"])
     windows = args.out / "windows"
@@ -147,13 +173,19 @@ def main(argv=None) -> int:
         r = rows[c["file"][:-4]]
         print(f"{c['file'][:-4]:>44s}  {c['window_s'][0]:8.2f}  {r['rmse']:10.4f}  "
               f"{100 * r['tip']:8.2f}  {'yes' if r['success'] else 'no'}")
+    clips = clip_summary(report, rows) if args.whole else {}
+    if clips:
+        print(f"\n{'clip':>44s}  pieces  reproduced  {'rmse (rad)':>10s}  {'tip (cm)':>8s}")
+    for clip, c in clips.items():
+        print(f"{clip:>44s}  {c['pieces']:6d}  {c['reproduced']:10d}  {c['rmse']:10.4f}  "
+              f"{100 * c['tip']:8.2f}")
     o = metrics["overall"]
     print(f"M = {o['M']}, overall rmse {o['rmse']:.4f} rad, max tip {100 * o['tip']:.2f} cm, "
           f"all reproduced: {'yes' if o['success'] else 'no'}; training {wall:.0f} s")
     (args.out / "bench.json").write_text(json.dumps(
         {"windows": {c["file"][:-4]: {"from_s": c["window_s"][0], **rows[c["file"][:-4]]}
                      for c in report["clips"]},
-         "overall": o, "wall_s": wall, "overrides": args.overrides}, indent=2, default=float))
+         "clips": clips, "overall": o, "wall_s": wall, "overrides": args.overrides}, indent=2, default=float))
     return 0
 
 
