@@ -8,6 +8,8 @@ the window's length (``tflearn bvh import --split``), each piece a motion.
         [--window 1.0] [--whole] [--clips TEXT...] [--import-only] [key=value ...]   (config overrides)
 
 ``torso=moving`` trains each window on its performer's moving torso (docs/mocap.md).
+Under ``torchrun --standalone --nproc-per-node N bench/mocap_basis.py ...`` rank 0
+imports and the ranks train together (docs/parallel.md).
 
 ``--import-only`` prints the retargeting report of the import as a markdown table and
 stops (the table in docs/mocap.md).
@@ -32,7 +34,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tflearn import bvh, config, mocap, train  # noqa: E402
+from tflearn import bvh, config, mocap, parallel, train  # noqa: E402
 from tflearn import motion as motion_mod  # noqa: E402
 from tflearn import retarget as rt  # noqa: E402
 from tflearn.body import from_config  # noqa: E402
@@ -156,17 +158,27 @@ def main(argv=None) -> int:
         args.overrides += [c for c in args.clips if "=" in c]
         args.clips = [c for c in args.clips if "=" not in c]
     torch.set_num_threads(1)
-    report, _, windows = prepare_windows(args)
-    body_doc = report["body"]
-    if args.import_only:
-        print(import_table(report))
-        return 0
-    cfg = config.load(ROOT / "configs" / "mocap.yaml",
-                      [f"data={windows}", f"out={args.out / 'run'}",
-                       "body=" + json.dumps(body_doc), *args.overrides])
-    t0 = time.time()
-    metrics = train.run(cfg, restart=True)
-    wall = time.time() - t0
+    with parallel.group("cpu"):          # under torchrun: rank 0 imports, every rank trains
+        report = windows = None
+        if parallel.rank() == 0:
+            report, _, windows = prepare_windows(args)
+        report, windows = parallel.broadcast((report, windows))
+        if args.import_only:
+            if parallel.rank() == 0:
+                print(import_table(report))
+            return 0
+        cfg = config.load(ROOT / "configs" / "mocap.yaml",
+                          [f"data={windows}", f"out={args.out / 'run'}",
+                           "body=" + json.dumps(report["body"]), *args.overrides])
+        t0 = time.time()
+        metrics = train.run(cfg, restart=True)
+        if parallel.rank() == 0:
+            summarise(args, report, metrics, time.time() - t0)
+    return 0
+
+
+def summarise(args, report: dict, metrics: dict, wall: float) -> None:
+    """Print the table per window (and with --whole per clip); write OUT/bench.json."""
     rows = metrics["motions"]
     print(f"\n{'window':>44s}  {'from (s)':>8s}  {'rmse (rad)':>10s}  {'tip (cm)':>8s}  reproduced")
     for c in report["clips"]:
@@ -186,7 +198,6 @@ def main(argv=None) -> int:
         {"windows": {c["file"][:-4]: {"from_s": c["window_s"][0], **rows[c["file"][:-4]]}
                      for c in report["clips"]},
          "clips": clips, "overall": o, "wall_s": wall, "overrides": args.overrides}, indent=2, default=float))
-    return 0
 
 
 if __name__ == "__main__":
