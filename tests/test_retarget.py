@@ -252,7 +252,9 @@ def test_split_into_pieces(mocap, tmp_path):
     (the last 0.58 s), equal to the whole import's samples (1e-12) and sharing each boundary
     sample, each with a torso file covering it and its clip times as ``window_s``; its
     window [0.5, 2.4] s in 0.8 s pieces is 2 (the 0.3 s remainder joins the last, 1.1 s),
-    printed as one clip line. A split ≤ 0 is refused."""
+    printed as one clip line. 0.75 s, not a whole number of samples at 50 Hz, is rounded
+    to 38 sample intervals, the pieces still sharing their boundaries. A split ≤ 0 is
+    refused."""
     from tflearn import config, motion
     from tflearn import mocap as mocap_mod
     from tflearn.errors import InputError
@@ -274,6 +276,10 @@ def test_split_into_pieces(mocap, tmp_path):
         assert torso["t"][0] <= 0.0 and torso["t"][-1] >= float(p.t[-1])
         first += p.T - 1                                     # the boundary sample is shared
     assert first == full.T - 1 and [p.T for p in pieces] == [41] * 7 + [30]
+    report = mocap_mod.import_clips([clip], tmp_path / "odd", mocap_mod.ImportOptions(rate=50, split=0.75))
+    odd = [motion.load(tmp_path / "odd" / c["file"], body) for c in report["clips"]]
+    assert [p.T for p in odd] == [39] * 7 + [44]             # 0.75 s is 38 intervals at 50 Hz
+    assert all(torch.equal(a.q[-1], b.q[0]) for a, b in zip(odd, odd[1:]))
     report = mocap_mod.import_clips([clip], tmp_path / "window", mocap_mod.ImportOptions(
         rate=50, window=(0.5, 2.4), split=0.8))
     assert sum((c["window_s"] for c in report["clips"]), []) == pytest.approx([0.5, 1.3, 1.3, 2.4])

@@ -64,9 +64,9 @@ class ImportOptions:
     (start, stop) in seconds, the part of every clip kept (the arm's samples within it,
     times then from the first of them, and the torso's frames covering those; a clip
     shorter than stop is refused like a bad file), None: all of it; split: cut what is
-    kept into consecutive pieces of this many seconds, each its own motion NAME_partKK
-    (pieces share their boundary samples; a remainder shorter than half a piece joins
-    the last one), None: one motion per clip.
+    kept into consecutive pieces of this many seconds (rounded to whole samples), each its
+    own motion NAME_partKK (pieces share their boundary samples; a remainder shorter than
+    half a piece joins the last one), None: one motion per clip.
     """
 
     side: str = "right"
@@ -257,16 +257,23 @@ def _cut(m: motion_mod.Motion, window: tuple, name: Optional[str] = None) -> tup
 
 
 def _pieces(m: motion_mod.Motion, window: Optional[tuple], split: Optional[float]) -> list:
-    """[(motion, clip times (first, last) or None)]: ``m`` cut to ``window`` and then into
-    pieces of ``split`` seconds (:class:`ImportOptions`); both None: [(``m``, None)]."""
+    """[(motion, clip times (first, last) or None)]: ``m`` (uniformly sampled) cut to
+    ``window`` and then into pieces of round(``split``·rate) sample intervals
+    (:class:`ImportOptions`); both None: [(``m``, None)]."""
     if window is None and split is None:
         return [(m, None)]
-    start, stop = window if window is not None else (0.0, float(m.t[-1]))
+    whole, span = _cut(m, window if window is not None else (0.0, float(m.t[-1])))
     if split is None:
-        return [_cut(m, (start, stop))]
-    count = max(1, math.floor((stop - start) / split + 0.5))   # a remainder < split/2 joins the last
-    bounds = [start + k * split for k in range(count)] + [stop]
-    return [_cut(m, (a, b), f"{m.name}_part{k:02d}") for k, (a, b) in enumerate(zip(bounds, bounds[1:]))]
+        return [(whole, span)]
+    n, last = max(1, round(split * m.rate)), whole.T - 1
+    count = max(1, math.floor(last / n + 0.5))              # a remainder < n/2 joins the last
+    bounds = [k * n for k in range(count)] + [last]
+    pieces = []
+    for k, (a, b) in enumerate(zip(bounds, bounds[1:])):
+        ta, tb = float(whole.t[a]), float(whole.t[b])
+        piece, _ = _cut(whole, (ta, tb), f"{m.name}_part{k:02d}")
+        pieces.append((piece, (span[0] + ta, span[0] + tb)))           # clip times
+    return pieces
 
 
 def _with_fps(skel: bvh.Skeleton, fps: float) -> bvh.Skeleton:
