@@ -61,14 +61,10 @@ def import_table(report: dict) -> str:
             "shoulder max (°) | elbow / wrist error (mm) | torque resolution native → smoothed "
             "(cutoff) | torso travel (cm) / speed (m/s) / turn (°) / torque change |",
             "|---|---|---:|---|---|---:|---|---|---|"]
-    clips = {}
-    for c in report["clips"]:                       # the pieces of a clip (--whole) on one row
-        clips.setdefault((c["clip"], c["mirrored"]), []).append(c)
-    for c, *more in clips.values():
+    for pieces in mocap.by_clip(report):            # the pieces of a clip (--whole) on one row
+        c = pieces[0]
         f, pe, t = c["filter"], c["position_error_m"], c["torso"]
         cut = "none" if f["cutoff_hz"] is None else f"{f['cutoff_hz']:g} Hz"
-        shares = [100 * p["torso"]["torque_share"] for p in (c, *more)]
-        share = f"{shares[0]:.0f}%" if not more else f"{min(shares):.0f}–{max(shares):.0f}%"
         rows.append(
             f"| {c['clip']} | {('mirrored ' if c['mirrored'] else '') + c['side']} | {c['fps']:.0f} | "
             f"{c['hinge_lost_deg']['rms']:.3f} / {c['hinge_lost_deg']['max']:.3f} | "
@@ -77,7 +73,7 @@ def import_table(report: dict) -> str:
             f"{1000 * pe['elbow_max']:.4f} / {1000 * pe['wrist_max']:.3f} | "
             f"{100 * f['resolution_native']:.2f}% → {100 * f['resolution_smoothed']:.2f}% ({cut}) | "
             f"{100 * t['travel_m']:.0f} / {t['speed_max_m_s']:.2f} / {t['rotation_max_deg']:.0f} / "
-            f"{share} |")
+            f"{mocap.torque_share_text(pieces)} |")
     return "\n".join(rows)
 
 

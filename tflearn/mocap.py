@@ -308,17 +308,29 @@ def _save_torso(frames: rt.ArmFrames, path: Path, cutoff: Optional[float],
     return BaseMotion(t, R, x)
 
 
-def report_lines(report: dict) -> list:
-    """One printed line per clip (the pieces of a split clip together)."""
+def by_clip(report: dict) -> list:
+    """The entries of ``report["clips"]`` grouped by clip (a split clip's pieces together,
+    in order): a list of lists."""
     clips = {}
     for c in report["clips"]:
         clips.setdefault((c["clip"], c["mirrored"]), []).append(c)
+    return list(clips.values())
+
+
+def torque_share_text(pieces: list) -> str:
+    """How much the torso changes the arm's torques, as text: "N%", or "N–M%" over the
+    pieces of a split clip (entries of ``report["clips"]``)."""
+    shares = [100 * p["torso"]["torque_share"] for p in pieces]
+    return f"{shares[0]:.0f}%" if len(shares) == 1 else f"{min(shares):.0f}–{max(shares):.0f}%"
+
+
+def report_lines(report: dict) -> list:
+    """One printed line per clip (the pieces of a split clip together)."""
     lines = []
-    for c, *more in clips.values():
+    for pieces in by_clip(report):
+        c = pieces[0]
         f, pe, tor = c["filter"], c["position_error_m"], c["torso"]
-        shares = [100 * p["torso"]["torque_share"] for p in (c, *more)]
-        share = f"{shares[0]:.0f}%" if not more else f"{min(shares):.0f}–{max(shares):.0f}%"
-        cut = f"; cut into {len(more) + 1} pieces" if more else ""
+        cut = f"; cut into {len(pieces)} pieces" if len(pieces) > 1 else ""
         filt = ("unfiltered" if f["cutoff_hz"] is None else
                 f"low-pass {f['cutoff_hz']:g} Hz (changed {math.degrees(f['change_rms_rad']):.2f}° RMS)")
         lines.append(
@@ -329,7 +341,7 @@ def report_lines(report: dict) -> list:
             f"{1000 * pe['wrist_max']:.2f} mm; torque resolution {100 * f['resolution_native']:.2f}% → "
             f"{100 * f['resolution_smoothed']:.2f}% ({filt}); torso moved {100 * tor['travel_m']:.0f} cm, "
             f"≤ {tor['speed_max_m_s']:.2f} m/s, turned ≤ {tor['rotation_max_deg']:.0f}°, changing the "
-            f"arm's torques by {share}{cut}")
+            f"arm's torques by {torque_share_text(pieces)}{cut}")
     return lines
 
 
