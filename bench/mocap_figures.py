@@ -2,7 +2,7 @@
 against its simulation under the run's basis — a sheet of joint paths with the 3-D hand
 path, and a stick-figure strip — written as MOTION.png and MOTION_strip.png.
 
-    PYTHONPATH=. python bench/mocap_figures.py RUN --out docs/results/mocap [--motions TEXT...]
+    PYTHONPATH=. python bench/mocap_figures.py RUN --out docs/mocap [--motions TEXT...]
 
 RUN is a training run folder (bench/mocap_basis.py writes OUT/run). With ``torso: moving``
 the arm is simulated on its torso and drawn in the torso's frame (the shoulder fixed).
