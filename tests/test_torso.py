@@ -214,11 +214,12 @@ def test_training_on_each_motions_torso(tmp_path):
     as tflearn bvh import writes) and learns the motion made on that torso (gravity fed
     forward exactly, so the gravity-free world) back from no guess, reproduced by
     simulation on the torso; evaluate and ``tflearn simulate`` of the run ride the torso
-    too, perturb refuses the run (fixed base only); ``torso: fixed`` keeps the fixed
+    too, perturb refuses the run (fixed base only); the run's motions are found by name
+    (one it lacks is named); ``torso: fixed`` keeps the fixed
     base; a motion without a torso file, or with one that does not cover its times, is
     refused, naming the file."""
     from tflearn import recovery, train
-    from tflearn.data import torsos
+    from tflearn.data import named_motions, torsos
     from tflearn.errors import InputError
     from tflearn.evaluate import evaluate_run, simulate_basis_motion
     from tflearn.motion import MotionFileError, load, save
@@ -244,6 +245,9 @@ def test_training_on_each_motions_torso(tmp_path):
     assert err < 0.01
     with pytest.raises(InputError, match="ride their torsos"):
         recovery.targets(tmp_path / "run", ["on_torso"])
+    assert [x.name for x in named_motions(data, run.body, ["on_torso"], "run")] == ["on_torso"]
+    with pytest.raises(InputError, match=r"^run: motion\(s\) 'wave' are not in the run's data"):
+        named_motions(data, run.body, ["on_torso", "wave"], "run")
     assert torsos(data, [m], "fixed") is None
     np.savez(data / "torso" / "on_torso.npz", t=ts[:50], R=R[:50], x=x[:50])
     short = "the torso covers 0.000–0.490 s, motion 'on_torso' 0.000–1.200 s"

@@ -8,6 +8,7 @@ from pathlib import Path
 from . import gestures as gestures_mod
 from . import motion as motion_mod
 from .body import Body
+from .errors import InputError
 from .torso import BaseMotion, Bases
 
 
@@ -26,6 +27,17 @@ def load_motions(data, body: Body, strict: bool = False) -> list:
     if not data:
         raise motion_mod.MotionFileError("data", "an empty list of motion files")
     return [motion_mod.load(p, body) for p in data]
+
+
+def named_motions(data, body: Body, names: list, where: str) -> list:
+    """The motions ``names`` of ``data`` (:func:`load_motions`), in that order. Raises
+    :class:`~tflearn.errors.InputError`, after ``where``, naming those ``data`` lacks."""
+    found = {m.name: m for m in load_motions(data, body) if m.name in names}
+    missing = [n for n in names if n not in found]
+    if missing:
+        raise InputError(f"{where}: motion(s) {', '.join(map(repr, missing))} are not in the run's "
+                         f"data ({data!r})")
+    return [found[n] for n in names]
 
 
 def torsos(data, motions: list, torso: str = "fixed") -> Bases | None:

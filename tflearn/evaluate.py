@@ -11,8 +11,7 @@ import torch
 
 from . import config as config_mod
 from .config import Config
-from .data import check_resolution, load_motions, torsos
-from .errors import InputError
+from .data import check_resolution, load_motions, named_motions, torsos
 from .fields import FieldProgram, MotionWeights
 from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
@@ -117,11 +116,8 @@ def simulate_basis_motion(basis_path, name: str, out, rate=None, duration=None) 
     t = torch.arange(0, int(round(duration * rate)) + 1, dtype=torch.float64) / rate
     base, run = None, Path(basis_path).parent
     cfg = run_config(run)[0] if (run / "config.yaml").exists() else None
-    if cfg is not None and cfg.torso == "moving":
-        found = [m for m in load_motions(cfg.data, lb.body) if m.name == name]
-        if not found:
-            raise InputError(f"{basis_path}: motion {name!r} rides its torso (torso: moving), but it "
-                             f"is not in the run's data ({cfg.data!r})")
+    if cfg is not None and cfg.torso == "moving":     # its torso file beside the run's data
+        found = named_motions(cfg.data, lb.body, [name], f"{basis_path} (torso: moving)")
         base = torsos(cfg.data, found, cfg.torso)
     with torch.no_grad():
         tr = simulate(lb.body, FieldProgram(lb.basis, lb.weights, index=[j]), lb.q0[j:j + 1],

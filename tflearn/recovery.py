@@ -54,7 +54,7 @@ def targets(model, names: list) -> tuple:
                              f"motions (no body.yaml)")
         body = read_body(model / "body.yaml")
         return body, None, _beside(model, names, body)
-    from .data import load_motions
+    from .data import named_motions
     from .evaluate import run_config
     run, path = (model, model / "basis.json") if model.is_dir() else (model.parent, model)
     lb = basis_io.load(path)
@@ -66,12 +66,7 @@ def targets(model, names: list) -> tuple:
     if cfg.torso == "moving":
         raise InputError(f"{path}: its motions ride their torsos (torso: moving); pushes are "
                          f"simulated on a fixed base only")
-    found = {m.name: m for m in load_motions(cfg.data, lb.body) if m.name in names}
-    missing = [n for n in names if n not in found]
-    if missing:
-        raise InputError(f"{path}: motions {', '.join(missing)} are not in the run's data "
-                         f"({cfg.data!r})")
-    return lb.body, lb, found
+    return lb.body, lb, dict(zip(names, named_motions(cfg.data, lb.body, names, str(path))))
 
 
 def _beside(folder: Path, names: list, body, where: str = "") -> dict:

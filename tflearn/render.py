@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from . import plots
-from .data import load_motions, torsos
+from .data import named_motions, torsos
 from .errors import InputError
 from .evaluate import run_config, weights_for
 from .fit.targets import prepare
@@ -70,10 +70,7 @@ def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
     lb = basis_io.load(run / "basis.json")
     lb.index(motion)
     cfg, options = run_config(run)
-    found = [m for m in load_motions(cfg.data, lb.body) if m.name == motion]
-    if not found:
-        raise InputError(f"motion {motion!r} of {run / 'basis.json'} is not in the run's data "
-                       f"({cfg.data!r})")
+    found = named_motions(cfg.data, lb.body, [motion], str(run / "basis.json"))
     tg = prepare(lb.body, found, base=torsos(cfg.data, found, cfg.torso))
     s = score(lb.body, lb.basis, weights_for(lb, tg), tg, options)
     T = int(tg.mask[0].sum())
