@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         t0 = time.time()
         lb = frozen_layout(cfg, body, motions[:j] + motions[j + 1:])
         tg = targets(cfg, body, [m])
-        weights = synthesize(lb, tg, shoot, options, success)
+        weights = synthesize(lb, tg, shoot, options, success, ridge=cfg.solver.ridge)
         s = score(body, lb.basis, weights, tg, options)
         ok, bar = (bool(s.succeeded(*b)[0]) for b in (success, HELD_OUT))
         rows[m.name] = {"rmse": float(s.rmse[0]), "tip": float(s.tip[0]), "success": ok,

@@ -145,6 +145,10 @@ class SolverSection(Section):
     # the torque costs' coordinate weights: uniform (the thesis) | inertia (each joint's
     # torque error over its mean inertia: errors counted by the accelerations they cause)
     torque_weight: Literal["uniform", "inertia"] = "uniform"
+    # λ: the layout stage's and held-out synthesis' NNLS of weights on a fixed basis
+    # minimise C + λ·mean(diag G)·‖x‖² (tflearn.fit.torque.solve_weights): nearly
+    # collinear fields cannot cancel each other with huge weights (0: exact NNLS)
+    ridge: float = Field(0.0, ge=0, allow_inf_nan=False)
     init: InitSection = InitSection()
     each: EachSection = EachSection()
     em: EMSection = EMSection()

@@ -33,10 +33,12 @@ def run_config(run) -> tuple:
 
 def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
                shooting: Optional[ShootingOptions] = ShootingOptions(),
-               options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02)) -> MotionWeights:
-    """Held-out synthesis: with the basis frozen, fit new motions' weights by exact NNLS
-    on their torques; the motions that this does not reproduce (joint RMSE ≤
-    ``success[0]`` rad and hand-tip error ≤ ``success[1]`` m, as in training) then get
+               options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02), *,
+               ridge: float = 0.0) -> MotionWeights:
+    """Held-out synthesis: with the basis frozen, fit new motions' weights by NNLS on
+    their torques (exact, or with a ``ridge``: :func:`~tflearn.fit.torque.solve_weights`);
+    the motions that this does not reproduce (joint RMSE ≤ ``success[0]`` rad and
+    hand-tip error ≤ ``success[1]`` m, as in training) then get
     their weights (and with ``shooting.phases`` their activation timing) by
     multiple-shooting path matching (:func:`tflearn.fit.shooting.shooting_match`; None:
     NNLS only; where it stops early, a :class:`~tflearn.fit.torque.DivergenceWarning`
@@ -44,7 +46,7 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     motions have, placed from their data (:func:`submovement_windows`)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P))
-    solve_weights(lb.basis, weights, tg)
+    solve_weights(lb.basis, weights, tg, ridge=ridge)
     if shooting is None or not shooting.iterations:
         return weights
     ok = score(lb.body, lb.basis, weights, tg, options).succeeded(*success)
@@ -87,7 +89,8 @@ def evaluate_run(run, data=None, out=None) -> dict:
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
                      base=torsos(source, group, cfg.torso))
         shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
-        weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip)) if synth
+        weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip),
+                               ridge=cfg.solver.ridge) if synth
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)

@@ -734,7 +734,7 @@ class Run:
         weights on its P windows by NNLS, the model scored by simulation."""
         self.log.stage("layout", 1)
         basis, weights = layout_model(self.cfg, self.body, tg)
-        cost = float(torque.solve_weights(basis, weights, tg).sum())
+        cost = float(torque.solve_weights(basis, weights, tg, ridge=self.cfg.solver.ridge).sum())
         _, ok = self._adopt(state, tg, "layout", basis, weights, cost)
         self.log.status(M=basis.M, cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
         self.log.end_stage()

@@ -63,7 +63,8 @@ def run(cfg: ExperimentConfig) -> dict:
     tg = prepare(body, motions)
     calls0, t0 = sim_mod.calls, time.perf_counter()
     weights = synthesize(lb, tg, cfg.train.solver.shooting.options(phases=False),
-                         cfg.simulation.options(), (cfg.success.rmse, cfg.success.tip))
+                         cfg.simulation.options(), (cfg.success.rmse, cfg.success.tip),
+                         ridge=cfg.train.solver.ridge)
     fit = {"basis": lb.basis, "weights": weights, "wall": time.perf_counter() - t0,
            "sims": sim_mod.calls - calls0}
     m = common.check(body, lb.basis, weights, tg, cfg)

@@ -84,36 +84,48 @@ def normal_equations(basis: FieldBasis, weights: MotionWeights, tg: Targets):
 
 @torch.no_grad()
 def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
-                  support: Optional[torch.Tensor] = None) -> torch.Tensor:
+                  support: Optional[torch.Tensor] = None, ridge: float = 0.0) -> torch.Tensor:
     """Set every motion's (a, b, c) to its exact NNLS optimum; returns the costs C_j (N).
 
     ``support`` (N×M(2+P) bool, [a | b | c]) restricts the optimum to those weights, the others
     held at 0 (their rows of the normal equations become x_i = 0 with a negative
-    gradient, so Lawson–Hanson never frees them). Many motions are solved a chunk at a
-    time (:func:`~.targets.chunks`)."""
+    gradient, so Lawson–Hanson never frees them). ``ridge`` λ ≥ 0 minimises
+    C_j + λ ḡ_j ‖x_j‖² instead (ḡ_j the mean of diag G_j): nearly collinear fields can no
+    longer cancel each other with huge weights, which make a stiff program an explicit
+    solver cannot step (the returned costs are still C_j). Many motions are solved a
+    chunk at a time (:func:`~.targets.chunks`)."""
     parts = chunks(tg, weights.a_raw.shape[1] * (2 + weights.P))
     if len(parts) == 1:
-        return _solve_weights(basis, weights, tg, support)
+        return _solve_weights(basis, weights, tg, support, ridge)
     costs, keys = torch.empty(tg.N, dtype=torch.float64), ("a_raw", "b_raw", "c_raw")
     for idx in parts:
         sub = weights.select_motions(idx)
         costs[idx] = _solve_weights(basis, sub, tg.select(idx, trim=True),
-                                    None if support is None else support[idx])
+                                    None if support is None else support[idx], ridge)
         weights.set_flat(keys, sub.flat(keys), idx)
     return costs
 
 
-def _solve_weights(basis, weights, tg, support):
+def _solve_weights(basis, weights, tg, support, ridge):
     G, h = normal_equations(basis, weights, tg)
+    A = _with_ridge(G, ridge)
     if support is not None:
         both = support.unsqueeze(-1) & support.unsqueeze(-2)
-        G = torch.where(both, G, 0.0) + torch.diag_embed((~support).to(G.dtype))
+        A = torch.where(both, A, 0.0) + torch.diag_embed((~support).to(G.dtype))
         h = torch.where(support, h, -1.0)
-    sol = nnls(G, h)
+    sol = nnls(A, h)
     warn_unconverged(sol, tg.names, "solve_weights")
     x = sol.x
     weights.set_vector(x)
     return 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+
+
+def _with_ridge(G: torch.Tensor, ridge: float) -> torch.Tensor:
+    """G + λ ḡ I (…×X×X), ḡ the mean of G's diagonal; G itself when λ = 0."""
+    if not ridge:
+        return G
+    d = torch.diagonal(G, dim1=-2, dim2=-1)
+    return G + torch.diag_embed((ridge * d.mean(-1, keepdim=True)).expand_as(d))
 
 
 def torque_cost(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
