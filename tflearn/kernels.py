@@ -75,9 +75,13 @@ def link_tables(body: Body) -> tuple:
     return kind, rot, offset, parent
 
 
-#: LLVM may contract and reorder floating-point arithmetic, but not assume away NaN/Inf
-#: (a blown-up state must still come out non-finite).
-_FAST = {"contract", "reassoc", "nsz", "arcp"}
+#: LLVM may contract floating-point arithmetic (fused multiply–add), but not reorder it
+#: ("reassoc": the code a fresh process compiled and runs then differed from the code it
+#: wrote to numba's cache, so a checkout's first run gave other numbers than every later
+#: one — a simulation's path in the last bits, a trained stiffness in the third digit;
+#: bench/kernel_cache.py checks it) nor assume away NaN/Inf (a blown-up state must still
+#: come out non-finite).
+_FAST = {"contract", "nsz", "arcp"}
 
 
 @njit(cache=True, fastmath=_FAST)
