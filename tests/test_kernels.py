@@ -134,8 +134,12 @@ def test_joint_rotations_are_read_as_given(rng):
 
 def test_compiled_rotations_from_rotation_vectors_equal_torchs(rng):
     """The kernels' exp([v]×) (what forward_dynamics and rnea hand them: rotation vectors)
-    against configspace.rotvec_to_rotmat to the last bit or so: at zero, at tiny angles,
-    on both sides of the switch to sinc's series (θ = 4ε^⅙), near and at π, beyond."""
+    against configspace.rotvec_to_rotmat to a few ulps: at zero, at tiny angles, on both
+    sides of the switch to sinc's series (θ = 4ε^⅙), near and at π, beyond. The compiled
+    arithmetic is ordered (and fused) otherwise than torch's: over 10⁴ random rotation
+    vectors the two differ by up to 6.5 ε, on diagonal entries beyond π, where
+    1 − 2(y² + z²) cancels (measured since the kernels dropped fast-math reassociation;
+    this sample had stayed within 2 ε before)."""
     from tflearn import kernels
     from tflearn.configspace import rotvec_to_rotmat
     switch = 2 * kernels._SINC_SERIES
@@ -146,7 +150,7 @@ def test_compiled_rotations_from_rotation_vectors_equal_torchs(rng):
     v = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angles[:, None]
     ref = rotvec_to_rotmat(torch.as_tensor(v, dtype=DT)).numpy()
     mine = np.array([kernels._rodrigues(*x) for x in v]).reshape(-1, 3, 3)
-    assert np.abs(mine - ref).max() <= 2 * np.finfo(np.float64).eps
+    assert np.abs(mine - ref).max() <= 8 * np.finfo(np.float64).eps
     n = v[9] / np.pi                                      # at π: R = 2 n nᵀ − 1
     assert np.abs(mine[0] - np.eye(3)).max() == 0
     assert np.abs(mine[9] - (2 * np.outer(n, n) - np.eye(3))).max() < 1e-15
