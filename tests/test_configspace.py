@@ -87,3 +87,22 @@ def test_unpack_and_position_rate_against_per_link_reference(rng, where):
             k += link.dof
     assert k == cs.n_position(body) and torch.equal(v2, y[..., k:])
     assert torch.allclose(cs.difference(body, q, coords), torch.zeros_like(q), atol=1e-12)
+
+
+@pytest.mark.parametrize("where", [None, 0, 3])
+def test_state_tangent_basis_is_orthonormal_and_leaves_out_each_quaternion(rng, where):
+    """BᵀB = I, Bᵀq = 0 for every quaternion q of the state, and [B, q's directions]
+    spans the whole state space: the tree's three ball joints (and a free joint)."""
+    body = make_tree() if where is None else free_tree(where)
+    q = torch.tensor(random_states(body, rng, 16))
+    y = cs.pack(body, q, torch.randn(16, body.nv, dtype=torch.float64))
+    B = cs.state_tangent_basis(body, y)
+    nr = sum(link.joint in ("ball", "free") for link in body.links)
+    D = y.shape[-1]
+    assert B.shape == (16, D, D - nr)
+    assert torch.allclose(B.transpose(-1, -2) @ B, torch.eye(D - nr, dtype=torch.float64), atol=1e-14)
+    Q = torch.zeros(16, D, nr, dtype=torch.float64)
+    for j, rows in enumerate(cs._layout(body, y.device)["quat"].reshape(-1, 4)):
+        Q[:, rows, j] = y[:, rows]
+    assert (B.transpose(-1, -2) @ Q).abs().max() < 1e-14
+    assert torch.linalg.matrix_rank(torch.cat([B, Q], -1)).eq(D).all()

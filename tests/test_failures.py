@@ -4,6 +4,8 @@ time grid), and divergence (NaN/Inf in a cost, a loss, a gradient or a state) th
 rejects the step, names the motion and never reaches basis.json."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -11,7 +13,7 @@ from tflearn import gestures, metrics
 from tflearn import simulate as S
 from tflearn.fields import FieldProgram
 from tflearn.fit import path as path_fit
-from tflearn.fit import targets, torque
+from tflearn.fit import stability, targets, torque
 from tflearn.fit.torque import DivergenceWarning
 from tflearn.motion import Motion
 
@@ -109,8 +111,11 @@ def test_one_failing_motion_leaves_the_others_scored(pair, batch):
     assert s.rmse[0] == alone.rmse[0] and s.tip[0] == alone.tip[0]
     assert s.rmse[0] < 1e-3 and s.rmse[1] == float("inf")
     assert s.succeeded(0.03, 0.02) == [True, False]
-    summary = metrics.summarize(s, s.succeeded(0.03, 0.02), tg, basis.M, 0.0)
+    summary = metrics.summarize(s, s.succeeded(0.03, 0.02), tg, basis.M, 0.0,
+                                stability.growth(body, basis, wild, tg))
     assert "failure" in summary["motions"]["tuck"] and "failure" not in summary["motions"]["come_here"]
+    # the growth along the target path needs no simulation: the failed motion has it too
+    assert math.isfinite(summary["motions"]["tuck"]["growth_rate"])
 
 
 def test_path_step_rejects_a_diverged_point_naming_the_motion(pair):

@@ -319,15 +319,20 @@ def test_field_figure_axis_names():
 def test_summarize_has_a_units_block():
     """metrics.json's keys stay as they are; their units are in "units"."""
     from tflearn import metrics
+    from tflearn.fit.stability import Growth
     from tflearn.fit.targets import prepare
     (m, _), = gestures.generate(tb.arm(), gestures=[gestures.GESTURES["come_here"]])
     tg = prepare(tb.arm(), [m])
     s = metrics.Scores([0.01], [0.005], [0.02], tg.q.clone(), [None])
-    doc = metrics.summarize(s, [True], tg, 3, 1.5)
+    growth = Growth(torch.tensor([[1.0, 2.0]]), torch.tensor([2.5]), torch.tensor([0.75]))
+    doc = metrics.summarize(s, [True], tg, 3, 1.5, growth)
     assert doc["units"] == {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
-                            "wall_time_s": "s", "torque_resolution": "fraction"}
-    assert set(doc["motions"]["come_here"]) == {"rmse", "tip", "torque_rel_rms", "success"}
-    assert set(doc["overall"]) == {"rmse", "tip", "torque_rel_rms", "success", "M", "wall_time_s"}
+                            "wall_time_s": "s", "torque_resolution": "fraction", "growth_rate": "1/s",
+                            "growth_efolds": "e-folds (natural log of an error's growth factor)"}
+    assert doc["motions"]["come_here"] == {"rmse": 0.01, "tip": 0.005, "torque_rel_rms": 0.02,
+                                           "growth_rate": 2.5, "growth_efolds": 0.75, "success": True}
+    assert set(doc["overall"]) == {"rmse", "tip", "torque_rel_rms", "growth_rate", "growth_efolds",
+                                   "success", "M", "wall_time_s"}
     doc["units"]["tip"] = "cm"
     assert metrics.UNITS["tip"] == "m"         # a copy per document
 

@@ -139,6 +139,8 @@ def test_progress_and_summary(tb_run, capsys):
     table = summary_table(tb_run["metrics"], tb_run["out"])
     lines = table.splitlines()
     assert lines[0].split()[:3] == ["motion", "rmse", "(rad)"]
-    assert any(line.startswith(tb_run["name"]) for line in lines)
+    row = next(line for line in lines if line.startswith(tb_run["name"]))
+    efolds = tb_run["metrics"]["motions"][tb_run["name"]]["growth_efolds"]
+    assert row.split()[4] == f"{efolds:.2f}" and "growth (e-folds)" in lines[0]
     assert f"M = {tb_run['metrics']['overall']['M']} fields" in table
     assert str(tb_run["out"]) in lines[-1] and "tensorboard/" in lines[-1]

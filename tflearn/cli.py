@@ -61,7 +61,7 @@ def _motion_lines(motions: dict) -> list:
         if m.get("failure"):
             tags.append(m["failure"])
         lines.append(f"{name:>24s}: rmse {m['rmse']:.4f} rad, tip {100 * m['tip']:.2f} cm, "
-                     f"torque error {100 * m['torque_rel_rms']:.2f}%"
+                     f"torque error {100 * m['torque_rel_rms']:.2f}%, growth {m['growth_efolds']:.2f} e-folds"
                      + (f"  ({'; '.join(tags)})" if tags else ""))
     return lines
 

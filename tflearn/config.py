@@ -118,6 +118,9 @@ class ReduceSection(Section):                   # backward elimination of pooled
     # the whole model per field), then with the others held; false: held only (only the
     # motions that used the field are re-solved and simulated: for many motions)
     refit: bool = True
+    # e-folds of local error growth along its path (tflearn.fit.stability) a removal may
+    # add to any motion it touches; null: removals are judged by simulation alone
+    growth: Optional[float] = Field(None, ge=0)
 
 
 class MergeSection(Section):                    # merge pooled fields that nearly coincide

@@ -316,6 +316,29 @@ def _layout(body: Body, device: torch.device) -> dict:
     return out
 
 
+def state_tangent_basis(body: Body, y: torch.Tensor) -> torch.Tensor:
+    """Orthonormal columns (...×D×(D − nr)) spanning the space of states y (...×D) less
+    each quaternion's own direction: unit columns for the entries that are not
+    quaternions (hinge angles, translations, velocities), in y's order, then for each
+    rotation joint q ⊗ (e_k, 0), k = 1, 2, 3 (orthonormal and ⊥ q for a unit q)."""
+    L = _layout(body, y.device)
+    D = y.shape[-1]
+    quat = L["quat"].reshape(-1, 4)
+    keep = sorted(set(range(D)) - set(quat.flatten().tolist()))
+    B = y.new_zeros(y.shape[:-1] + (D, D - quat.shape[0]))
+    B[..., keep, torch.arange(len(keep))] = 1.0
+    col = len(keep)
+    for rows in quat:
+        q = y[..., rows]
+        q = q / q.norm(dim=-1, keepdim=True)
+        for k in range(3):
+            e = q.new_zeros(4)
+            e[k] = 1.0
+            B[..., rows, col] = roma.quat_product(q, e.expand_as(q))
+            col += 1
+    return B
+
+
 def _unpack_compiled(body: Body, L: dict, y: torch.Tensor):
     """:func:`unpack` by :func:`tflearn.kernels.read_state` (no gradient, float64 CPU)."""
     batch, nr = y.shape[:-1], L["quat"].shape[0]

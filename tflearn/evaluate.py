@@ -13,6 +13,7 @@ from . import config as config_mod
 from .config import Config
 from .data import check_resolution, load_motions, named_motions, torsos
 from .fields import FieldProgram, MotionWeights
+from .fit import stability
 from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
 from .fit.torque import DivergenceWarning, solve_weights
@@ -94,7 +95,7 @@ def evaluate_run(run, data=None, out=None) -> dict:
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
-        summary = summarize(s, ok, tg, lb.basis.M, 0.0)
+        summary = summarize(s, ok, tg, lb.basis.M, 0.0, stability.growth(lb.body, lb.basis, weights, tg))
         for j, (name, row) in enumerate(summary["motions"].items()):
             row["synthesized"] = synth
             row["torque_resolution"] = resolution[name]

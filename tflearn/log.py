@@ -253,23 +253,25 @@ def _duration(seconds: float) -> str:
 
 def summary_table(metrics: dict, out=None) -> str:
     """The results of a run as a table (metrics.json's dict): per motion joint RMSE
-    (rad), maximum tip error (cm), relative RMS torque error (%) and whether it was
-    reproduced; then M, the overall figures, the wall time and, given ``out`` (the run
-    folder), where the artefacts were written. No trailing newline."""
-    rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "reproduced")]
+    (rad), maximum tip error (cm), relative RMS torque error (%), the e-folds of error
+    growth along its path and whether it was reproduced; then M, the overall figures, the
+    wall time and, given ``out`` (the run folder), where the artefacts were written. No
+    trailing newline."""
+    rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "growth (e-folds)", "reproduced")]
     for name, m in metrics["motions"].items():
         ok = "yes" if m["success"] else ("no: simulation failed" if m.get("failure") else "no")
         rows.append((name, f"{m['rmse']:.4f}", f"{100 * m['tip']:.2f}",
-                     f"{100 * m['torque_rel_rms']:.2f}", ok))
+                     f"{100 * m['torque_rel_rms']:.2f}", f"{m['growth_efolds']:.2f}", ok))
     o = metrics["overall"]
     n_ok = sum(bool(m["success"]) for m in metrics["motions"].values())
     rows.append(("overall", f"{o['rmse']:.4f}", f"{100 * o['tip']:.2f}",
-                 f"{100 * o['torque_rel_rms']:.2f}", f"{n_ok}/{len(metrics['motions'])}"))
+                 f"{100 * o['torque_rel_rms']:.2f}", f"{o['growth_efolds']:.2f}",
+                 f"{n_ok}/{len(metrics['motions'])}"))
     width = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
 
     def line(r):
-        return "  ".join([r[0].ljust(width[0])] + [c.rjust(w) for c, w in zip(r[1:4], width[1:4])]
-                         + [r[4]]).rstrip()
+        return "  ".join([r[0].ljust(width[0])] + [c.rjust(w) for c, w in zip(r[1:5], width[1:5])]
+                         + [r[5]]).rstrip()
     rule = "-" * len(line(rows[0]))
     lines = [line(rows[0]), rule, *map(line, rows[1:-1]), rule, line(rows[-1]), ""]
     verdict = "every motion reproduced" if o["success"] else "not all motions reproduced"

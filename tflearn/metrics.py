@@ -26,6 +26,7 @@ from . import dynamics, parallel
 from .body import Body
 from .configspace import difference
 from .fields import FieldBasis, FieldProgram, MotionWeights, stack_rows
+from .fit.stability import Growth
 from .fit.targets import Targets, on_samples, simulate_targets
 from .fit.torque import relative_rms_torque_error
 from .simulate import SimOptions, SimulationFailed, simulate
@@ -170,7 +171,8 @@ def _scores(body, basis, weights, tg, q_sim, failure) -> Scores:
 #: The units of metrics.json's and evaluation.json's numbers, the documents' "units" block
 #: (the keys stay unit-free; people read tip errors in cm, as 100 × tip).
 UNITS = {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
-         "wall_time_s": "s", "torque_resolution": "fraction"}
+         "wall_time_s": "s", "torque_resolution": "fraction", "growth_rate": "1/s",
+         "growth_efolds": "e-folds (natural log of an error's growth factor)"}
 
 
 def pooled_rmse(rmse: list, counts: list) -> float:
@@ -179,19 +181,22 @@ def pooled_rmse(rmse: list, counts: list) -> float:
     return math.sqrt(sum(r * r * c for r, c in zip(rmse, counts)) / sum(counts))
 
 
-def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float) -> dict:
+def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float, growth: Growth) -> dict:
     """metrics.json's content: per motion and overall joint RMSE (rad), maximum tip error
-    (m), relative RMS torque error, success, and the failure of a failed simulation, and
-    the units of these numbers (:data:`UNITS`). The overall RMSE is over all samples of
-    all motions."""
+    (m), relative RMS torque error, the local error growth along the path (``growth``,
+    :mod:`tflearn.fit.stability`: peak rate, e-folds), success, and the failure of a
+    failed simulation, and the units of these numbers (:data:`UNITS`). The overall RMSE
+    is over all samples of all motions; the overall growth the largest."""
     per = {}
+    peak, efolds = growth.peak.tolist(), growth.efolds.tolist()
     for j, name in enumerate(tg.names):
         per[name] = {"rmse": scores.rmse[j], "tip": scores.tip[j],
-                     "torque_rel_rms": scores.torque[j], "success": ok[j]}
+                     "torque_rel_rms": scores.torque[j], "growth_rate": peak[j],
+                     "growth_efolds": efolds[j], "success": ok[j]}
         if scores.failure[j]:
             per[name]["failure"] = scores.failure[j]
     return {"motions": per,
             "overall": {"rmse": pooled_rmse(scores.rmse, tg.mask.sum(-1).tolist()), "tip": max(scores.tip),
-                        "torque_rel_rms": max(scores.torque), "success": all(ok),
-                        "M": M, "wall_time_s": wall},
+                        "torque_rel_rms": max(scores.torque), "growth_rate": max(peak),
+                        "growth_efolds": max(efolds), "success": all(ok), "M": M, "wall_time_s": wall},
             "units": dict(UNITS)}

@@ -71,7 +71,7 @@ from .config import Config, ConfigError
 from .data import check_resolution, load_motions, torsos
 from .errors import InputError
 from .fields import FieldBasis, MotionWeights, model_from_state, model_state
-from .fit import layout, search, shooting, slsqp, torque
+from .fit import layout, search, shooting, slsqp, stability, torque
 from .fit import path as path_fit
 from .fit.targets import Targets, prepare, submovement_windows
 from .io import basis as basis_io
@@ -465,6 +465,8 @@ class Run:
         scores, ok = self._adopt(state, tg, "pool", basis, weights, cost, merged=merged)
         scores, ok = self._restore(state, tg, scores, ok)
         state.reference = _reference(scores, ok)
+        if self.cfg.solver.reduce.growth is not None:
+            state.reference["efolds"] = self._efolds(*model_from_state(state.model), tg)
         pooled = state.history["pool"]
         self.log.status(M=pooled["M"], merged=len(merged), cost=cost,
                         restored=len(pooled.get("restored", [])), reproduced=f"{sum(ok)}/{tg.N}")
@@ -554,9 +556,9 @@ class Run:
                   else self._checks([t["model"] for t in trials], tg))
         for i, victim in enumerate(victims):         # each field: refitted, else held
             trial = {**trials[i], "check": checks[i]} if refit else None
-            if not (refit and self._accepts(state, trial)) and not fixed:
+            if not (refit and self._accepts(state, trial, tg)) and not fixed:
                 held = self._held_trial(basis, weights, tg, state, victim)
-                trial = held if self._accepts(state, held) or not refit else trial
+                trial = held if self._accepts(state, held, tg) or not refit else trial
             if self._apply_trial(state, trial, tg, total):
                 self._window = 1
                 return
@@ -610,21 +612,34 @@ class Run:
         return [(s, s.succeeded(self.cfg.success.rmse, self.cfg.success.tip))
                 for s in score_models(self.body, models, tg, self.options)]
 
-    @staticmethod
-    def _accepts(state: RunState, trial: dict) -> bool:
+    def _efolds(self, basis, weights, tg: Targets) -> list:
+        """Each motion's e-folds of local error growth along its path (:mod:`.fit.stability`)."""
+        return stability.growth(self.body, basis, weights, tg).efolds.tolist()
+
+    def _accepts(self, state: RunState, trial: dict, tg: Targets) -> bool:
         """Whether a trial's check keeps every motion it simulated (``trial["motions"]``)
-        no worse than the reference; a trial without a check (a fixed M, or a field no
-        motion used) is accepted."""
+        no worse than the reference and, with ``solver.reduce.growth``, adds no more than
+        that many e-folds of error growth to any of them (``trial["efolds"]``, computed
+        once); a trial without a check (a fixed M, or a field no motion used) is accepted."""
         if trial["check"] is None:
             return True
-        ref = {k: [state.reference[k][j] for j in trial["motions"]] for k in ("rmse", "tip", "ok")}
-        return no_worse(ref, *trial["check"])
+        motions = trial["motions"]
+        ref = {k: [state.reference[k][j] for j in motions] for k in ("rmse", "tip", "ok")}
+        if not no_worse(ref, *trial["check"]):
+            return False
+        allow = self.cfg.solver.reduce.growth
+        if allow is None:
+            return True
+        if "efolds" not in trial:
+            nb, nw = trial["model"]
+            trial["efolds"] = self._efolds(nb, nw.select_motions(motions), tg.select(motions))
+        return all(e <= state.reference["efolds"][j] + allow for j, e in zip(motions, trial["efolds"]))
 
     def _apply_trial(self, state: RunState, trial: dict, tg: Targets, total) -> bool:
         """Decide a trial, log it, record it and save; whether the field was removed."""
         state.step += trial["em_steps"]
         state.cursor += 1
-        accept = self._accepts(state, trial)
+        accept = self._accepts(state, trial, tg)
         nb, nw = trial["model"]
         cost, victim, check = trial["cost"], trial["victim"], trial["check"]
         step = self._tick(state)
@@ -637,9 +652,12 @@ class Run:
             self.log.model(nb, nw, step)
             if check is not None:
                 scores, ok = check
+                new = (("rmse", scores.rmse), ("tip", scores.tip), ("ok", ok),
+                       ("efolds", trial.get("efolds")))
                 for i, j in enumerate(trial["motions"]):
-                    for key, x in (("rmse", scores.rmse), ("tip", scores.tip), ("ok", ok)):
-                        state.reference[key][j] = x[i]
+                    for key, x in new:
+                        if x is not None:
+                            state.reference[key][j] = x[i]
                 self.log.scores(scores, tg.select(trial["motions"]), step,
                                 overview=len(trial["motions"]) == tg.N)
             else:
@@ -777,7 +795,8 @@ class Run:
         self.log.scores(scores, tg, step, figures=True)
         self.log.model(basis, weights, step)
         lb = basis_io.LearnedBasis(self.body, basis, weights, tg.q0, tg.qd0, tg.rate)
-        metrics = summarize(scores, ok, tg, basis.M, state.elapsed + time.time() - self._t0)
+        metrics = summarize(scores, ok, tg, basis.M, state.elapsed + time.time() - self._t0,
+                            stability.growth(self.body, basis, weights, tg))
         for name, eps in zip(tg.names, self.resolution):
             metrics["motions"][name]["torque_resolution"] = eps
         metrics["history"] = state.history

@@ -1,0 +1,82 @@
+"""How fast a model's errors grow along its motions' paths (the local error growth rate).
+
+A torque program that matches a motion's torques on its path may still be unstable off
+it: a small error then grows until the simulation leaves the path. Linearising the
+closed loop ẏ = f(t, y) (the simulator's state y, :mod:`tflearn.simulate`: quaternions,
+hinge angles, velocities; the program's fields, field damping, joint damping and a
+moving base included) about the target path y*(t),
+
+    δẏ = A(t) δy,    A(t) = ∂f/∂y (t, y*(t))     (central differences, step ``h``),
+
+and the local growth rate is λ(t) = max Re eig A(t) (1/s): where the frozen-time
+linearisation holds, an error grows like e^{λ t}. A stable spring–damper has λ < 0, an
+undamped one λ = 0 (its eigenvalues ±iω), a field met beyond its Gaussian's inflection
+(negative stiffness) λ = √(−k/I) > 0. Per motion the peak of λ over the samples and the
+e-folds Λ = ∫ max(λ, 0) dt (the factor e^Λ an error may grow by over the motion) are
+reported.
+
+Quaternions are normalised where they are read, so f does not change along a
+quaternion's own direction q: A q = 0, a structural eigenvalue 0 per rotation joint that
+says nothing of the motion. In a basis of y made of the tangent directions q ⊗ (e_k, 0)
+(k = 1, 2, 3; orthonormal and ⊥ q), the other entries, and the directions q, A is block
+triangular with a zero last block, so its other eigenvalues are exactly those of
+Bᵀ A B, B (D×(D − nr)) the tangent and other columns: :func:`jacobians` returns that.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..body import Body
+from ..configspace import pack, state_tangent_basis
+from ..fields import FieldBasis, FieldProgram, MotionWeights
+from ..simulate import ArmODE
+from .targets import Targets, chunks
+
+
+@dataclass
+class Growth:
+    """rate (N×T, 1/s; NaN on padding) the local growth rate λ at each sample; peak (N,
+    1/s) its largest value over a motion's samples; efolds (N) Λ = ∫ max(λ, 0) dt."""
+
+    rate: torch.Tensor
+    peak: torch.Tensor
+    efolds: torch.Tensor
+
+
+@torch.no_grad()
+def jacobians(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
+              h: float = 1e-6) -> torch.Tensor:
+    """Bᵀ A(t) B, A = ∂f/∂y of the closed loop, at every target sample (N×T×D'×D', D' =
+    D − nr the state's size less one per quaternion; see the module), A by central
+    differences of step ``h`` in each state entry, all in one batch."""
+    y = pack(body, tg.q, tg.v).transpose(0, 1)                       # T×N×D
+    D = y.shape[-1]
+    step = h * torch.eye(D, dtype=y.dtype)                             # D×D
+    ys = torch.cat([y + step[:, None, None], y - step[:, None, None]])  # 2D×T×N×D
+    t = tg.t.transpose(0, 1).expand(2 * D, -1, -1)                      # 2D×T×N, each motion's own
+    base = None
+    if tg.base is not None:
+        base = tg.base.take(torch.arange(tg.N).expand(2 * D, tg.t.shape[1], -1))
+    f = ArmODE(body, FieldProgram(basis, weights), base=base, strict=False)(t, ys)
+    cols = (f[:D] - f[D:]) / (2 * h)                                   # D(column)×T×N×D(row)
+    A = cols.permute(2, 1, 3, 0)                                       # N×T×D×D
+    B = state_tangent_basis(body, y.transpose(0, 1))                         # N×T×D×D'
+    return B.transpose(-1, -2) @ A @ B
+
+
+def growth(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
+           h: float = 1e-6) -> Growth:
+    """The local error growth of every motion under its program (see the module), a
+    chunk of motions at a time (:func:`~.targets.chunks`: memory stays bounded)."""
+    D = pack(body, tg.q[:1, :1], tg.v[:1, :1]).shape[-1]
+    rate = torch.full(tg.mask.shape, float("nan"), dtype=tg.q.dtype)
+    for idx in chunks(tg, 2 * D * (basis.M + 4)):
+        part = tg.select(idx, trim=True)
+        A = jacobians(body, basis, weights.select_motions(idx), part, h)
+        rate[idx, :part.mask.shape[1]] = torch.linalg.eigvals(A).real.amax(-1)
+    rate = rate.masked_fill(~tg.mask, float("nan"))
+    peak = rate.nan_to_num(-torch.inf).amax(-1)
+    efolds = (rate.clamp_min(0).nan_to_num(0.0) * tg.w).sum(-1)
+    return Growth(rate, peak, efolds)
