@@ -451,18 +451,18 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(),
                            reference=train._reference(scores, ok), ids=[0, 1, 2, 3])
     unused = run._held_trial(basis, weights, tg, state, 2)
-    assert unused["motions"] == [] and unused["check"] is None and run._accepts(state, unused)
+    assert unused["motions"] == [] and unused["check"] is None and run._accepts(state, unused, tg)
     assert torch.equal(unused["model"][1].a, a[:, [0, 1, 3]])
     copy = run._held_trial(basis, weights, tg, state, 3)
     a_new, b_new = (x.detach() for x in (copy["model"][1].a, copy["model"][1].b))
-    assert copy["motions"] == [0] and run._accepts(state, copy)
+    assert copy["motions"] == [0] and run._accepts(state, copy, tg)
     print("come_here's weights after the copy went:", a_new[0].tolist(), b_new[0].tolist())
     assert float(a_new[0, 0]) == pytest.approx(3.0, abs=1e-4)   # measured: 2.4e-6 on the unused field
     assert float(a_new[0, 1:].abs().max()) < 1e-4 and float(b_new[0].abs().max()) < 1e-4
     assert torch.equal(a_new[1], a[1, :3]) and torch.equal(b_new[1], torch.zeros(3, dtype=DT))
     assert copy["check"][0].rmse[0] < 1e-4
     alone = run._held_trial(basis, weights, tg, state, 1)
-    assert alone["motions"] == [1] and not run._accepts(state, alone)
+    assert alone["motions"] == [1] and not run._accepts(state, alone, tg)
     assert alone["check"][0].rmse[0] > 0.03
 
 
