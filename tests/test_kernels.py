@@ -178,3 +178,26 @@ def test_compiled_state_reading_equals_torchs(name, rng):
     assert all(near(a, b) for a, b in zip(fast[1:], slow[1:]))
     assert all((a is None) == (b is None) and (a is None or near(a, b)) for a, b in zip(fast[0], slow[0]))
     assert near(fast_rate, slow_rate) and fast[1].abs().max() > 0.5
+
+
+def test_compiled_functions_are_cached_under_a_digest_of_their_sources():
+    """numba re-compiles a cached function only when its own file changes: the simulator
+    (tflearn.simkernel) inlines kernels.py's functions and flags, so both are cached in
+    one folder named by a digest of both files — a change to either compiles both afresh
+    — and numba's own setting is left as it was for other code."""
+    import hashlib
+    import os
+
+    import numba
+
+    from tflearn import kernels, simkernel
+    here = os.path.dirname(kernels.__file__)
+    digest = hashlib.sha256(b"".join(open(os.path.join(here, n), "rb").read()
+                                     for n in kernels.CACHE_SOURCES)).hexdigest()[:16]
+    assert set(kernels.CACHE_SOURCES) == {"kernels.py", "simkernel.py"}
+    folder = kernels.cache_folder()
+    assert folder.endswith(f"numba-{digest}")
+    compiled = [f for module in (kernels, simkernel) for f in vars(module).values() if hasattr(f, "_cache")]
+    assert len(compiled) > 20
+    assert all(f._cache._cache_path.startswith(folder) for f in compiled)
+    assert numba.config.CACHE_DIR == os.environ.get("NUMBA_CACHE_DIR", "")

@@ -33,18 +33,55 @@ The helpers the loops call are inlined (``inline="always"``) and pass spatial ve
 and transforms as tuples of scalars (kept in registers) rather than through arrays: a
 shared function taking many arrays, called as such, cost 0.7 µs more per sample
 (reference-counted array structs). Compiled once per machine and kept in numba's
-on-disk cache (``cache=True``): the first call in a fresh checkout takes several
-seconds, later processes load it.
+on-disk cache (``cache=True``), in a folder named by a digest of the sources
+(:func:`cache_folder`): the first call in a fresh checkout, or after either file
+changed, takes several seconds, later processes load it.
 """
 from __future__ import annotations
 
+import hashlib
+import os
 from functools import lru_cache
 
+import numba
 import numpy as np
 import torch
 from numba import njit
 
 from .body import Body
+
+#: The files whose functions numba compiles and caches (:func:`cache_folder`).
+CACHE_SOURCES = ("kernels.py", "simkernel.py")
+
+
+def cache_folder() -> str:
+    """Where numba caches this package's compiled functions: a folder named by a digest
+    of :data:`CACHE_SOURCES`, under ``NUMBA_CACHE_DIR`` if that is set, else under this
+    package's ``__pycache__``. Numba invalidates a cached function only when its own
+    file changes, not when a function it inlines from another file (or a flag defined
+    there) does: after kernels.py changed its fast-math flags, tflearn.simkernel's
+    simulator kept running from the cache as compiled with the old ones (the main job's
+    stiffnesses 1e-13 from a fresh compile's). A change to either file now compiles both
+    afresh. Where that folder cannot be written numba falls back to its own locations."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    digest = hashlib.sha256()
+    for name in CACHE_SOURCES:
+        with open(os.path.join(here, name), "rb") as f:
+            digest.update(f.read())
+    base = numba.config.CACHE_DIR or os.path.join(here, "__pycache__")
+    return os.path.join(base, f"numba-{digest.hexdigest()[:16]}")
+
+
+def redirect_cache() -> str:
+    """Point numba at :func:`cache_folder` for the functions decorated next (numba fixes a
+    function's cache location when it is decorated); returns the setting to restore once
+    they are, so that other code's numba caches stay where their users put them."""
+    previous = numba.config.CACHE_DIR
+    numba.config.CACHE_DIR = cache_folder()
+    return previous
+
+
+_NUMBA_CACHE_DIR = redirect_cache()                  # restored at the end of this module
 
 
 def applies(*xs) -> bool:
@@ -588,3 +625,6 @@ def position_rate(kind, rot, offset, R, quats, v, position_order, out):
                 k += 1
         for m in range(position_order.shape[0]):
             out[b, m] = flat[position_order[m]]
+
+
+numba.config.CACHE_DIR = _NUMBA_CACHE_DIR

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from dataclasses import fields
 
+import numba
 import numpy as np
 import torch
 from numba import njit
@@ -45,6 +46,7 @@ from .dynamics import _kernel_root, _kernel_tables
 from .ode import _A, _C, _ERROR, _GROW, _MID, _SAFETY, _SHRINK, EachSolution
 
 _FAST = kernels._FAST
+_NUMBA_CACHE_DIR = kernels.redirect_cache()          # restored at the end of this module
 #: Dormand–Prince's stages (6×6, row s the weights of stages 0..s), nodes, error weights
 #: and dense-output weights: tflearn.ode's, as arrays.
 _TABLEAU = (np.array([row + [0.0] * (6 - len(row)) for row in _A]), np.array(_C),
@@ -361,3 +363,6 @@ def _integrate(t, y0, order, bounds, rtol, atol, max_evals, work, tables, root, 
             h = h_new
         for i in range(m):
             failure[members[i]], evals[members[i]], steps[members[i]] = code, count, accepted
+
+
+numba.config.CACHE_DIR = _NUMBA_CACHE_DIR
