@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import torch
 
 from ..body import Body
-from ..configspace import pack, state_tangent_basis
+from ..configspace import n_position, pack, state_tangent_basis
 from ..fields import FieldBasis, FieldProgram, MotionWeights
 from ..simulate import ArmODE
 from .targets import Targets, chunks
@@ -62,7 +62,7 @@ def jacobians(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
     f = ArmODE(body, FieldProgram(basis, weights), base=base, strict=False)(t, ys)
     cols = (f[:D] - f[D:]) / (2 * h)                                   # D(column)×T×N×D(row)
     A = cols.permute(2, 1, 3, 0)                                       # N×T×D×D
-    B = state_tangent_basis(body, y.transpose(0, 1))                         # N×T×D×D'
+    B = state_tangent_basis(body, y.transpose(0, 1))                   # N×T×D×D'
     return B.transpose(-1, -2) @ A @ B
 
 
@@ -70,7 +70,7 @@ def growth(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
            h: float = 1e-6) -> Growth:
     """The local error growth of every motion under its program (see the module), a
     chunk of motions at a time (:func:`~.targets.chunks`: memory stays bounded)."""
-    D = pack(body, tg.q[:1, :1], tg.v[:1, :1]).shape[-1]
+    D = n_position(body) + body.nv                                   # the state's size
     rate = torch.full(tg.mask.shape, float("nan"), dtype=tg.q.dtype)
     for idx in chunks(tg, 2 * D * (basis.M + 4)):
         part = tg.select(idx, trim=True)
