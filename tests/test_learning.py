@@ -185,6 +185,33 @@ def test_em_jacobian_in_closed_form_equals_forward_mode(kind, phases, damping, w
     torch.testing.assert_close(J, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()))
 
 
+def test_design_of_some_fields_is_their_columns_of_the_whole():
+    """design(fields=…) (what EM's Gauss–Newton terms build for a chunk of motions) equals
+    the whole design's columns that ``columns`` names, with sub-movement windows and
+    field damping, and with the residual scale folded in."""
+    programs = gestures.random_gestures(2, seed=3, ranges={"duration": (0.4, 0.5)})
+    tg = targets.prepare(gestures.arm(), [m for m, _ in gestures.generate(gestures=programs)])
+    gen = torch.Generator().manual_seed(2)
+    M, N, P = 4, tg.N, 2
+    basis = FieldBasis(0.5 * torch.randn(M, 7, generator=gen, dtype=DT),
+                       torch.diag_embed(1 + torch.rand(M, 7, generator=gen, dtype=DT)), kind="diag",
+                       damping=0.2)
+    def rand(*shape):
+        return torch.rand(*shape, generator=gen, dtype=DT)
+    weights = MotionWeights(rand(N, M), rand(N, M), tg.duration, names=tg.names, c=rand(N, M, P),
+                            window_onset=torch.full((N, P), 0.05, dtype=DT),
+                            window_duration=torch.full((N, P), 0.2, dtype=DT))
+    with torch.no_grad():
+        whole = torque.design(basis, weights, tg)
+        some = torque.design(basis, weights, tg, fields=[3, 1])
+        scaled = torque.scaled_design(basis, weights, tg, fields=[3, 1])
+    cols = torque.columns([3, 1], M, P)
+    assert cols.tolist() == [3, 1, 7, 5, 14, 15, 10, 11] and whole.shape[-1] == M * (2 + P)
+    assert torch.equal(some, whole[..., cols]) and float(some.abs().max()) > 1e-2
+    s = torque.residual_scale(tg).unsqueeze(-1)
+    torch.testing.assert_close(scaled, (s * whole[..., cols]).reshape(N, -1, len(cols)), rtol=1e-15, atol=0)
+
+
 def test_em_converges_monotonically(come_here):
     """EM from a perturbed centre and stiffness: the cost history never increases and
     reaches ≤ 1e-6 (measured: 0.0275 → 1.9e-9 in 100 steps, below 1e-6 after ~56); the

@@ -257,9 +257,17 @@ class FieldBasis(nn.Module):
         self.eta.clamp_(-ETA_MAX, ETA_MAX)
         self.stiffness.project_()
 
-    def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
-        """χ_i(q, v) for every field (:func:`field_torques`): q, v (...×n) → (...×M×n)."""
-        return field_torques(q, v, self.eta, self.K(), self.damping)
+    def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None,
+                fields: Optional[list] = None) -> torch.Tensor:
+        """χ_i(q, v) for every field (:func:`field_torques`): q, v (...×n) → (...×M×n);
+        ``fields``: these fields' only (...×len(fields)×n). Scalar and diagonal
+        stiffness take the product K d elementwise."""
+        eta, K = self.eta, self.K()
+        if fields is not None:
+            eta, K = eta[fields], K[fields]
+        if self.kind in ("scalar", "diag"):
+            return field_torques(q, v, eta, torch.diagonal(K, dim1=-2, dim2=-1), self.damping, diagonal=True)
+        return field_torques(q, v, eta, K, self.damping)
 
     @torch.no_grad()
     def tables(self) -> tuple:
@@ -269,15 +277,17 @@ class FieldBasis(nn.Module):
 
 
 def field_torques(q: torch.Tensor, v: Optional[torch.Tensor], eta: torch.Tensor, K: torch.Tensor,
-                  damping: float = 0.0) -> torch.Tensor:
+                  damping: float = 0.0, diagonal: bool = False) -> torch.Tensor:
     """χ_i(q, v) = −K_i (d + ζ v) exp(−½ dᵀK_i d), d = q − η_i, for fields η (...×M×n) and
-    K (...×M×n×n) that broadcast against q, v (...×n) → (...×M×n). Without v, or with
-    ζ = 0, χ_i(q) = −K_i d exp(−½ dᵀK_i d)."""
+    K (...×M×n×n; with ``diagonal``, K's diagonal ...×M×n) that broadcast against q, v
+    (...×n) → (...×M×n). Without v, or with ζ = 0, χ_i(q) = −K_i d exp(−½ dᵀK_i d)."""
+    def times_K(x):
+        return K * x if diagonal else torch.einsum("...ij,...j->...i", K, x)   # one batched product
     d = q.unsqueeze(-2) - eta
-    Kd = torch.einsum("...ij,...j->...i", K, d)         # one batched product (not n×n ones per sample)
+    Kd = times_K(d)
     g = torch.exp(-0.5 * (d * Kd).sum(-1, keepdim=True))
     if damping and v is not None:
-        return -(Kd + damping * torch.einsum("...ij,...j->...i", K, v.unsqueeze(-2))) * g
+        return -(Kd + damping * times_K(v.unsqueeze(-2))) * g
     return -Kd * g
 
 
