@@ -132,12 +132,11 @@ def _basis(gen, M=3, n=7, kind="block"):
 @pytest.mark.parametrize("kind", F.K_KINDS)
 def test_basis_is_gradient_of_gaussian(kind, gen):
     """χ_i = ∇ exp(−½ dᵀK_i d) by autograd, for every kind (scalar and diag take K d
-    elementwise, the others as a matrix product); ``fields`` picks their columns."""
+    elementwise, the others as a matrix product)."""
     basis = _basis(gen, kind=kind)
     q = (basis.eta.detach()[1] + 0.5 * torch.randn(2, 3, 7, dtype=DT, generator=gen)).requires_grad_(True)
     chi = basis(q)
     assert chi.shape == (2, 3, 3, 7) and chi.dtype == DT
-    assert torch.equal(basis(q, fields=[2, 0]), chi[..., [2, 0], :])
     K = basis.K().detach()
     for i in range(basis.M):
         d = q - basis.eta.detach()[i]

@@ -185,10 +185,11 @@ def test_em_jacobian_in_closed_form_equals_forward_mode(kind, phases, damping, w
     torch.testing.assert_close(J, ref, rtol=1e-10, atol=1e-12 * float(ref.abs().max()))
 
 
-def test_design_of_some_fields_is_their_columns_of_the_whole():
-    """design(fields=…) (what EM's Gauss–Newton terms build for a chunk of motions) equals
-    the whole design's columns that ``columns`` names, with sub-movement windows and
-    field damping, and with the residual scale folded in."""
+def test_design_of_selected_fields_is_their_columns_of_the_whole():
+    """The design of a basis and weights cut to some fields (``select`` and
+    ``select_fields``: what EM's Gauss–Newton terms build for a chunk of motions) is the
+    whole design's columns of those fields' a, b and c, with sub-movement windows and
+    field damping; the scaled design is s ⊙ Φ."""
     programs = gestures.random_gestures(2, seed=3, ranges={"duration": (0.4, 0.5)})
     tg = targets.prepare(gestures.arm(), [m for m, _ in gestures.generate(gestures=programs)])
     gen = torch.Generator().manual_seed(2)
@@ -196,6 +197,7 @@ def test_design_of_some_fields_is_their_columns_of_the_whole():
     basis = FieldBasis(0.5 * torch.randn(M, 7, generator=gen, dtype=DT),
                        torch.diag_embed(1 + torch.rand(M, 7, generator=gen, dtype=DT)), kind="diag",
                        damping=0.2)
+
     def rand(*shape):
         return torch.rand(*shape, generator=gen, dtype=DT)
     weights = MotionWeights(rand(N, M), rand(N, M), tg.duration, names=tg.names, c=rand(N, M, P),
@@ -203,13 +205,13 @@ def test_design_of_some_fields_is_their_columns_of_the_whole():
                             window_duration=torch.full((N, P), 0.2, dtype=DT))
     with torch.no_grad():
         whole = torque.design(basis, weights, tg)
-        some = torque.design(basis, weights, tg, fields=[3, 1])
-        scaled = torque.scaled_design(basis, weights, tg, fields=[3, 1])
-    cols = torque.columns([3, 1], M, P)
-    assert cols.tolist() == [3, 1, 7, 5, 14, 15, 10, 11] and whole.shape[-1] == M * (2 + P)
-    assert torch.equal(some, whole[..., cols]) and float(some.abs().max()) > 1e-2
+        some = torque.design(basis.select([3, 1]), weights.select_fields([3, 1]), tg)
+        scaled = torque.scaled_design(basis, weights, tg)
+    cols = [3, 1, M + 3, M + 1, 2 * M + 3 * P, 2 * M + 3 * P + 1, 2 * M + P, 2 * M + P + 1]
+    assert whole.shape[-1] == M * (2 + P) and float(some.abs().max()) > 1e-2
+    torch.testing.assert_close(some, whole[..., cols], rtol=1e-13, atol=1e-15)
     s = torque.residual_scale(tg).unsqueeze(-1)
-    torch.testing.assert_close(scaled, (s * whole[..., cols]).reshape(N, -1, len(cols)), rtol=1e-15, atol=0)
+    torch.testing.assert_close(scaled, (s * whole).reshape(N, -1, whole.shape[-1]), rtol=1e-15, atol=0)
 
 
 def test_em_converges_monotonically(come_here):

@@ -257,17 +257,14 @@ class FieldBasis(nn.Module):
         self.eta.clamp_(-ETA_MAX, ETA_MAX)
         self.stiffness.project_()
 
-    def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None,
-                fields: Optional[list] = None) -> torch.Tensor:
-        """χ_i(q, v) for every field (:func:`field_torques`): q, v (...×n) → (...×M×n);
-        ``fields``: these fields' only (...×len(fields)×n). Scalar and diagonal
-        stiffness take the product K d elementwise."""
-        eta, K = self.eta, self.K()
-        if fields is not None:
-            eta, K = eta[fields], K[fields]
+    def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """χ_i(q, v) for every field (:func:`field_torques`): q, v (...×n) → (...×M×n).
+        Scalar and diagonal stiffness take the product K d elementwise."""
+        K = self.K()
         if self.kind in ("scalar", "diag"):
-            return field_torques(q, v, eta, torch.diagonal(K, dim1=-2, dim2=-1), self.damping, diagonal=True)
-        return field_torques(q, v, eta, K, self.damping)
+            return field_torques(q, v, self.eta, torch.diagonal(K, dim1=-2, dim2=-1), self.damping,
+                                 diagonal=True)
+        return field_torques(q, v, self.eta, K, self.damping)
 
     @torch.no_grad()
     def tables(self) -> tuple:

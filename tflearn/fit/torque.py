@@ -49,28 +49,19 @@ def _warn_nonfinite(costs: torch.Tensor, tg: Targets, what: str) -> None:
 
 
 def design(basis: FieldBasis, weights: MotionWeights, tg: Targets,
-           fields: Optional[list] = None, scale: Optional[torch.Tensor] = None) -> torch.Tensor:
+           scale: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Φ (N×T×n×M(2+P)): the torque of unit step, pulse and window weights on each field;
-    ``fields``: these fields' columns only (N×T×n×k(2+P), k = len(fields), laid out as
-    :func:`columns` picks them from the whole); ``scale`` (N×T×n): s ⊙ Φ instead."""
-    chi = basis(tg.q, tg.v, fields).transpose(-1, -2)                 # N×T×n×k
+    ``scale`` (N×T×n): s ⊙ Φ instead, folded into the fields' torques before the
+    columns are formed."""
+    chi = basis(tg.q, tg.v).transpose(-1, -2)                          # N×T×n×M
     if scale is not None:
         chi = scale.unsqueeze(-1) * chi
     psi, phi = weights.profiles_per_motion(tg.t)                       # N×T×M
-    if fields is not None:
-        psi, phi = psi[..., fields], phi[..., fields]
     cols = [psi.unsqueeze(-2) * chi, phi.unsqueeze(-2) * chi]
     if weights.P:
         win = weights.windows_per_motion(tg.t)                         # N×T×P
         cols.append((chi.unsqueeze(-1) * win[..., None, None, :]).flatten(-2))
     return torch.cat(cols, dim=-1)
-
-
-def columns(fields: list, M: int, P: int) -> torch.Tensor:
-    """The indices into a motion's weights (M(2+P), [a | b | c]) of these fields' a, b and c."""
-    f = torch.tensor(fields, dtype=torch.long)
-    c = (2 * M + f[:, None] * P + torch.arange(P)).flatten()
-    return torch.cat([f, M + f, c])
 
 
 def residual_scale(tg: Targets) -> torch.Tensor:
@@ -79,12 +70,12 @@ def residual_scale(tg: Targets) -> torch.Tensor:
 
 
 def scaled_design(basis: FieldBasis, weights: MotionWeights, tg: Targets,
-                  scale: Optional[torch.Tensor] = None, fields: Optional[list] = None) -> torch.Tensor:
+                  scale: Optional[torch.Tensor] = None) -> torch.Tensor:
     """s ⊙ Φ per motion (N × Tn × X), ``scale`` s (:func:`residual_scale`, computed when
-    not given): C_j = ‖s ⊙ T_j − Φ̃_j x_j‖² with Φ̃ this; ``fields``: as :func:`design`."""
+    not given): C_j = ‖s ⊙ T_j − Φ̃_j x_j‖² with Φ̃ this."""
     N, T, n = tg.tau.shape
     s = residual_scale(tg) if scale is None else scale
-    return design(basis, weights, tg, fields, s).reshape(N, T * n, -1)
+    return design(basis, weights, tg, s).reshape(N, T * n, -1)
 
 
 def normal_equations(basis: FieldBasis, weights: MotionWeights, tg: Targets):
@@ -218,10 +209,9 @@ class _FieldParameters:
                 getattr(self.weights, k).copy_(ph[k].T)
         self.weights.project_()
 
-    def scaled_design(self, fields: Optional[list] = None) -> torch.Tensor:
-        """s ⊙ Φ per motion (N × Tn × X) at the current fields and timing (:func:`scaled_design`);
-        ``fields``: their columns only."""
-        return scaled_design(self.basis, self.weights, self.tg, self.scale, fields)
+    def scaled_design(self) -> torch.Tensor:
+        """s ⊙ Φ per motion (N × Tn × X) at the current fields and timing (:func:`scaled_design`)."""
+        return scaled_design(self.basis, self.weights, self.tg, self.scale)
 
     def residual(self, Phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """r = s ⊙ (T − Φ x) per motion (N × Tn), Φ scaled as :meth:`scaled_design`'s."""
@@ -413,8 +403,9 @@ class _Motions:
             fields = fp.active(x)
             if not fields:
                 continue
-            x_f = x[:, columns(fields, fp.M, fp.weights.P)]          # every weight > 0 among these
-            Phi = fp.scaled_design(fields)
+            own = fp.weights.select_fields(fields)                  # every weight > 0 is here
+            Phi = scaled_design(fp.basis.select(fields), own, fp.tg, fp.scale)
+            x_f = own.vector().detach()
             J = fp.jacobian(theta, x, fields).reshape(Phi.shape[:2] + (-1,))
             a, b = _projected_normal(J, Phi, fp.residual(Phi, x_f), x_f)
             if len(fields) == fp.M:
