@@ -89,7 +89,7 @@ def test_weighted_solves_agree(come_here):
     want = float(torque.solve_weights(one, MotionWeights.zeros(1, tw.duration, tw.names), tw)[0])
     assert abs(float(scores[0, 0]) - want) <= 1e-10
     fp = torque._FieldParameters(basis, w, tw, phases=False)
-    r = fp.residual(fp.scaled_design(), w.vector().detach())
+    r = fp.residual(torque.scaled_design(basis, w, tw, fp.scale), w.vector().detach())
     assert abs(float((r ** 2).sum()) - cost) <= 1e-10
 
 

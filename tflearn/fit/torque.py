@@ -209,12 +209,8 @@ class _FieldParameters:
                 getattr(self.weights, k).copy_(ph[k].T)
         self.weights.project_()
 
-    def scaled_design(self) -> torch.Tensor:
-        """s ⊙ Φ per motion (N × Tn × X) at the current fields and timing (:func:`scaled_design`)."""
-        return scaled_design(self.basis, self.weights, self.tg, self.scale)
-
     def residual(self, Phi: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """r = s ⊙ (T − Φ x) per motion (N × Tn), Φ scaled as :meth:`scaled_design`'s."""
+        """r = s ⊙ (T − Φ x) per motion (N × Tn), Φ scaled by this ``scale`` (:func:`scaled_design`)."""
         return (self.scale * self.tg.tau).reshape(self.N, -1) - (Phi @ x.unsqueeze(-1)).squeeze(-1)
 
     def field_term(self, i: int, th: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
