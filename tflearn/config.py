@@ -98,12 +98,17 @@ class ShootingSection(Section):
     # in the per-motion stage, a motion its own fields do not reproduce has those fields
     # (centres, stiffnesses) fitted to its path too, with its weights, before pooling
     fields: bool = True
+    # true: after a step that lowers a motion's cost, its Jacobian is updated by Broyden's
+    # formula (one simulation) instead of D + 1 differenced copies; differences again at
+    # each horizon, after a poorly predicted step, and before a motion is let stop
+    broyden: bool = False
 
     def options(self, phases: bool):
         """These settings as :class:`tflearn.fit.shooting.ShootingOptions`."""
         from .fit.shooting import ShootingOptions
         return ShootingOptions(horizon=self.horizon, iterations=self.iterations, phases=phases,
-                               velocity_weight=self.velocity_weight, tip_weight=self.tip_weight)
+                               velocity_weight=self.velocity_weight, tip_weight=self.tip_weight,
+                               broyden=self.broyden)
 
 
 class PoolSection(Section):

@@ -44,7 +44,13 @@ simulated in one batch: the copies of a segment share every step of the adaptive
 solver other than dopri5 the whole batch shares them), so their differences are those
 of one discrete map — no step-size noise — and agree with backpropagation through
 ``odeint`` (tests/test_shooting.py). One simulation per Jacobian, whatever the number
-of motions.
+of motions. With ``ShootingOptions.broyden`` they are taken at each stage's start
+only: after a step that lowers a motion's cost its J is updated by Broyden's rank-one
+formula from the residuals that step's trial already simulated,
+J ← J + (Δr − J δ) δᵀ / δᵀδ, so that an iteration costs one simulation of the segments
+instead of D + 1 of them; differences are taken again where the step's fall was less
+than a quarter of what J predicted (ρ < 1/4), where a step from an updated J fails, and
+before a motion may leave a stage (only differences say that it no longer gains).
 
 **Never worse.** A motion whose path loss (single shooting) ends above where it started
 — the short horizons minimise a different cost — gets its starting parameters back.
@@ -85,7 +91,8 @@ class ShootingOptions:
     windows); velocity_weight: β; tip_weight: γ (rad²/m²: γ = 100 counts 1 cm of hand
     like 0.1 rad of joint angle); mu: the initial damping; step: the relative
     forward-difference step; fields: also fit the basis' fields (one motion only: they
-    are otherwise shared)."""
+    are otherwise shared); broyden: after a successful step update J by Broyden's
+    formula instead of differences (module docstring)."""
 
     horizon: float = 0.25
     iterations: int = 6
@@ -97,6 +104,7 @@ class ShootingOptions:
     mu: float = 1e-3
     step: float = 1e-6
     fields: bool = False
+    broyden: bool = False
 
 
 @dataclass
@@ -236,19 +244,28 @@ class _Problem:
         """Each of ``motions``' multiple-shooting cost Σ r² at horizon h and θ
         (len(motions)×D); ∞ for one whose simulation fails (the batch is then simulated
         motion by motion)."""
+        return self.residuals(theta, h, motions)[0]
+
+    def residuals(self, theta: torch.Tensor, h: float, motions: list):
+        """(cost (len(motions)), [each motion's residuals (S_j×R), None where its
+        simulation fails]) at horizon h and θ (len(motions)×D): :meth:`cost`'s, with the
+        residuals of every segment of each motion."""
         seg = segments(self.tg, h, motions)
+        rows = _rows(seg, motions)
         try:
-            r = self._run(theta[None], seg, _rows(seg, motions))[0]
-            return torch.zeros(len(motions), dtype=r.dtype).index_add_(0, _rows(seg, motions),
-                                                                        (r ** 2).sum(-1))
+            r = self._run(theta[None], seg, rows)[0]
+            cost = torch.zeros(len(motions), dtype=r.dtype).index_add_(0, rows, (r ** 2).sum(-1))
+            return cost, [r[rows == i] for i in range(len(motions))]
         except SimulationFailed:
             if len(motions) == 1:
-                return torch.tensor([math.inf], dtype=torch.float64)
-        return torch.cat([self.cost(theta[i:i + 1], h, [j]) for i, j in enumerate(motions)])
+                return torch.tensor([math.inf], dtype=torch.float64), [None]
+        parts = [self.residuals(theta[i:i + 1], h, [j]) for i, j in enumerate(motions)]
+        return torch.cat([p[0] for p in parts]), [p[1][0] for p in parts]
 
-    def normal_equations(self, theta: torch.Tensor, h: float, motions: list):
-        """(JᵀJ (n_m×D×D), Jᵀr (n_m×D)) of each motion at θ (n_m×D), J by forward
-        differences of D + 1 copies simulated in one batch. Raises SimulationFailed."""
+    def jacobian(self, theta: torch.Tensor, h: float, motions: list):
+        """[(J (S_j×R×D), r (S_j×R)) of each motion's segments] at θ (n_m×D), J by
+        forward differences of D + 1 copies simulated in one batch. Raises
+        SimulationFailed."""
         D = theta.shape[1]
         eps = self.opts.step * theta.abs().clamp_min(1.0)                 # n_m × D
         copies = theta.unsqueeze(0).repeat(D + 1, 1, 1)                   # (D+1) × n_m × D
@@ -257,10 +274,41 @@ class _Problem:
         rows = _rows(seg, motions)
         r = self._run(copies, seg, rows, D + 1)                           # (D+1) × B × R
         J = ((r[1:] - r[:1]) / eps[rows].T[:, :, None]).permute(1, 2, 0)  # B × R × D
-        JtJ = torch.zeros(len(motions), D, D, dtype=J.dtype).index_add_(0, rows, J.transpose(1, 2) @ J)
-        Jtr = torch.zeros(len(motions), D, dtype=J.dtype).index_add_(
-            0, rows, (J.transpose(1, 2) @ r[0][..., None])[..., 0])
-        return JtJ, Jtr
+        return [(J[rows == i], r[0][rows == i]) for i in range(len(motions))]
+
+    def normal_equations(self, theta: torch.Tensor, h: float, motions: list):
+        """(JᵀJ (n_m×D×D), Jᵀr (n_m×D)) of each motion at θ (n_m×D), J from
+        :meth:`jacobian`. Raises SimulationFailed."""
+        return _normal(self.jacobian(theta, h, motions))
+
+
+def _normal(linear: list):
+    """(JᵀJ (n×D×D), Jᵀr (n×D)) of each motion's [(J (S×R×D), r (S×R))]."""
+    rows = torch.cat([torch.full((len(J),), i) for i, (J, _) in enumerate(linear)])
+    J, r = (torch.cat(x) for x in zip(*linear))                       # B × R × D, B × R
+    D = J.shape[-1]
+    JtJ = torch.zeros(len(linear), D, D, dtype=J.dtype).index_add_(0, rows, J.transpose(1, 2) @ J)
+    Jtr = torch.zeros(len(linear), D, dtype=J.dtype).index_add_(
+        0, rows, (J.transpose(1, 2) @ r[..., None])[..., 0])
+    return JtJ, Jtr
+
+
+def _gain_ratio(J: torch.Tensor, r: torch.Tensor, delta: torch.Tensor, cost: float) -> float:
+    """ρ = (‖r‖² − cost) / (‖r‖² − ‖r + J δ‖²): the cost's fall after the step δ over the
+    fall its linear model J (S×R×D) predicted from the residuals r (S×R)."""
+    before = float((r ** 2).sum())
+    predicted = before - float(((r + J @ delta) ** 2).sum())
+    return (before - cost) / predicted if predicted > 0 else 0.0
+
+
+def _broyden(J: torch.Tensor, r: torch.Tensor, r_new: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """Broyden's rank-one update of one motion's J (S×R×D) after the step δ (D) took its
+    residuals from r to r_new (S×R): J + (Δr − J δ) δᵀ / δᵀδ, the least change of J
+    that maps δ to the residuals' change."""
+    dd = float(delta @ delta)
+    if dd == 0.0:
+        return J
+    return J + torch.einsum("sr,i->sri", r_new - r - J @ delta, delta / dd)
 
 
 def _rows(seg: _Segments, motions: list) -> torch.Tensor:
@@ -335,23 +383,22 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     return result
 
 
-def _normal_equations(prob: _Problem, theta, h, active: list, result: ShootingResult):
-    """JᵀJ, Jᵀr of the ``active`` motions; if their batch cannot be simulated, motion by
-    motion, and a motion that still cannot is removed from ``active`` with its reason."""
+def _jacobians(prob: _Problem, theta, h, motions: list, result: ShootingResult) -> dict:
+    """{motion: (J, r)} (:meth:`_Problem.jacobian`) of ``motions`` at θ; if their batch
+    cannot be simulated, motion by motion, and a motion that still cannot is left out,
+    its reason in ``result.failures``."""
+    if not motions:
+        return {}
     try:
-        return prob.normal_equations(theta[active], h, active)
+        return dict(zip(motions, prob.jacobian(theta[motions], h, motions)))
     except SimulationFailed as err:
-        if len(active) == 1:
-            result.failures[prob.tg.names[active.pop()]] = f"Jacobian not simulated: {err}"
-            return None
-    parts = []
-    for j in list(active):
-        try:
-            parts.append(prob.normal_equations(theta[[j]], h, [j]))
-        except SimulationFailed as err:
-            result.failures[prob.tg.names[j]] = f"Jacobian not simulated: {err}"
-            active.remove(j)
-    return (torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])) if parts else None
+        if len(motions) == 1:
+            result.failures[prob.tg.names[motions[0]]] = f"Jacobian not simulated: {err}"
+            return {}
+    out = {}
+    for j in motions:
+        out.update(_jacobians(prob, theta, h, [j], result))
+    return out
 
 
 def _back_off(prob: _Problem, theta, start, cost, h, lost: list) -> None:
@@ -368,6 +415,21 @@ def _back_off(prob: _Problem, theta, start, cost, h, lost: list) -> None:
                 lost.remove(j)
 
 
+def _still_going(opts: ShootingOptions, motions: list, old, cost, exact: dict, linear: dict) -> list:
+    """The ``motions`` that stay in the stage after an iteration that took their costs
+    from ``old`` to ``cost``: those above the floor whose cost fell by more than ``tol``
+    relatively, and those whose step was taken from an updated J without such a fall —
+    only differences may say that a motion has stopped (their J is dropped from
+    ``linear``, as is every J a step made stale)."""
+    going = []
+    for j, o in zip(motions, old.tolist()):
+        if linear.get(j, True) is None or not exact[j] and o - float(cost[j]) <= opts.tol * o:
+            linear.pop(j, None)
+        if float(cost[j]) > opts.floor and (o - float(cost[j]) > opts.tol * o or not exact[j]):
+            going.append(j)
+    return going
+
+
 def _stage(prob: _Problem, theta, start, mu, h, active: list, result: ShootingResult, callback):
     """The Levenberg–Marquardt iterations of one horizon on the ``active`` motions
     (θ, μ and ``active`` are updated in place), from θ backed off towards ``start`` for
@@ -382,20 +444,30 @@ def _stage(prob: _Problem, theta, start, mu, h, active: list, result: ShootingRe
         result.failures[tg.names[j]] = f"cannot be simulated at horizon {h:.3g} s"
         active.remove(j)
     todo_stage = [j for j in active if float(cost[j]) > prob.opts.floor]
+    linear = {}                                  # motion: (J, r, whether J is differences)
     for it in range(prob.opts.iterations):
-        normal = _normal_equations(prob, theta, h, todo_stage, result) if todo_stage else None
-        if normal is None:
+        fresh = _jacobians(prob, theta, h, [j for j in todo_stage if j not in linear], result)
+        linear.update({j: (J, r, True) for j, (J, r) in fresh.items()})
+        todo_stage = [j for j in todo_stage if j in linear]
+        if not todo_stage:
             break
-        JtJ, Jtr = normal
+        JtJ, Jtr = _normal([linear[j][:2] for j in todo_stage])
+        exact = {j: linear[j][2] for j in todo_stage}
         old = cost[todo_stage].clone()
         todo = list(range(len(todo_stage)))
         for _ in range(8):                       # μ × 4 for the motions not yet improved
             idx = [todo_stage[i] for i in todo]
             trial = _lm_step(JtJ[todo], Jtr[todo], mu[idx], theta[idx], prob.lower)
-            c = prob.cost(trial, h, idx)
-            for i, j, cj, th in zip(list(todo), idx, c.tolist(), trial):
+            c, rs = prob.residuals(trial, h, idx)
+            for i, j, cj, th, rj in zip(list(todo), idx, c.tolist(), trial, rs):
                 if cj < float(cost[j]):
+                    J, r, _ = linear[j]
+                    delta = th - theta[j]
+                    trusted = prob.opts.broyden and _gain_ratio(J, r, delta, cj) >= 0.25
+                    linear[j] = (_broyden(J, r, rj, delta), rj, False) if trusted else None
                     theta[j], cost[j], mu[j] = th, cj, mu[j] / 3
+                    todo.remove(i)
+                elif not exact[j]:               # an updated J failed: differences decide
                     todo.remove(i)
                 else:
                     mu[j] *= 4
@@ -404,7 +476,6 @@ def _stage(prob: _Problem, theta, start, mu, h, active: list, result: ShootingRe
         result.history.append({"horizon": h, "cost": cost.tolist()})
         if callback:
             callback(h, it, cost.clone())
-        todo_stage = [j for j, o in zip(todo_stage, old.tolist())
-                      if o - float(cost[j]) > prob.opts.tol * o and float(cost[j]) > prob.opts.floor]
+        todo_stage = _still_going(prob.opts, todo_stage, old, cost, exact, linear)
     active[:] = [j for j in active if tg.names[j] not in result.failures]
     return cost
