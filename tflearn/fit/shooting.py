@@ -420,12 +420,13 @@ def _still_going(opts: ShootingOptions, motions: list, old, cost, exact: dict, l
     from ``old`` to ``cost``: those above the floor whose cost fell by more than ``tol``
     relatively, and those whose step was taken from an updated J without such a fall —
     only differences may say that a motion has stopped (their J is dropped from
-    ``linear``, as is every J a step made stale)."""
+    ``linear``)."""
     going = []
     for j, o in zip(motions, old.tolist()):
-        if linear.get(j, True) is None or not exact[j] and o - float(cost[j]) <= opts.tol * o:
+        gained = o - float(cost[j]) > opts.tol * o
+        if not (exact[j] or gained):
             linear.pop(j, None)
-        if float(cost[j]) > opts.floor and (o - float(cost[j]) > opts.tol * o or not exact[j]):
+        if float(cost[j]) > opts.floor and (gained or not exact[j]):
             going.append(j)
     return going
 
@@ -463,8 +464,10 @@ def _stage(prob: _Problem, theta, start, mu, h, active: list, result: ShootingRe
                 if cj < float(cost[j]):
                     J, r, _ = linear[j]
                     delta = th - theta[j]
-                    trusted = prob.opts.broyden and _gain_ratio(J, r, delta, cj) >= 0.25
-                    linear[j] = (_broyden(J, r, rj, delta), rj, False) if trusted else None
+                    if prob.opts.broyden and _gain_ratio(J, r, delta, cj) >= 0.25:
+                        linear[j] = (_broyden(J, r, rj, delta), rj, False)
+                    else:                        # differences at the new θ
+                        del linear[j]
                     theta[j], cost[j], mu[j] = th, cj, mu[j] / 3
                     todo.remove(i)
                 elif not exact[j]:               # an updated J failed: differences decide
