@@ -12,7 +12,6 @@ from torch.autograd import gradcheck
 from tflearn import body as tb
 from tflearn import dynamics as D
 from tflearn.configspace import integrate, rotvec_to_rotmat
-from tflearn.simulate import SimOptions, simulate, zero_program
 
 from conftest import (
     ARM_OFFSETS,
@@ -341,18 +340,3 @@ def test_point_jacobian_maps_velocity_to_point_velocity(rng):
     fd = (point_at(moved(h)) - point_at(moved(-h))) / (2 * h)
     J = D.point_jacobian(body, q, 1, point)
     assert torch.allclose((J[..., :3, :] @ v.unsqueeze(-1)).squeeze(-1), fd, atol=1e-7)
-
-
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
-def test_dynamics_and_simulation_on_cuda(rng):
-    """The algorithms and a simulation run on a CUDA device and agree with the CPU."""
-    body = tb.arm()
-    q, v, a = (torch.as_tensor(rng.normal(size=(4, body.nv)), dtype=DT) for _ in range(3))
-    cuda = [x.cuda() for x in (q, v, a)]
-    for f in (D.rnea, D.forward_dynamics):
-        assert torch.allclose(f(body, *cuda).cpu(), f(body, q, v, a), atol=1e-10)
-    t = torch.linspace(0, 0.5, 6, dtype=DT)
-    opts = SimOptions(rtol=1e-9, atol=1e-9)
-    here = simulate(body, zero_program, q, v, t, opts).q
-    there = simulate(body, zero_program, cuda[0], cuda[1], t.cuda(), opts).q
-    assert torch.allclose(there.cpu(), here, atol=1e-6)

@@ -1,7 +1,7 @@
 """Motions prepared for fitting: padded tensors of samples, velocities and torques."""
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, is_dataclass, replace
 from typing import Optional
 
 import torch
@@ -67,6 +67,10 @@ class Targets:
         s = self.coord_weight.sqrt()[:, None, :]
         return x * (s if x.ndim == 3 else s[..., None])
 
+    def to(self, device) -> Targets:
+        """The same targets with every tensor, its base's too, on ``device``."""
+        return _on(self, torch.device(device))
+
     def select(self, idx, trim: bool = False) -> Targets:
         """The targets of some motions (a list of indices), on their own time grid (the
         union of their sample times only, so a simulation of them ends with the longest
@@ -81,6 +85,15 @@ class Targets:
             sub["base"] = self.base.take(idx)
         grid, index = union_grid(sub["t"])
         return Targets(names=[self.names[i] for i in idx.tolist()], grid=grid, index=index, **sub)
+
+
+def _on(x, device):
+    """x with every tensor in it (a dataclass' fields, recursively) on ``device``."""
+    if isinstance(x, torch.Tensor):
+        return x.to(device)
+    if is_dataclass(x):
+        return replace(x, **{f.name: _on(getattr(x, f.name), device) for f in fields(x)})
+    return x
 
 
 CHUNK_BYTES = 1 << 28
