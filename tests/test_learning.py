@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -463,7 +464,9 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     sharing its step weight (1.5 + 1.5): the unused field goes without a simulation and
     leaves every weight as it was; the copy goes, come_here's weights re-solved (its own
     field takes the whole step, 3) and tuck's untouched bit for bit; tuck's only field
-    stays (without it tuck is not reproduced)."""
+    stays (without it tuck is not reproduced). Once come_here counts as not reproduced,
+    elimination keeps its fields (0 and the copy) without a trial, and the unused field
+    still goes."""
     programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
     (m0, lb), (m1, _) = gestures.generate(gestures=programs)
     body = lb.body
@@ -493,6 +496,18 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     alone = run._held_trial(basis, weights, tg, state, 1)
     assert alone["motions"] == [1] and not run._accepts(state, alone, tg)
     assert alone["check"][0].rmse[0] > 0.03
+    assert run._carried(weights, state) == set()
+    state.reference["ok"] = [False, True]          # come_here not reproduced: its fields stay
+    assert run._carried(weights, state) == {0, 3}
+    state.model, state.order, state.stage = model_state(basis, weights), [3, 2, 1, 0], "reduce"
+    run._t0 = time.time()                          # as Run._execute sets it; save() counts from it
+    (tmp_path / "run").mkdir()                     # where the checkpoint goes
+    run._reduce(state, tg)                         # field 3: kept without a trial
+    assert state.history["reduce"] == [{"field": 3, "removed": False, "trial": "none", "M_after": 4,
+                                        "refused": "used by a motion not reproduced"}]
+    assert state.cursor == 1 and state.ids == [0, 1, 2, 3]
+    run._reduce(state, tg)                         # field 2: no motion uses it, it goes
+    assert state.history["reduce"][-1]["removed"] and state.ids == [0, 1, 3]
 
 
 def test_reuse_takes_a_motion_onto_the_fields_found_before(tmp_path):

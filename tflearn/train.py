@@ -521,7 +521,8 @@ class Run:
 
     def _reduce(self, state: RunState, tg: Targets):
         """Backward elimination. With model.fields = 0 a field goes only if no motion gets
-        worse (:func:`no_worse`): first with every field refitted by EM (:meth:`_trial`;
+        worse (:func:`no_worse`), and a field that a motion not reproduced uses is kept
+        without a trial (:meth:`_carried`): first with every field refitted by EM (:meth:`_trial`;
         ``solver.reduce.refit``), then, if that breaks a motion or refitting is off, with
         every other field held where it is (:meth:`_held_trial`: only the motions that
         used it re-solve their weights and are simulated again); with model.fields = M
@@ -551,6 +552,11 @@ class Run:
         together = refit and not fixed and self.options.batch == "each" and parallel.size() == 1
         window = self._window if together else 1
         victims = state.order[k:total(basis.M)][:window]
+        carried = set() if fixed else self._carried(weights, state)
+        if victims[0] in carried:                    # kept without a trial
+            self._apply_trial(state, self._kept(victims[0]), tg, total)
+            return
+        victims = victims[:next((i for i, v in enumerate(victims) if v in carried), len(victims))]
         trials = [self._trial(basis, weights, tg, state, victim) for victim in victims] if refit else []
         checks = ([None] * len(trials) if fixed or not trials
                   else self._checks([t["model"] for t in trials], tg))
@@ -563,6 +569,24 @@ class Run:
                 self._window = 1
                 return
         self._window = 2 * window
+
+    @staticmethod
+    def _carried(weights, state: RunState) -> set:
+        """The fields (ids) that a motion not reproduced has a weight on. Elimination keeps
+        them: such a motion's path is still to be matched (multiple shooting, the path
+        stage), which needs its fields, and its simulation, already off the path, cannot
+        show what losing one costs (a removal judged by it left straight_reach with two
+        fields that shooting could not carry)."""
+        with torch.no_grad():
+            used = (weights.a + weights.b + weights.c.sum(-1)) > 0                 # N×M
+        off = torch.tensor([not ok for ok in state.reference["ok"]])
+        return {state.ids[i] for i in used[off].any(0).nonzero().flatten().tolist()}
+
+    @staticmethod
+    def _kept(victim: int) -> dict:
+        """The record of a field kept without a trial (:meth:`_carried`)."""
+        return {"victim": victim, "model": None, "cost": None, "em_steps": 0, "check": None,
+                "trial": "none", "refused": "used by a motion not reproduced"}
 
     def _held_trial(self, basis, weights, tg: Targets, state: RunState, victim: int) -> dict:
         """The basis without field ``victim``, every other field held: the motions with a
@@ -620,7 +644,10 @@ class Run:
         """Whether a trial's check keeps every motion it simulated (``trial["motions"]``)
         no worse than the reference and, with ``solver.reduce.growth``, adds no more than
         that many e-folds of error growth to any of them (``trial["efolds"]``, computed
-        once); a trial without a check (a fixed M, or a field no motion used) is accepted."""
+        once); a ``refused`` trial is not; one without a check (a fixed M, or a field no
+        motion used) is."""
+        if trial.get("refused"):
+            return False
         if trial["check"] is None:
             return True
         motions = trial["motions"]
@@ -640,12 +667,13 @@ class Run:
         state.step += trial["em_steps"]
         state.cursor += 1
         accept = self._accepts(state, trial, tg)
-        nb, nw = trial["model"]
         cost, victim, check = trial["cost"], trial["victim"], trial["check"]
         step = self._tick(state)
-        self.log.scalar("torque_cost/reduce", cost, step)
+        if cost is not None:                         # a field kept without a trial has none
+            self.log.scalar("torque_cost/reduce", cost, step)
         self.log.scalar("reduce/removed", float(accept), step)
         if accept:
+            nb, nw = trial["model"]
             state.model = model_state(nb, nw)
             state.ids = [state.ids[i] for i in trial["keep"]]
             state.support = trial["support"]
@@ -662,10 +690,12 @@ class Run:
                                 overview=len(trial["motions"]) == tg.N)
             else:
                 self.log.scalar("0_overview/torque_cost", cost, step)
+        refused = {"refused": trial["refused"]} if trial.get("refused") else {}
         self.log.status(total=total(len(state.ids)), M=len(state.ids), field=victim,
-                        removed=bool(accept), trial=trial["trial"], cost=cost)
+                        removed=bool(accept), trial=trial["trial"], **(refused or {"cost": cost}))
         state.history.setdefault("reduce", []).append(
-            {"field": victim, "removed": bool(accept), "trial": trial["trial"], "M_after": len(state.ids)})
+            {"field": victim, "removed": bool(accept), "trial": trial["trial"], "M_after": len(state.ids),
+             **refused})
         self.save(state)
         return accept
 
