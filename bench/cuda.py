@@ -38,6 +38,7 @@ import traceback
 from functools import partial
 from pathlib import Path
 
+import path_step
 import torch
 from dynamics import BATCHES, states
 from dynamics import best_time as _best_time
@@ -101,24 +102,10 @@ def _backward(f, body, q, v, a):
 
 
 def problem(n: int, device):
-    """The gesture library repeated to n motions (weights scaled 1% per copy) on ``device``:
-    (body, basis, weights, targets)."""
-    from tflearn import gestures
-    from tflearn.body import arm
-    from tflearn.fields import MotionWeights
-    from tflearn.fit.targets import prepare
-    from tflearn.motion import Motion
-
-    body = arm()
-    pairs = gestures.generate(body)
-    basis, w5, _ = gestures.library_model(body=body)
-    reps = -(-n // len(pairs))
-    motions = [Motion(f"{m.name}_{c}", m.t, m.q, m.qd) for c in range(reps) for m, _ in pairs][:n]
-    scale = torch.tensor([1 + 0.01 * c for c in range(reps) for _ in pairs], dtype=torch.float64)[:n, None]
-    idx = [j % len(pairs) for j in range(n)]
-    weights = MotionWeights(w5.a[idx] * scale, w5.b[idx] * scale, w5.duration[idx],
-                            names=[m.name for m in motions])
-    return body, basis.to(device), weights.to(device), prepare(body, motions).to(device)
+    """``bench/path_step.py``'s problem of n motions, on ``device``: (body, basis, weights,
+    targets)."""
+    body, basis, weights, tg = path_step.problem(n)
+    return body, basis.to(device), weights.to(device), tg.to(device)
 
 
 def path_step_section(out, device, sizes) -> None:

@@ -25,16 +25,15 @@ from pathlib import Path
 import torch
 
 
-def one_case(n: int, method: str, adjoint: bool) -> dict:
+def problem(n: int) -> tuple:
+    """The gesture library repeated to n motions, weights scaled 1% per copy, with the
+    library's generating fields: (body, basis, weights, targets)."""
     from tflearn import gestures
     from tflearn.body import arm
     from tflearn.fields import MotionWeights
-    from tflearn.fit.path import path_loss
-    from tflearn.fit.targets import prepare, simulate_targets
+    from tflearn.fit.targets import prepare
     from tflearn.motion import Motion
-    from tflearn.simulate import SimOptions
 
-    torch.set_num_threads(1)
     body = arm()
     pairs = gestures.generate(body)
     basis, w5, _ = gestures.library_model(body=body)
@@ -44,7 +43,16 @@ def one_case(n: int, method: str, adjoint: bool) -> dict:
     idx = [j % len(pairs) for j in range(n)]
     weights = MotionWeights(w5.a[idx] * scale, w5.b[idx] * scale, w5.duration[idx],
                             names=[m.name for m in motions])
-    tg = prepare(body, motions)
+    return body, basis, weights, prepare(body, motions)
+
+
+def one_case(n: int, method: str, adjoint: bool) -> dict:
+    from tflearn.fit.path import path_loss
+    from tflearn.fit.targets import simulate_targets
+    from tflearn.simulate import SimOptions
+
+    torch.set_num_threads(1)
+    body, basis, weights, tg = problem(n)
     options = SimOptions(method=method, adjoint=adjoint)
     t0 = time.perf_counter()
     q_sim, v_sim = simulate_targets(body, basis, weights, tg, options)
