@@ -466,7 +466,7 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     field takes the whole step, 3) and tuck's untouched bit for bit; tuck's only field
     stays (without it tuck is not reproduced). Once come_here counts as not reproduced,
     elimination keeps its fields (0 and the copy) without a trial, and the unused field
-    still goes."""
+    still goes; had its simulation failed, its fields would be tried."""
     programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
     (m0, lb), (m1, _) = gestures.generate(gestures=programs)
     body = lb.body
@@ -499,6 +499,9 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert run._carried(weights, state) == set()
     state.reference["ok"] = [False, True]          # come_here not reproduced: its fields stay
     assert run._carried(weights, state) == {0, 3}
+    rmse, state.reference["rmse"][0] = state.reference["rmse"][0], math.inf
+    assert run._carried(weights, state) == set()   # a failed simulation: its fields are tried
+    state.reference["rmse"][0] = rmse
     state.model, state.order, state.stage = model_state(basis, weights), [3, 2, 1, 0], "reduce"
     run._t0 = time.time()                          # as Run._execute sets it; save() counts from it
     (tmp_path / "run").mkdir()                     # where the checkpoint goes

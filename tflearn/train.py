@@ -56,6 +56,7 @@ rank fits it or on the other motions.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -572,14 +573,17 @@ class Run:
 
     @staticmethod
     def _carried(weights, state: RunState) -> set:
-        """The fields (ids) that a motion not reproduced has a weight on. Elimination keeps
-        them: such a motion's path is still to be matched (multiple shooting, the path
-        stage), which needs its fields, and its simulation, already off the path, cannot
-        show what losing one costs (a removal judged by it left straight_reach with two
-        fields that shooting could not carry)."""
+        """The fields (ids) that a motion not reproduced, but simulated to its end, has a
+        weight on. Elimination keeps them: such a motion's path is still to be matched
+        (multiple shooting, the path stage), which needs its fields, and its simulation,
+        already off the path, cannot show what losing one costs (a removal judged by it
+        left straight_reach with two fields that shooting could not carry). The fields of
+        a motion whose simulation fails are still tried: a removal that lets it be
+        simulated is one that path matching needs."""
         with torch.no_grad():
             used = (weights.a + weights.b + weights.c.sum(-1)) > 0                 # N×M
-        off = torch.tensor([not ok for ok in state.reference["ok"]])
+        ref = state.reference
+        off = torch.tensor([not ok and math.isfinite(r) for ok, r in zip(ref["ok"], ref["rmse"])])
         return {state.ids[i] for i in used[off].any(0).nonzero().flatten().tolist()}
 
     @staticmethod
