@@ -58,13 +58,13 @@ def best_time(fn, device, min_time):
     return _best_time(synced(fn, device), min_time)
 
 
-def once(fn, device) -> float:
-    """Seconds of one call (after one warm-up call)."""
+def once(fn, device) -> tuple:
+    """(seconds of one call after one warm-up call, what that call returned)."""
     call = synced(fn, device)
     call()
     t0 = time.perf_counter()
-    call()
-    return time.perf_counter() - t0
+    out = call()
+    return time.perf_counter() - t0, out
 
 
 def dynamics_section(out, device, max_batch, min_time) -> None:
@@ -133,9 +133,8 @@ def simulation_section(out, device, sizes) -> None:
     with torch.no_grad():
         for n in sizes:
             body, basis, weights, tg = problem(n, device)
-            call = partial(simulate_targets, body, basis, weights, tg, options)
-            out[n] = {"seconds": once(call, device), "batch": options.batch,
-                      "q_sum": float(call()[0].sum())}
+            seconds, (q, _) = once(partial(simulate_targets, body, basis, weights, tg, options), device)
+            out[n] = {"seconds": seconds, "batch": options.batch, "q_sum": float(q.sum())}
 
 
 class SectionTimeout(Exception):
