@@ -196,6 +196,23 @@ def _body_builds(body: dict) -> dict:
 BodySection = Annotated[dict[str, Any], AfterValidator(_body_builds)]
 
 
+def _device_named(name: str) -> str:
+    """A ``device:`` is one torch names: ``cpu``, ``cuda`` or ``cuda:K`` (whether this
+    machine has it is asked when a run starts, not here)."""
+    import torch
+    try:
+        kind = torch.device(name).type
+    except RuntimeError:
+        kind = None
+    if kind not in ("cpu", "cuda"):
+        raise PydanticCustomError("device", "a device is cpu, cuda or cuda:K")
+    return name
+
+
+#: A ``device:`` setting: where the run's tensors live and its arithmetic runs.
+DeviceName = Annotated[str, AfterValidator(_device_named)]
+
+
 class BvhSection(Section):
     # when data names BVH clips: imported into OUT/imported (tflearn.mocap.import_config)
     arm: Literal["right", "left"] = "right"      # the performer's arm
@@ -230,6 +247,9 @@ class Config(Section):
     # the shoulder's base: fixed (inertial), or moving — each motion on its performer's torso,
     # torso/NAME.npz beside the motions (tflearn bvh import writes them; docs/mocap.md)
     torso: Literal["fixed", "moving"] = "fixed"
+    # where the fit runs: cpu, or cuda (cuda:K) — the targets, the model and every stage's
+    # arithmetic there; simulations take the torch solvers (the compiled ones are the CPU's)
+    device: DeviceName = "cpu"
     model: ModelSection = ModelSection()
     solver: SolverSection = SolverSection()
     success: SuccessSection = SuccessSection()

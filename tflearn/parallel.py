@@ -11,7 +11,8 @@ a plain single process.
 The motions are dealt to ranks by :func:`shard` (motion j to rank j mod size), so
 every rank knows every rank's share without asking. Results are exchanged as plain
 Python objects (:func:`all_gather`, :func:`broadcast`: pickled, tensors moved to the
-CPU first) or summed in place (:func:`all_reduce_sum`: tensors on the group's device).
+CPU first and back to the receiver's default device) or summed in place
+(:func:`all_reduce_sum`: tensors on the group's device).
 """
 from __future__ import annotations
 
@@ -86,15 +87,26 @@ def group(device: str = "cpu", timeout_s: float = 1800.0):
             dist.destroy_process_group()
 
 
-def _cpu(obj):
-    """``obj`` with every tensor in it (nested in lists, tuples, dicts) moved to the CPU."""
+def _to(obj, device):
+    """``obj`` with every tensor in it (nested in lists, tuples, dicts) moved to ``device``."""
     if isinstance(obj, torch.Tensor):
-        return obj.cpu()
+        return obj.to(device)
     if isinstance(obj, (list, tuple)):
-        return type(obj)(_cpu(x) for x in obj)
+        return type(obj)(_to(x, device) for x in obj)
     if isinstance(obj, dict):
-        return {k: _cpu(v) for k, v in obj.items()}
+        return {k: _to(v, device) for k, v in obj.items()}
     return obj
+
+
+def _cpu(obj):
+    """``obj``'s tensors on the CPU, to be pickled."""
+    return _to(obj, "cpu")
+
+
+def _here(obj):
+    """``obj``'s tensors, received from another rank, on the device tensors are made on
+    here (the CPU, or the run's device inside :func:`tflearn.train.on_device`)."""
+    return _to(obj, torch.empty(()).device)
 
 
 def all_gather(obj) -> list:
@@ -103,7 +115,7 @@ def all_gather(obj) -> list:
         return [obj]
     out = [None] * size()
     dist.all_gather_object(out, _cpu(obj))
-    return out
+    return _here(out)
 
 
 def broadcast(obj, src: int = 0):
@@ -112,7 +124,7 @@ def broadcast(obj, src: int = 0):
         return obj
     box = [_cpu(obj) if rank() == src else None]
     dist.broadcast_object_list(box, src=src)
-    return box[0]
+    return _here(box[0])
 
 
 def all_reduce_sum(tensor: torch.Tensor) -> torch.Tensor:

@@ -55,8 +55,10 @@ rank fits it or on the other motions.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -168,6 +170,7 @@ class Run:
         self.cfg = cfg
         self.out = Path(cfg.out)
         self.body = from_config(cfg.body)          # checked when the config was validated
+        self.device = run_device(cfg.device)
         self.options = cfg.solver.path.options()
         self.stop_after = stop_after
         self.checkpoints = 0
@@ -218,7 +221,7 @@ class Run:
         if not self.ckpt_path.exists():
             return None
         try:
-            doc = torch.load(self.ckpt_path, weights_only=True)
+            doc = torch.load(self.ckpt_path, weights_only=True, map_location=self.device)
         except Exception as err:
             raise CheckpointError(f"{self.ckpt_path}: not a readable checkpoint "
                                   f"({type(err).__name__}); pass --restart to start afresh") from None
@@ -249,7 +252,7 @@ class Run:
     def execute(self, restart: bool = False) -> dict:
         """The run in this process: alone, or as one rank of the process group torchrun
         describes (:func:`tflearn.parallel.group`)."""
-        with parallel.group("cpu"):
+        with parallel.group(str(self.device)):
             return self._execute(restart)
 
     def _execute(self, restart: bool) -> dict:
@@ -259,6 +262,10 @@ class Run:
         self.resolution = check_resolution(self.body, motions)
         tg = prepare(self.body, motions, weight=self.cfg.solver.torque_weight,
                      base=torsos(self.cfg.data, motions, self.cfg.torso))
+        with on_device(self.device):
+            return self._stages(restart, tg.to(self.device))
+
+    def _stages(self, restart: bool, tg: Targets) -> dict:
         state = self._start(restart)
         if state is None:
             gen = torch.Generator().manual_seed(self.cfg.seed)
@@ -280,7 +287,7 @@ class Run:
 
     def _gen(self, state: RunState) -> torch.Generator:
         gen = torch.Generator()
-        gen.set_state(state.rng)
+        gen.set_state(state.rng.cpu())              # a checkpoint's tensors load on the run's device
         return gen
 
     def _advance(self, state: RunState):
@@ -319,7 +326,8 @@ class Run:
         j = state.cursor
         self.log.stage("each", tg.N, j)
         gen = self._gen(state)
-        seeds = torch.randint(2 ** 62, (tg.N,), generator=gen).tolist()   # motion k's search: seeds[k]
+        # motion k's search: seeds[k] (drawn on the CPU: the same seeds on any device)
+        seeds = torch.randint(2 ** 62, (tg.N,), generator=gen, device="cpu").tolist()
         if j >= tg.N:
             state.rng = gen.get_state()
             self.log.end_stage()
@@ -798,7 +806,7 @@ class Run:
         self.log.stage("slsqp", self.cfg.solver.slsqp.max_iter)
         M, n = self.cfg.model.fields, tg.q.shape[-1]
         flat = tg.q[tg.mask]
-        eta = flat[torch.randint(len(flat), (M,), generator=gen)]
+        eta = flat[torch.randint(len(flat), (M,), generator=gen, device="cpu")]
         basis = FieldBasis(eta, torch.eye(n, dtype=torch.float64).expand(M, n, n).clone(), kind="diag")
         weights = MotionWeights.zeros(M, tg.duration, tg.names)
         torque.solve_weights(basis, weights, tg)
@@ -864,6 +872,29 @@ def write_figures(body, tg: Targets, scores: Scores, out: Path, count: Optional[
                                       title=f"{name}: rmse {scores.rmse[j]:.4f} rad, "
                                             f"tip {100 * scores.tip[j]:.2f} cm"),
                    fig_dir / f"{name}.png")
+
+
+def run_device(name: str) -> torch.device:
+    """The device a run's config names, checked to be on this machine (ConfigError naming
+    it otherwise); plain ``cuda`` under torchrun is the rank's own GPU (``LOCAL_RANK``)."""
+    device = torch.device(name)
+    if device.type != "cuda":
+        return device
+    if not torch.cuda.is_available():
+        raise ConfigError(f"device {name!r}: this machine has no CUDA device that torch "
+                          f"{torch.__version__} can use; set device: cpu")
+    if device.index is None:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    if device.index >= torch.cuda.device_count():
+        raise ConfigError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA "
+                          f"device(s), numbered from 0")
+    return device
+
+
+def on_device(device: torch.device):
+    """``with on_device(d):`` tensors made without a device are made on ``d`` (torch's
+    default device); on the CPU nothing changes."""
+    return contextlib.nullcontext() if device.type == "cpu" else device
 
 
 def empty_basis(cfg: Config, body) -> FieldBasis:

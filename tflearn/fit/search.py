@@ -82,9 +82,10 @@ def candidate_centres(tg: Targets, residual: torch.Tensor, count: int,
     base = torch.stack(cands)
     extra = max(count - base.shape[0], 0)
     if extra:
-        pick = torch.randint(0, base.shape[0], (extra,), generator=generator)
-        noise = 0.3 * torch.randn(extra, base.shape[1], generator=generator, dtype=base.dtype)
-        base = torch.cat([base, base[pick] + noise])
+        cpu = {"generator": generator, "device": "cpu"}     # the same draws on every device
+        pick = torch.randint(0, base.shape[0], (extra,), **cpu)
+        noise = 0.3 * torch.randn(extra, base.shape[1], dtype=base.dtype, **cpu)
+        base = torch.cat([base, base[pick] + noise.to(base.device)])
     return base
 
 

@@ -45,7 +45,7 @@ from .targets import Targets
 def pack(eta: torch.Tensor, k: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
     """x = [η, diag K, a, b] flattened (row-major) as a float64 numpy vector."""
     return torch.cat([eta.reshape(-1), k.reshape(-1), a.reshape(-1), b.reshape(-1)]) \
-        .detach().to(torch.float64).numpy().copy()
+        .detach().to(torch.float64).cpu().numpy().copy()
 
 
 def unpack(x, M: int, n: int, N: int):
