@@ -96,8 +96,8 @@ def test_field_program_path_loss_and_gradient_on_cuda():
 def test_a_device_this_machine_lacks_is_refused_when_the_run_starts(tmp_path):
     """device: cuda validates anywhere (a run's config is read on any machine) but a run
     refuses to start without one; a name torch does not know is refused at once."""
-    cfg = config.load(None, ["device=cuda:7", f"out={tmp_path}"])
-    with pytest.raises(config.ConfigError, match="'cuda:7'"):
+    cfg = config.load(None, ["device=cuda:99", f"out={tmp_path}"])
+    with pytest.raises(config.ConfigError, match="'cuda:99'"):
         train.Run(cfg)
     with pytest.raises(config.ConfigError, match="device.*cpu, cuda or cuda:K.*'tpu'"):
         config.load(None, ["device=tpu"])
