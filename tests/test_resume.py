@@ -123,11 +123,19 @@ def test_checkpoint_is_plain_data(run_dir):
 def test_checkpoint_of_other_config_refused(run_dir):
     out = run_dir["out"]
     before = (out / "checkpoint.pt").read_bytes()
-    cfg = small_config(run_dir["data"], out, "seed=1")
-    with pytest.raises(train.CheckpointError) as err:
+    cfg = small_config(run_dir["data"], out, "seed=1", "solver.em.tol=1e-7")
+    with pytest.raises(train.CheckpointError, match=r"\(seed, solver\.em\.tol differ\)") as err:
         train.run(cfg)
     assert str(out / "checkpoint.pt") in str(err.value)
     assert (out / "checkpoint.pt").read_bytes() == before
+
+
+def test_config_changes_names_dotted_keys():
+    old = {"seed": 0, "solver": {"em": {"tol": 1e-6, "steps": 30}}, "body": {"preset": "arm"}}
+    new = {"seed": 0, "solver": {"em": {"tol": 1e-6, "steps": 40}}, "body": {"preset": "leg"},
+           "device": "cuda"}
+    assert train.config_changes(old, new) == ["body", "device", "solver.em.steps"]
+    assert train.config_changes(old, old) == []
 
 
 @pytest.mark.parametrize("content,problem", [

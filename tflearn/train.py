@@ -226,9 +226,11 @@ class Run:
             raise CheckpointError(f"{self.ckpt_path}: not a readable checkpoint "
                                   f"({type(err).__name__}); pass --restart to start afresh") from None
         state = RunState.from_dict(doc, str(self.ckpt_path))
-        if state.config != self.cfg.model_dump():
+        changed = config_changes(state.config, self.cfg.model_dump())
+        if changed:
             raise CheckpointError(
-                f"{self.ckpt_path}: a checkpoint of a different config is in this output folder; "
+                f"{self.ckpt_path}: a checkpoint of a different config is in this output folder "
+                f"({', '.join(changed[:5])}{', …' if len(changed) > 5 else ''} differ); "
                 f"choose another out= or pass --restart")
         return state
 
@@ -872,6 +874,19 @@ def write_figures(body, tg: Targets, scores: Scores, out: Path, count: Optional[
                                       title=f"{name}: rmse {scores.rmse[j]:.4f} rad, "
                                             f"tip {100 * scores.tip[j]:.2f} cm"),
                    fig_dir / f"{name}.png")
+
+
+def config_changes(old: dict, new: dict, prefix: str = "") -> list:
+    """The dotted keys whose values differ between two dumped configs (sections compared
+    key by key; a key only one of them has counts as differing)."""
+    out = []
+    for key in sorted(old.keys() | new.keys()):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict) and key != "body":
+            out += config_changes(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}")
+    return out
 
 
 def run_device(name: str) -> torch.device:
