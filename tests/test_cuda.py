@@ -28,12 +28,14 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device 
 
 
 def tensors(x) -> list:
-    """Every tensor in a dataclass, recursively."""
+    """Every tensor in a dataclass, a dict or a list, recursively."""
     if isinstance(x, torch.Tensor):
         return [x]
     if dataclasses.is_dataclass(x):
-        return [t for f in dataclasses.fields(x) for t in tensors(getattr(x, f.name))]
-    return []
+        x = [getattr(x, f.name) for f in dataclasses.fields(x)]
+    elif isinstance(x, dict):
+        x = list(x.values())
+    return [t for v in x for t in tensors(v)] if isinstance(x, (list, tuple)) else []
 
 
 def test_targets_to_moves_every_tensor_and_its_base():
@@ -124,7 +126,7 @@ def test_training_on_cuda_learns_the_cpu_basis(tmp_path):
     runs = {d: train.run(small_config(tmp_path / "data", tmp_path / d, f"device={d}"))
             for d in ("cpu", "cuda")}
     state = torch.load(tmp_path / "cuda" / "checkpoint.pt", weights_only=True)
-    assert {t.device.type for t in tensors_in(state["model"])} == {"cuda"}
+    assert {t.device.type for t in tensors(state["model"])} == {"cuda"}
     here, there = runs["cpu"], runs["cuda"]
     assert there["overall"]["M"] == here["overall"]["M"] >= 1
     assert [m["success"] for m in there["motions"].values()] == \
@@ -132,12 +134,3 @@ def test_training_on_cuda_learns_the_cpu_basis(tmp_path):
     a, b = (_flat(bio.load(tmp_path / d / "basis.json")) for d in ("cpu", "cuda"))
     print("largest difference of the bases' numbers:", float((a - b).abs().max()))
     assert torch.allclose(b, a, rtol=1e-6, atol=1e-6)
-
-
-def tensors_in(x) -> list:
-    """Every tensor in nested dicts and lists."""
-    if isinstance(x, torch.Tensor):
-        return [x]
-    if isinstance(x, dict):
-        x = list(x.values())
-    return [t for v in x for t in tensors_in(v)] if isinstance(x, (list, tuple)) else []
