@@ -67,6 +67,16 @@ def test_a_single_process_is_a_world_of_one(monkeypatch):
     assert parallel.backend("cpu") == "gloo" and parallel.backend("cuda:1") == "nccl"
 
 
+def test_local_device_is_the_ranks_gpu(monkeypatch):
+    """Plain cuda is GPU LOCAL_RANK (0 without torchrun); a numbered device stays itself."""
+    monkeypatch.delenv("LOCAL_RANK", raising=False)
+    assert parallel.local("cuda") == torch.device("cuda", 0)
+    monkeypatch.setenv("LOCAL_RANK", "2")
+    assert parallel.local("cuda") == torch.device("cuda", 2)
+    assert parallel.local("cuda:3") == torch.device("cuda", 3)
+    assert parallel.local("cpu") == torch.device("cpu")
+
+
 def test_world_size_without_an_address_is_refused(monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "2")
     monkeypatch.delenv("MASTER_ADDR", raising=False)

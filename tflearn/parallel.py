@@ -55,6 +55,15 @@ def mine(n: int) -> list:
     return shard(n, rank(), size())
 
 
+def local(device) -> torch.device:
+    """``device`` for this process: plain ``cuda`` is the GPU numbered by torchrun's
+    ``LOCAL_RANK`` (0 without torchrun); ``cuda:K`` and other devices as they are."""
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return device
+
+
 def backend(device: str) -> str:
     """The process-group backend for a device: NCCL for CUDA, gloo otherwise."""
     return "nccl" if torch.device(device).type == "cuda" else "gloo"
@@ -74,7 +83,7 @@ def group(device: str = "cpu", timeout_s: float = 1800.0):
             raise RuntimeError(f"torch.distributed: WORLD_SIZE is set but not {', '.join(missing)} "
                                f"(start the processes with torchrun)")
         if torch.device(device).type == "cuda":
-            torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+            torch.cuda.set_device(local(device))
         dist.init_process_group(backend(device), init_method="env://",
                                 timeout=datetime.timedelta(seconds=timeout_s))
         made = True

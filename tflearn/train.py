@@ -58,7 +58,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -891,15 +890,13 @@ def config_changes(old: dict, new: dict, prefix: str = "") -> list:
 
 def run_device(name: str) -> torch.device:
     """The device a run's config names, checked to be on this machine (ConfigError naming
-    it otherwise); plain ``cuda`` under torchrun is the rank's own GPU (``LOCAL_RANK``)."""
-    device = torch.device(name)
+    it otherwise); plain ``cuda`` is this process' GPU (:func:`tflearn.parallel.local`)."""
+    device = parallel.local(name)
     if device.type != "cuda":
         return device
     if not torch.cuda.is_available():
         raise ConfigError(f"device {name!r}: this machine has no CUDA device that torch "
                           f"{torch.__version__} can use; set device: cpu")
-    if device.index is None:
-        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
     if device.index >= torch.cuda.device_count():
         raise ConfigError(f"device {name!r}: this machine has {torch.cuda.device_count()} CUDA "
                           f"device(s), numbered from 0")
