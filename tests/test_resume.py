@@ -130,6 +130,24 @@ def test_checkpoint_of_other_config_refused(run_dir):
     assert (out / "checkpoint.pt").read_bytes() == before
 
 
+def test_checkpoint_from_before_a_config_key_resumes(run_dir, tmp_path):
+    """A checkpoint written before a config key existed (its config lacks the key) ran as
+    the key's default does: it resumes under the default, and is refused, naming the key,
+    under another value."""
+    import shutil
+    out = tmp_path / "run"
+    shutil.copytree(run_dir["out"], out)
+    state = torch.load(out / "checkpoint.pt", weights_only=True)
+    state["config"]["out"] = str(out)
+    del state["config"]["device"], state["config"]["solver"]["shooting"]["tip_weight"]
+    torch.save(state, out / "checkpoint.pt")
+    metrics = train.run(small_config(run_dir["data"], out))
+    assert metrics["overall"]["M"] == json.loads((run_dir["out"] / "metrics.json").read_text())["overall"]["M"]
+    assert_same_basis(out / "basis.json", run_dir["out"] / "basis.json", tol=0.0)
+    with pytest.raises(train.CheckpointError, match=r"\(solver\.shooting\.tip_weight differ\)"):
+        train.run(small_config(run_dir["data"], out, "solver.shooting.tip_weight=5"))
+
+
 def test_config_changes_names_dotted_keys():
     old = {"seed": 0, "solver": {"em": {"tol": 1e-6, "steps": 30}}, "body": {"preset": "arm"}}
     new = {"seed": 0, "solver": {"em": {"tol": 1e-6, "steps": 40}}, "body": {"preset": "leg"},

@@ -225,7 +225,10 @@ class Run:
             raise CheckpointError(f"{self.ckpt_path}: not a readable checkpoint "
                                   f"({type(err).__name__}); pass --restart to start afresh") from None
         state = RunState.from_dict(doc, str(self.ckpt_path))
-        changed = config_changes(state.config, self.cfg.model_dump())
+        # a key the checkpoint lacks was added to the config after it was written: it ran
+        # as that key's default does (a new key's default keeps the old behaviour)
+        old = config_mod.merge(type(self.cfg)().model_dump(), state.config)
+        changed = config_changes(old, self.cfg.model_dump())
         if changed:
             raise CheckpointError(
                 f"{self.ckpt_path}: a checkpoint of a different config is in this output folder "
