@@ -174,8 +174,9 @@ def test_keyframes_quick(tmp_path):
     """A three-keyframe spline resembling the come-here (not made by fields): the
     pipeline's own basis, damped fields with two sub-movement windows, reproduces it
     within the bar of field-generated motions (≤ 0.03 rad, ≤ 2 cm; measured in the full
-    experiment: 0.0094 rad, 1.3 cm, M = 3), while the thesis' SLSQP from the four fields
-    of §4.2 loses it, as in thesis figure 4-9."""
+    experiment: 0.0094 rad, 1.3 cm, M = 3), and so does the spanning layout's basis of
+    eight fields, while the thesis' SLSQP from the four fields of §4.2 loses it, as in
+    thesis figure 4-9."""
     res = quick("keyframes", tmp_path)
     pipe = next(x for x in res["rows"] if x["method"] == "pipeline")
     slsqp = next(x for x in res["rows"] if x["method"] == "slsqp")
@@ -183,6 +184,8 @@ def test_keyframes_quick(tmp_path):
     assert pipe["rmse"][0] <= 0.03 and pipe["tip"][0] <= 0.02 and pipe["success"] == [True]
     assert slsqp["rmse"][0] > 0.05 and slsqp["success"] == [False]
     assert 1 <= pipe["M"] <= 4
+    layout = next(x for x in res["rows"] if x["method"] == "layout")
+    assert layout["M"] == 8 and layout["success"] == [True] and layout["rmse"][0] <= 0.03
 
 
 def test_filtering_quick(tmp_path):
@@ -198,6 +201,21 @@ def test_filtering_quick(tmp_path):
     assert all(x is not None and x == x for x in row["straightness_out"])
     assert all(r < float("inf") for r in row["rmse"])
     assert {"straight_reach.png", "straight_reach_hand.png"} <= set(res["figures"])
+
+
+def test_reaches_quick_layout(tmp_path):
+    """Experiment 5's quick size by the spanning layout: eight fields laid out around
+    the two training reaches (no search) reproduce both within the bar (measured: 0.0073
+    rad, 0.2 cm at worst), and the held-out reach played through that frozen basis comes
+    back within the 0.05 rad goal (measured: 0.0037 rad); its figures are drawn."""
+    res = quick("reaches", tmp_path, "methods=[layout]")
+    base, row = res["rows"]
+    assert (base["method"], row["method"]) == ("layout", "layout, held out")
+    assert base["M"] == 8 and all(base["success"])
+    assert max(base["rmse"]) <= 0.03 and max(base["tip"]) <= 0.02
+    assert row["motions"] == ["held_out_reach"] and row["rmse"][0] <= 0.05
+    assert row["straightness_in"][0] < 1e-3 and row["straightness_out"][0] < 0.05
+    assert {"held_out_reach_hand.png", "reach_0.7_-0.2.png"} <= set(res["figures"])
 
 
 def test_reach_class_is_straight_and_spread():
@@ -224,17 +242,43 @@ def test_reach_class_is_straight_and_spread():
     assert min(dist[:8]) < dist[8] < max(dist[:8])
     turn = [math.atan2(float(e[0]), -float(e[1])) for e in ends]
     assert min(turn[:8]) < turn[8] < max(turn[:8])
-    line, = (goal_line(*g) for g in reaches.goals({"rows": [{}, {"rmse": [0.04]}]}))
-    assert line == ("- goal: the held-out reach, played through the class's frozen basis, within "
-                    "0.05 rad joint RMSE of its input; measured: 0.040 rad — met")
-    text = reaches.summary({"rows": [
-        {"motions": ["a", "b"], "M": 5, "success": [True, False], "rmse": [0.01, 0.07],
-         "tip": [0.005, 0.09]},
-        {"motions": ["held_out_reach"], "rmse": [0.061], "tip": [0.098],
-         "straightness_in": [0.0004], "straightness_out": [0.09]}]})
-    assert text.startswith("Basis learned on 2 reaches: M = 5, 1 of 2 reproduced (the worst, "
-                           "b: 0.0700 rad, 9.0 cm).")
-    assert "| held_out_reach | 0.0610 | 9.8 | 0.0% | 9.0% |" in text
+    rows = [{"method": "layout", "motions": ["a", "b"], "M": 5, "success": [True, False],
+             "rmse": [0.01, 0.07], "tip": [0.005, 0.09]},
+            {"method": "layout, held out", "motions": ["held_out_reach"], "rmse": [0.04],
+             "tip": [0.098], "straightness_in": [0.0004], "straightness_out": [0.09]}]
+    lines = [goal_line(*g) for g in reaches.goals({"rows": rows})]
+    assert lines == [
+        "- goal: layout: every reach of the class with joint RMSE ≤ 0.03 rad and tip error "
+        "≤ 2 cm; measured: 1 of 2 within it; the worst RMSE 0.070 rad, the worst tip error "
+        "9.0 cm — **not met**",
+        "- goal: layout: the held-out reach, played through the class's frozen basis, within "
+        "0.05 rad joint RMSE of its input; measured: 0.040 rad — met"]
+    text = reaches.summary({"rows": rows})
+    assert text.startswith("**layout**: basis learned on 2 reaches: M = 5, 1 of 2 reproduced "
+                           "(the worst, b: 0.0700 rad, 9.0 cm).")
+    assert "| held_out_reach | 0.0400 | 9.8 | 0.0% | 9.0% |" in text
+
+
+def test_reaches_layout_config():
+    """Experiment 5's layout method trains with ``train`` ← ``layout`` and solver.method
+    layout; the pipeline with ``train``; a bad key under ``layout`` is refused naming it,
+    and each experiment refuses a method it does not run."""
+    from tflearn.experiments import load_config
+    cfg = load_config(CONFIGS / "reaches.yaml", quick=True)
+    assert cfg.methods == ["pipeline", "layout"]
+    pipe, lay = cfg.training("pipeline"), cfg.training("layout")
+    assert (pipe.solver.method, pipe.model.windows, pipe.solver.ridge) == ("pipeline", 2, 0.0)
+    assert (lay.solver.method, lay.model.windows, lay.solver.ridge) == ("layout", 8, 1e-4)
+    assert (lay.solver.layout.shape, lay.model.field_damping) == ("simplex", 0.2)
+    assert (pipe.solver.path.steps, lay.solver.path.steps) == (2, 0)       # quick's, layout's
+    with pytest.raises(ConfigError, match=r"config key 'layout': unknown config key "
+                                          r"'solver\.layot' \(did you mean layout\?\)"):
+        load_config(CONFIGS / "reaches.yaml",
+                    overrides=["layout.solver.layot.shape=simplex"])
+    with pytest.raises(ConfigError, match="'methods': basin runs slsqp, local, pipeline, not layout"):
+        load_config(CONFIGS / "basin.yaml", overrides=["methods=[layout]"])
+    assert load_config(CONFIGS / "filtering.yaml",
+                       overrides=["methods=[pipeline]"]).methods == ["pipeline"]
 
 
 def test_report_from_quick_results(tmp_path):

@@ -381,8 +381,8 @@ def _message(err: dict, schema: Type[BaseModel]) -> str:
         limit = err.get("ctx", {}).get("ge", err.get("ctx", {}).get("gt"))
         what = "non-negative" if limit == 0 and kind == "greater_than_equal" else f"≥ {limit}"
         return f"config key {key!r} must be {what}, got {value!r}"
-    if kind == "body":
-        return f"config key 'body': {err['ctx']['problem']}"
+    if kind in ("body", "layout"):                 # a problem found within the key's value
+        return f"config key {key!r}: {err['ctx']['problem']}"
     if kind == "literal_error":
         return f"config key {key!r} must be one of {err['ctx']['expected']}, got {value!r}"
     if kind.startswith("int") and (isinstance(value, str) or isinstance(value, bool)):

@@ -166,16 +166,18 @@ def fit_local_case(body, guess: dict, tg: Targets, cfg: ExperimentConfig) -> dic
             "evals": len(history), "sims": sim_mod.calls - calls0, "history": history, "check": m}
 
 
-def fit_pipeline_case(motions: list, cfg: ExperimentConfig, out: Path, seed: int) -> dict:
-    """tflearn's full search (:func:`tflearn.train.run`, no initial guess) on ``motions``,
-    in ``out`` (the motions as .npz, the run in ``out``/run): {"metrics" (metrics.json),
-    "wall" (over resumes), "sims", "M", "run" (the run folder)}."""
+def fit_pipeline_case(motions: list, cfg: ExperimentConfig, out: Path, seed: int,
+                      method: str = "pipeline") -> dict:
+    """tflearn's training (:func:`tflearn.train.run`, no initial guess; ``method``'s config,
+    :meth:`ExperimentConfig.training`) on ``motions``, in ``out`` (the motions as .npz, the
+    run in ``out``/run): {"metrics" (metrics.json), "wall" (over resumes), "sims", "M",
+    "run" (the run folder)}."""
     out.mkdir(parents=True, exist_ok=True)
     files = []
     for m in motions:
         save_motion(m, out / f"{m.name}.npz")
         files.append(str(out / f"{m.name}.npz"))
-    tcfg = cfg.train.replace(data=files, out=str(out / "run"), seed=seed,
+    tcfg = cfg.training(method).replace(data=files, out=str(out / "run"), seed=seed,
                              success=cfg.success.model_dump())
     calls0 = sim_mod.calls
     metrics = train.run(tcfg, progress=False)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
 from ..config import (
@@ -30,7 +30,10 @@ NAMES = ("basin", "shared", "keyframes", "filtering", "reaches")
 #: The gesture library's names (``tflearn.gestures.GESTURES``, checked by a test), here so
 #: that a config is validated without importing torch.
 GESTURES = ("come_here", "stiff_elbow_lift", "tuck", "planar_line", "backwards_reach")
-METHODS = ("slsqp", "local", "pipeline")
+METHODS = ("slsqp", "local", "pipeline", "layout")
+#: The methods each experiment runs.
+SUPPORTED = {"basin": METHODS[:3], "shared": METHODS[:3], "keyframes": ("slsqp", "pipeline", "layout"),
+             "filtering": ("pipeline",), "reaches": ("pipeline", "layout")}
 _QUIET = {"log": {"tensorboard": False, "progress": False}}
 
 
@@ -76,7 +79,7 @@ class ExperimentConfig(Section):
     r: list[float] = [1.2, 1.4, 1.8, 2.2, 2.6, 3.0, 4.2, 6.0, 8.0, 10.0]
     seeds: int = Field(20, ge=1)
     seed0: int = Field(0, ge=0)
-    methods: list[Literal[METHODS]] = list(METHODS)
+    methods: list[Literal[METHODS]] = list(METHODS[:3])   # unset: SUPPORTED[experiment]
     straight_reach: bool = True                  # keyframes: add the straight-line reach
     jobs: int = Field(1, ge=1)
     slsqp: SlsqpSection = SlsqpSection()
@@ -85,6 +88,9 @@ class ExperimentConfig(Section):
     success: SuccessSection = SuccessSection()
     # the pipeline's training config; TensorBoard and progress bars off unless set
     train: Config = Config(log=LogSection(tensorboard=False, progress=False))
+    # the layout method's training config: ``train`` with these keys over it and
+    # solver.method layout, e.g. {model: {windows: 4}, solver: {layout: {shape: simplex}}}
+    layout: dict = {}
     quick: bool = False                          # set by load_config(quick=True)
 
     @field_validator("gestures")
@@ -96,10 +102,48 @@ class ExperimentConfig(Section):
                                       {"unknown": str(unknown), "known": ", ".join(GESTURES)})
         return names
 
+    @model_validator(mode="before")
+    @classmethod
+    def _default_methods(cls, doc):
+        if isinstance(doc, dict) and "methods" not in doc:
+            return {**doc, "methods": list(SUPPORTED.get(doc.get("experiment"), METHODS[:3]))}
+        return doc
+
+    @field_validator("methods")
+    @classmethod
+    def _supported(cls, methods: list, info: ValidationInfo) -> list:
+        ok = SUPPORTED.get(info.data.get("experiment"), METHODS)
+        if set(methods) - set(ok):
+            raise PydanticCustomError("unsupported_method", "{experiment} runs {ok}, not {bad}", {
+                "experiment": info.data["experiment"], "ok": ", ".join(ok),
+                "bad": ", ".join(m for m in methods if m not in ok)})
+        return methods
+
     @field_validator("train", mode="before")
     @classmethod
     def _quiet(cls, doc):
         return merge(_QUIET, doc) if isinstance(doc, dict) else doc
+
+    @field_validator("layout")
+    @classmethod
+    def _layout_config(cls, doc: dict, info: ValidationInfo) -> dict:
+        if "train" in info.data:                 # else train's own error is reported
+            try:
+                layout_config(info.data["train"], doc)
+            except ConfigError as err:
+                raise PydanticCustomError("layout", "{problem}", {"problem": str(err)}) from None
+        return doc
+
+    def training(self, method: str) -> Config:
+        """The training config of ``method``: ``train`` for the pipeline, ``train`` ←
+        ``layout`` with solver.method layout for the layout."""
+        return layout_config(self.train, self.layout) if method == "layout" else self.train
+
+
+def layout_config(train: Config, layout: dict) -> Config:
+    """``train`` with the keys of ``layout`` over it and ``solver.method: layout``."""
+    return validate(merge(merge(train.model_dump(), layout), {"solver": {"method": "layout"}}),
+                    Config)
 
 
 class ExperimentFile(ExperimentConfig):

@@ -83,14 +83,15 @@ def figures(cfg: ExperimentConfig, result: dict) -> list:
     motions = crude_motions(body)
     q = common.resimulate(body, result["rows"][-1], prepare(body, motions), cfg)
     for j, m in enumerate(motions):
-        out += draw(body, m, q[j, :len(m.t)], fig_dir, "crude input vs played through the fields")
+        out += draw(body, m, {"filtered": q[j, :len(m.t)]}, fig_dir,
+                    "crude input vs played through the fields")
     return out
 
 
-def draw(body: Body, motion, q_filtered, fig_dir: Path, title: str) -> list:
+def draw(body: Body, motion, filtered: dict, fig_dir: Path, title: str) -> list:
     """NAME.png (stick figures) and NAME_hand.png (hand paths) of a motion, input against
-    filtered."""
-    paths = {"input": motion.q, "filtered": q_filtered}
+    each filtered path of ``filtered`` (label → T×n)."""
+    paths = {"input": motion.q, **filtered}
     strip, hand = fig_dir / f"{motion.name}.png", fig_dir / f"{motion.name}_hand.png"
     plots.save(plots.stick_strip(body, paths, title=f"{motion.name}: {title}"), strip)
     plots.save(plots.hand_paths(body, paths, title=f"{motion.name}: hand path"), hand)

@@ -2,7 +2,9 @@
 
 For each gesture a three-keyframe eased spline through its postures at the start, the
 middle and the end, and a straight-line reach of the hand (:mod:`tflearn.keyframes`);
-each is learned by the ``pipeline`` (its own basis, M found). The baseline is the
+each is learned by the ``pipeline`` (its own basis, M found), and all of them together
+by the ``layout`` (one basis of fields spanning joint space around them, no search;
+:mod:`tflearn.fit.layout`). The baseline is the
 thesis' ``slsqp`` from the four generating fields of §4.2 (weights by NNLS), all
 motions together. Goal: the bar of field-generated motions, joint RMSE ≤ 0.03 rad and
 maximum hand-tip error ≤ 2 cm.
@@ -64,7 +66,8 @@ def _slsqp_row(body: Body, tg, cfg: ExperimentConfig) -> dict:
 
 
 def run(cfg: ExperimentConfig) -> dict:
-    """Each keyframe motion learned by the pipeline alone, and the SLSQP baseline."""
+    """Each keyframe motion learned by the pipeline alone, all of them by one layout, and
+    the SLSQP baseline."""
     body = arm()
     motions = keyframe_motions(body, cfg.gestures, cfg.straight_reach)
     tg = prepare(body, motions)
@@ -75,12 +78,16 @@ def run(cfg: ExperimentConfig) -> dict:
                                            cfg.seed0)
             rows.append(common.row("pipeline", motion.name, None, cfg.seed0, fit,
                                    common.pipeline_outcome(fit["metrics"], [motion.name]), [motion.name]))
+    if "layout" in cfg.methods:                        # one basis for every motion, laid out
+        fit = common.fit_pipeline_case(motions, cfg, Path(cfg.out) / "layout", cfg.seed0, "layout")
+        rows.append(common.row("layout", "keyframes", None, cfg.seed0, fit,
+                               common.pipeline_outcome(fit["metrics"], tg.names), tg.names))
     return {"rows": rows, "summary": {"costs": common.costs(rows)}}
 
 
 def figures(cfg: ExperimentConfig, result: dict) -> list:
-    """Per motion: target vs the SLSQP baseline vs its own pipeline run, and the run's
-    animation."""
+    """Per motion: target vs the SLSQP baseline vs its own pipeline run vs the shared
+    layout, and the pipeline run's animation."""
     body, fig_dir = arm(), common.figure_dir(cfg)
     tg = prepare(body, keyframe_motions(body, cfg.gestures, cfg.straight_reach))
     sims, out = {}, []
@@ -93,7 +100,10 @@ def figures(cfg: ExperimentConfig, result: dict) -> list:
         if (run_dir / "basis.json").exists():
             q[j] = common.pipeline_q(body, cfg, run_dir, tg.select([j]))[0][0]
             out += common.animations(run_dir, [name], fig_dir)
-    sims["pipeline"] = q
+    if any(x["method"] == "pipeline" for x in result["rows"]):
+        sims["pipeline"] = q
+    if any(x["method"] == "layout" for x in result["rows"]):
+        sims["layout"] = common.pipeline_q(body, cfg, Path(cfg.out) / "layout" / "run", tg)[0]
     return out + common.sheets(body, tg, sims, fig_dir)
 
 
