@@ -142,7 +142,8 @@ def test_checkpoint_from_before_a_config_key_resumes(run_dir, tmp_path):
     del state["config"]["device"], state["config"]["solver"]["shooting"]["tip_weight"]
     torch.save(state, out / "checkpoint.pt")
     metrics = train.run(small_config(run_dir["data"], out))
-    assert metrics["overall"]["M"] == json.loads((run_dir["out"] / "metrics.json").read_text())["overall"]["M"]
+    before = json.loads((run_dir["out"] / "metrics.json").read_text())
+    assert metrics["overall"]["M"] == before["overall"]["M"]
     assert_same_basis(out / "basis.json", run_dir["out"] / "basis.json", tol=0.0)
     with pytest.raises(train.CheckpointError, match=r"\(solver\.shooting\.tip_weight differ\)"):
         train.run(small_config(run_dir["data"], out, "solver.shooting.tip_weight=5"))
