@@ -218,3 +218,36 @@ def test_layout_carries_a_recorded_window(mocap):
         s = score(r.body, basis, w, tg, SimOptions(max_evals=20000))
         errors[weight] = s.rmse[0]
     assert errors["inertia"] <= 0.1 and errors["uniform"] > 1.5 * errors["inertia"]
+
+
+def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
+    """A three-keyframe spline the pipeline cannot reproduce with one field of its own
+    (``solver.each.max_fields=1``, two shooting iterations per horizon, no Adam) is
+    rescued: the stage ``rescue`` lays out a simplex of eight fields around it, adds them
+    to the basis and fits its weights over all nine (measured: 0.0045 rad, M = 1 → 9;
+    with the shooting's and NNLS' defaults instead of the layout's settings below it
+    stays 0.071 rad off and the grown model is not kept)."""
+    from tflearn import train
+    from tflearn.body import arm
+    from tflearn.keyframes import keyframe_motion
+    body = arm()
+    (m, _), = gestures.generate(body, gestures=[gestures.GESTURES["come_here"]])
+    T = len(m.t)
+    keys = keyframe_motion("come_here_keys", body, m.q[[0, T // 2, T - 1]],
+                           [0.0, float(m.t[T // 2]), float(m.t[-1])])
+    motion_mod.save(keys, tmp_path / "come_here_keys.npz")
+    cfg = load(None, [f"data={tmp_path / 'come_here_keys.npz'}", f"out={tmp_path / 'run'}",
+                      "model.phases=variable", "model.field_damping=0.2", "model.windows=2",
+                      "solver.each.max_fields=1", "solver.init.candidates=8", "solver.em.steps=20",
+                      "solver.path.steps=0", "solver.shooting.iterations=6",
+                      "solver.layout.rescue=true", "solver.layout.shape=simplex",
+                      "solver.layout.radius=16", "solver.layout.stiffness=0.0625",
+                      "solver.ridge=1e-4", "solver.shooting.tip_weight=100",
+                      "solver.shooting.velocity_weight=0.01", "solver.torque_weight=inertia",
+                      "log.tensorboard=false", "log.progress=false"])
+    metrics = train.run(cfg)
+    rescue = metrics["history"]["rescue"]
+    assert rescue["motions"] == ["come_here_keys"] and rescue["kept"]
+    assert rescue["added"] == 8 and metrics["overall"]["M"] == rescue["M"] == 9
+    row = metrics["motions"]["come_here_keys"]
+    assert row["success"] and row["rmse"] <= 0.03 and row["tip"] <= 0.02

@@ -142,6 +142,10 @@ class LayoutSection(Section):                   # method layout: fields spanning
     shape: Literal["cross", "simplex"] = "cross"
     radius: float = Field(2.0, gt=0, allow_inf_nan=False)     # centres at ν̄ + radius u_i (rad)
     stiffness: float = Field(1.0, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
+    # method pipeline: motions the path stage leaves unreproduced get these fields, laid out
+    # around them, added to the basis, and their weights over it by NNLS and multiple
+    # shooting (the stage rescue; kept where it reproduces more motions)
+    rescue: bool = False
 
 
 class SolverSection(Section):

@@ -50,6 +50,7 @@ STAGES = {"each": ("each motion alone", "motions"),
           "pool": ("pool and merge", "stage"),
           "reduce": ("reduce: try dropping fields", "fields"),
           "path": ("path matching", "steps"),
+          "rescue": ("rescue: spanning fields for motions not reproduced", "stage"),
           "slsqp": ("slsqp", "iterations"),
           "layout": ("lay out spanning fields", "stage")}
 

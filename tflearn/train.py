@@ -26,7 +26,11 @@ result:
                 motions shared by the ranks), then, if some are still not
                 reproduced, safeguarded Adam on the simulated path loss of fields and
                 weights through ``odeint`` (one unit per step);
-5. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard.
+5. ``rescue`` — with ``solver.layout.rescue`` only: motions still not reproduced get a
+                spanning layout's fields laid out around them added to the basis, and
+                their weights over it by NNLS and multiple shooting (one unit; kept if
+                it reproduces more motions);
+6. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard.
 
 What the run shows and logs meanwhile (progress bars, TensorBoard) is :mod:`tflearn.log`.
 
@@ -82,7 +86,7 @@ from .log import RunLog
 from .metrics import Scores, score, score_models, summarize
 
 CHECKPOINT_FORMAT = "tflearn-checkpoint/5"
-SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "done"),
+SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "rescue", "done"),
              "slsqp": ("slsqp", "done"),
              "layout": ("layout", "path", "done")}
 
@@ -179,8 +183,10 @@ class Run:
         self.ckpt_path = self.out / "checkpoint.pt"
         self.log = RunLog(self.out, tensorboard=False, progress=False)
         self.stages = {"each": self._each, "pool": self._pool, "reduce": self._reduce,
-                       "path": self._path, "slsqp": self._slsqp, "layout": self._layout}
-        self.sequence = SEQUENCES[cfg.solver.method]
+                       "path": self._path, "rescue": self._rescue, "slsqp": self._slsqp,
+                       "layout": self._layout}
+        self.sequence = tuple(x for x in SEQUENCES[cfg.solver.method]
+                              if x != "rescue" or cfg.solver.layout.rescue)
         if cfg.solver.method == "layout" and (cfg.model.stiffness == "scalar" or cfg.model.fields):
             raise ConfigError("solver.method 'layout' lays out its fields with a stiffness per "
                               "coordinate: it needs model.fields=0 and model.stiffness diag, block "
@@ -802,6 +808,40 @@ class Run:
         _, ok = self._adopt(state, tg, "layout", basis, weights, cost)
         self.log.status(M=basis.M, cost=cost, reproduced=f"{sum(ok)}/{tg.N}")
         self.log.end_stage()
+        self._advance(state)
+        self.save(state)
+
+    def _rescue(self, state: RunState, tg: Targets):
+        """(``solver.layout.rescue``) The motions still not reproduced get the spanning
+        layout's fields around them (:func:`tflearn.fit.layout.spanning_basis`, the
+        ``solver.layout`` settings) added to the basis, and their weights over the whole
+        basis by NNLS (``solver.ridge``) and multiple shooting; the other motions keep
+        theirs, with zero weight on the new fields (their programs are unchanged). The
+        grown model is kept if it reproduces more motions."""
+        basis, weights = model_from_state(state.model)
+        ok = self._check(basis, weights, tg)[1]
+        todo = [j for j, x in enumerate(ok) if not x]
+        if todo:
+            self.log.stage("rescue", 1)
+            c = self.cfg.solver.layout
+            laid = layout.spanning_basis(self.body, tg.select(todo), basis, c.radius, c.stiffness,
+                                         c.shape)
+            grown, more = basis.extend(laid.eta, laid.K()), weights.extend_fields(laid.M)
+            keys, sub = ("a_raw", "b_raw", "c_raw"), more.select_motions(todo)
+            torque.solve_weights(grown, sub, tg.select(todo), ridge=self.cfg.solver.ridge)
+            more.set_flat(keys, sub.flat(keys), todo)
+            self._shoot(grown, more, tg, todo, state)
+            now = self._check(grown, more, tg)[1]
+            kept = sum(now) > sum(ok)
+            if kept:
+                state.model = model_state(grown, more)
+            state.history["rescue"] = {"motions": [tg.names[j] for j in todo], "M": grown.M,
+                                       "added": laid.M,
+                                       "reproduced": [tg.names[j] for j in todo if now[j]],
+                                       "kept": kept}
+            self.log.status(M=grown.M if kept else basis.M, reproduced=f"{sum(now)}/{tg.N}",
+                            kept=kept)
+            self.log.end_stage()
         self._advance(state)
         self.save(state)
 
