@@ -812,13 +812,14 @@ class Run:
         self.save(state)
 
     def _rescue(self, state: RunState, tg: Targets):
-        """(``solver.layout.rescue``) The motions still not reproduced get the spanning
-        layout's fields around them (:func:`tflearn.fit.layout.spanning_basis`, the
-        ``solver.layout`` settings) added to the basis, and their weights over the whole
+        """(``solver.layout.rescue``) The motions the path stage's result
+        (:meth:`final_model`) does not reproduce get the spanning layout's fields around
+        them (:func:`tflearn.fit.layout.spanning_basis`, the ``solver.layout`` settings)
+        added to the basis, and their weights over the whole
         basis by NNLS (``solver.ridge``) and multiple shooting; the other motions keep
         theirs, with zero weight on the new fields (their programs are unchanged). The
         grown model is kept if it reproduces more motions."""
-        basis, weights = model_from_state(state.model)
+        basis, weights = self.final_model(state)
         ok = self._check(basis, weights, tg)[1]
         todo = [j for j, x in enumerate(ok) if not x]
         if todo:
@@ -833,8 +834,8 @@ class Run:
             self._shoot(grown, more, tg, todo, state)
             now = self._check(grown, more, tg)[1]
             kept = sum(now) > sum(ok)
-            if kept:
-                state.model = model_state(grown, more)
+            if kept:                          # the run's result from here (not path's best)
+                state.model, state.path["best"] = model_state(grown, more), None
             state.history["rescue"] = {"motions": [tg.names[j] for j in todo], "M": grown.M,
                                        "added": laid.M,
                                        "reproduced": [tg.names[j] for j in todo if now[j]],
