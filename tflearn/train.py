@@ -72,6 +72,7 @@ import torch
 
 from . import config as config_mod
 from . import mocap, parallel
+from . import simulate as sim_mod
 from .body import from_config
 from .config import Config, ConfigError
 from .data import check_resolution, load_motions, torsos
@@ -105,7 +106,7 @@ class RunState:
     the random generator, the per-motion fits of ``each``, the current model
     (:func:`~tflearn.fields.model_state`), the reference scores of ``reduce`` and
     its elimination order, path matching's optimizer and best point, the history
-    reported in metrics.json, and the compute time spent so far."""
+    reported in metrics.json, and the compute time and simulations spent so far."""
 
     config: dict
     stage: str
@@ -113,6 +114,7 @@ class RunState:
     cursor: int = 0
     step: int = 0
     elapsed: float = 0.0
+    simulations: int = 0                               # this process' (rank 0's), over resumes
     fits: list = field(default_factory=list)          # [(η, K, timing and weights)]: search.pool
     model: Optional[dict] = None
     history: dict = field(default_factory=dict)
@@ -211,7 +213,8 @@ class Run:
     def save(self, state: RunState):
         """Write the checkpoint (rank 0; every rank counts it for ``stop_after``)."""
         state.elapsed += time.time() - self._t0
-        self._t0 = time.time()
+        state.simulations += sim_mod.calls - self._calls0
+        self._t0, self._calls0 = time.time(), sim_mod.calls
         if parallel.rank() == 0:
             self._write_checkpoint(state)
         self.checkpoints += 1
@@ -267,7 +270,7 @@ class Run:
 
     def _execute(self, restart: bool) -> dict:
         torch.manual_seed(self.cfg.seed)
-        self._t0 = time.time()
+        self._t0, self._calls0 = time.time(), sim_mod.calls
         motions = load_motions(self.cfg.data, self.body, strict=self.cfg.strict)
         self.resolution = check_resolution(self.body, motions)
         tg = prepare(self.body, motions, weight=self.cfg.solver.torque_weight,
@@ -886,6 +889,7 @@ class Run:
                             stability.growth(self.body, basis, weights, tg))
         for name, eps in zip(tg.names, self.resolution):
             metrics["motions"][name]["torque_resolution"] = eps
+        metrics["overall"]["simulations"] = state.simulations + sim_mod.calls - self._calls0
         metrics["history"] = state.history
         state.stage = "done"
         if parallel.rank() == 0:

@@ -170,19 +170,18 @@ def fit_pipeline_case(motions: list, cfg: ExperimentConfig, out: Path, seed: int
                       method: str = "pipeline") -> dict:
     """tflearn's training (:func:`tflearn.train.run`, no initial guess; ``method``'s config,
     :meth:`ExperimentConfig.training`) on ``motions``, in ``out`` (the motions as .npz, the
-    run in ``out``/run): {"metrics" (metrics.json), "wall" (over resumes), "sims", "M",
-    "run" (the run folder)}."""
+    run in ``out``/run): {"metrics" (metrics.json), "wall" and "sims" (over resumes),
+    "M", "run" (the run folder)}."""
     out.mkdir(parents=True, exist_ok=True)
     files = []
     for m in motions:
         save_motion(m, out / f"{m.name}.npz")
         files.append(str(out / f"{m.name}.npz"))
     tcfg = cfg.training(method).replace(data=files, out=str(out / "run"), seed=seed,
-                             success=cfg.success.model_dump())
-    calls0 = sim_mod.calls
+                                        success=cfg.success.model_dump())
     metrics = train.run(tcfg, progress=False)
     return {"metrics": metrics, "wall": metrics["overall"]["wall_time_s"],
-            "sims": sim_mod.calls - calls0, "M": metrics["overall"]["M"], "run": out / "run"}
+            "sims": metrics["overall"]["simulations"], "M": metrics["overall"]["M"], "run": out / "run"}
 
 
 def pipeline_outcome(metrics: dict, names: list) -> dict:
