@@ -503,7 +503,6 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert run._carried(weights, state) == set()   # a failed simulation: its fields are tried
     state.reference["rmse"][0] = rmse
     state.model, state.order, state.stage = model_state(basis, weights), [3, 2, 1, 0], "reduce"
-    run._t0 = time.time()                          # as Run._execute sets it; save() counts from it
     (tmp_path / "run").mkdir()                     # where the checkpoint goes
     run._reduce(state, tg)                         # field 3: kept without a trial
     assert state.history["reduce"] == [{"field": 3, "removed": False, "trial": "none", "M_after": 4,

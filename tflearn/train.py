@@ -180,6 +180,7 @@ class Run:
         self.stop_after = stop_after
         self.checkpoints = 0
         self._window = 1                             # reduce: trials checked together
+        self._t0, self._calls0 = time.time(), sim_mod.calls   # what save() counts from
         self._fields_before = (0, None)              # each: (upto, library) of _library
         self.progress = cfg.log.progress if progress is None else progress
         self.ckpt_path = self.out / "checkpoint.pt"
