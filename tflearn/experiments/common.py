@@ -41,6 +41,13 @@ from ..render import render
 from .config import ExperimentConfig
 
 F64 = torch.float64
+BAR_RMSE, BAR_TIP = 0.03, 0.02         # rad, m: the bar of field-generated motions (experiments 3, 5)
+
+
+def within_bar(rmse: float, tip: float) -> bool:
+    """Whether a motion's joint RMSE and tip error are within the bar of field-generated
+    motions (the goal of motions no field made)."""
+    return rmse <= BAR_RMSE and tip <= BAR_TIP
 
 
 @functools.cache

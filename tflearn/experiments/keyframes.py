@@ -25,7 +25,6 @@ from . import common
 from .config import ExperimentConfig
 
 TEXT = common.text("keyframes")
-GOAL_RMSE, GOAL_TIP = 0.03, 0.02       # rad, m: the bar of field-generated motions
 SHARED = ("come_here", "tuck", "backwards_reach")   # §4.2's four fields
 
 
@@ -107,17 +106,13 @@ def figures(cfg: ExperimentConfig, result: dict) -> list:
     return out + common.sheets(body, tg, sims, fig_dir)
 
 
-def _within(rmse: float, tip: float) -> bool:
-    return rmse <= GOAL_RMSE and tip <= GOAL_TIP
-
-
 def summary(result: dict) -> str:
     """Per method and motion: joint RMSE, tip error, the goal, M."""
     rows = [[x["method"], name, f"{x['rmse'][k]:.4f}", f"{100 * x['tip'][k]:.2f}",
-             "yes" if _within(x["rmse"][k], x["tip"][k]) else "no", x.get("M", 4)]
+             "yes" if common.within_bar(x["rmse"][k], x["tip"][k]) else "no", x.get("M", 4)]
             for x in result["rows"] for k, name in enumerate(x["motions"])]
     return common.table(["method", "motion", "joint RMSE (rad)", "tip error (cm)",
-                         f"≤ {GOAL_RMSE:g} rad and ≤ {100 * GOAL_TIP:g} cm", "M"], rows)
+                         f"≤ {common.BAR_RMSE:g} rad and ≤ {100 * common.BAR_TIP:g} cm", "M"], rows)
 
 
 def goals(result: dict) -> list:
@@ -127,9 +122,9 @@ def goals(result: dict) -> list:
     for method in dict.fromkeys(x["method"] for x in result["rows"]):
         pairs = [(r, p) for x in result["rows"] if x["method"] == method
                  for r, p in zip(x["rmse"], x["tip"])]
-        within = sum(_within(r, p) for r, p in pairs)
-        out.append((f"{method}: every motion with joint RMSE ≤ {GOAL_RMSE:g} rad and tip error "
-                    f"≤ {100 * GOAL_TIP:g} cm",
+        within = sum(common.within_bar(r, p) for r, p in pairs)
+        out.append((f"{method}: every motion with joint RMSE ≤ {common.BAR_RMSE:g} rad and tip error "
+                    f"≤ {100 * common.BAR_TIP:g} cm",
                     f"{within} of {len(pairs)} motions within it; the worst RMSE "
                     f"{max(r for r, _ in pairs):.3f} rad, the worst tip error "
                     f"{100 * max(p for _, p in pairs):.1f} cm", within == len(pairs)))

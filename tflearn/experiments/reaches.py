@@ -32,7 +32,6 @@ from .filtering import draw, filtered_table, straightness
 
 TEXT = common.text("reaches")
 GOAL_RMSE = 0.05                          # rad, the held-out reach against its input
-CLASS_BAR = (0.03, 0.02)                  # rad, m: the class's reaches, as every experiment's motions
 SCALES = (0.7, 0.85)                      # target distance, fraction of the arm's straight-ahead reach
 TURNS = (-0.6, -0.2, 0.2, 0.6)            # rad about the vertical
 HELD_OUT = (0.78, 0.0)                    # inside the class: between its scales and turns
@@ -149,9 +148,9 @@ def goals(result: dict) -> list:
     out = []
     for base, row in _pairs(result):
         name = base["method"]
-        ok = sum(r <= CLASS_BAR[0] and p <= CLASS_BAR[1] for r, p in zip(base["rmse"], base["tip"]))
-        out.append((f"{name}: every reach of the class with joint RMSE ≤ {CLASS_BAR[0]:g} rad "
-                    f"and tip error ≤ {100 * CLASS_BAR[1]:g} cm", f"{ok} of "
+        ok = sum(common.within_bar(r, p) for r, p in zip(base["rmse"], base["tip"]))
+        out.append((f"{name}: every reach of the class with joint RMSE ≤ {common.BAR_RMSE:g} rad "
+                    f"and tip error ≤ {100 * common.BAR_TIP:g} cm", f"{ok} of "
                     f"{len(base['success'])} within it; the worst RMSE {max(base['rmse']):.3f} "
                     f"rad, the worst tip error {100 * max(base['tip']):.1f} cm",
                     ok == len(base["success"])))
