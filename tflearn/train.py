@@ -828,9 +828,7 @@ class Run:
         todo = [j for j, x in enumerate(ok) if not x]
         if todo:
             self.log.stage("rescue", 1)
-            c = self.cfg.solver.layout
-            laid = layout.spanning_basis(self.body, tg.select(todo), basis, c.radius, c.stiffness,
-                                         c.shape)
+            laid = layout_basis(self.cfg, self.body, tg.select(todo))
             grown, more = basis.extend(laid.eta, laid.K()), weights.extend_fields(laid.M)
             keys, sub = ("a_raw", "b_raw", "c_raw"), more.select_motions(todo)
             torque.solve_weights(grown, sub, tg.select(todo), ridge=self.cfg.solver.ridge)
@@ -964,12 +962,17 @@ def empty_basis(cfg: Config, body) -> FieldBasis:
     return FieldBasis.empty(body.nv, m.stiffness, body.blocks, m.field_damping)
 
 
-def layout_model(cfg: Config, body, tg: Targets) -> tuple:
-    """The ``layout`` stage's model before NNLS: the config's spanning basis
-    (:func:`tflearn.fit.layout.spanning_basis`, ``solver.layout``) around the motions of
-    ``tg``, and zero weights on each motion's ``model.windows`` sub-movement windows."""
+def layout_basis(cfg: Config, body, tg: Targets) -> FieldBasis:
+    """The config's spanning basis (:func:`tflearn.fit.layout.spanning_basis`,
+    ``solver.layout``) around the motions of ``tg``."""
     c = cfg.solver.layout
-    basis = layout.spanning_basis(body, tg, empty_basis(cfg, body), c.radius, c.stiffness, c.shape)
+    return layout.spanning_basis(body, tg, empty_basis(cfg, body), c.radius, c.stiffness, c.shape)
+
+
+def layout_model(cfg: Config, body, tg: Targets) -> tuple:
+    """The ``layout`` stage's model before NNLS: :func:`layout_basis` and zero weights on
+    each motion's ``model.windows`` sub-movement windows."""
+    basis = layout_basis(cfg, body, tg)
     return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names,
                                       submovement_windows(tg, cfg.model.windows))
 
