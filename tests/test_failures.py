@@ -118,6 +118,28 @@ def test_one_failing_motion_leaves_the_others_scored(pair, batch):
     assert math.isfinite(summary["motions"]["tuck"]["growth_rate"])
 
 
+def test_until_failure_stops_simulating_at_the_first_failed_motion(pair):
+    """``score(..., until_failure=True)``, for a judge that refuses any failure: the batch
+    fails, tuck (first, weights ×10⁴) fails alone, and come_here after it is not
+    simulated — one simulation fewer than without the flag, come_here reported failed
+    with the reason; the verdict "some motion failed" is the same."""
+    body, basis, weights, tg = pair
+    wild = weights.select_motions([1, 0])
+    with torch.no_grad():
+        wild.a_raw[0] *= 1e4
+    swapped = tg.select([1, 0])
+    opts = S.SimOptions(rtol=1e-7, atol=1e-9, max_evals=5000)
+    calls = S.calls
+    full = metrics.score(body, basis, wild, swapped, opts)
+    assert S.calls - calls == 3 and full.failure[1] is None
+    calls = S.calls
+    short = metrics.score(body, basis, wild, swapped, opts, until_failure=True)
+    assert S.calls - calls == 2
+    assert "budget" in short.failure[0] and short.failure[1] == "not simulated: tuck failed first"
+    assert short.rmse == [float("inf")] * 2 and bool(short.q_sim[1].isnan().all())
+    assert short.succeeded(0.03, 0.02) == [False, False]
+
+
 def test_path_step_rejects_a_diverged_point_naming_the_motion(pair):
     """After a good step, weights that went NaN: the step is rejected with a
     DivergenceWarning naming the motions, the parameters go back to the best point and

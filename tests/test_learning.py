@@ -18,6 +18,7 @@ from torch.func import functional_call
 
 from tflearn import config, data, gestures, metrics, train
 from tflearn import motion as motion_mod
+from tflearn import simulate as sim_mod
 from tflearn.fields import FieldBasis, MotionWeights, model_from_state, model_state
 from tflearn.fit import path as path_fit
 from tflearn.fit import targets, torque
@@ -465,7 +466,8 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     field takes the whole step, 3) and tuck's untouched bit for bit; tuck's only field
     stays (without it tuck is not reproduced). Once come_here counts as not reproduced,
     elimination keeps its fields (0 and the copy) without a trial, and the unused field
-    still goes; had its simulation failed, its fields would be tried."""
+    still goes, as it is: no refit, no simulation; had its simulation failed, its fields
+    would be tried."""
     programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
     (m0, lb), (m1, _) = gestures.generate(gestures=programs)
     body = lb.body
@@ -507,8 +509,11 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert state.history["reduce"] == [{"field": 3, "removed": False, "trial": "none", "M_after": 4,
                                         "refused": "used by a motion not reproduced"}]
     assert state.cursor == 1 and state.ids == [0, 1, 2, 3]
-    run._reduce(state, tg)                         # field 2: no motion uses it, it goes
-    assert state.history["reduce"][-1]["removed"] and state.ids == [0, 1, 3]
+    calls, step = sim_mod.calls, state.step
+    run._reduce(state, tg)                         # field 2: no motion uses it, it goes as it is
+    assert state.history["reduce"][-1] == {"field": 2, "removed": True, "trial": "held", "M_after": 3}
+    assert state.ids == [0, 1, 3] and sim_mod.calls == calls and state.step == step + 1
+    assert torch.equal(model_from_state(state.model)[1].a, a[:, [0, 1, 3]])
 
 
 def test_reuse_takes_a_motion_onto_the_fields_found_before(tmp_path):

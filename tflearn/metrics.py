@@ -69,10 +69,11 @@ def path_errors(body: Body, q_sim: torch.Tensor, tg: Targets):
     return rmse, (tip * m).amax(-1)
 
 
-def _simulate_each(body, basis, weights, tg, options):
+def _simulate_each(body, basis, weights, tg, options, until_failure=False):
     """q_sim (N×T×n) and failures (N): the batch at once, and if it fails each motion
     alone on its own grid, so that one failing motion costs only itself — with batch
-    ``each`` in the same run, every motion stepped alone in it."""
+    ``each`` in the same run, every motion stepped alone in it. ``until_failure``: once a
+    motion alone fails, the motions after it are not simulated (failed, "not simulated")."""
     if options.batch == "each":
         return _simulate_models(body, [(basis, weights)], tg, options)[0]
     try:
@@ -80,24 +81,29 @@ def _simulate_each(body, basis, weights, tg, options):
     except SimulationFailed as err:
         if tg.N == 1:
             return torch.full_like(tg.q, float("nan")), [str(err)]
-    q_sim, failure = torch.full_like(tg.q, float("nan")), []
+    q_sim, failure, first = torch.full_like(tg.q, float("nan")), [], None
     for j in range(tg.N):
+        if until_failure and first is not None:
+            failure.append(f"not simulated: {tg.names[first]} failed first")
+            continue
         one = tg.select([j])
         try:
             q_sim[j] = simulate_targets(body, basis, weights.select_motions([j]), one, options)[0][0]
             failure.append(None)
         except SimulationFailed as err:
             failure.append(str(err))
+            first = j if first is None else first
     return q_sim, failure
 
 
-def _simulate_distributed(body, basis, weights, tg, options):
+def _simulate_distributed(body, basis, weights, tg, options, until_failure=False):
     """:func:`_simulate_each` of this rank's motions, every rank's gathered (N×T×n, N)."""
     if parallel.size() == 1:
-        return _simulate_each(body, basis, weights, tg, options)
+        return _simulate_each(body, basis, weights, tg, options, until_failure)
     idx, part = parallel.mine(tg.N), []
     if idx:
-        q_sim, failure = _simulate_each(body, basis, weights.select_motions(idx), tg.select(idx), options)
+        q_sim, failure = _simulate_each(body, basis, weights.select_motions(idx), tg.select(idx),
+                                        options, until_failure)
         part = list(zip(q_sim, failure))
     rows = parallel.gather_motions(tg.N, part)
     return torch.stack([q for q, _ in rows]).to(tg.q.device), [f for _, f in rows]
@@ -106,13 +112,17 @@ def _simulate_distributed(body, basis, weights, tg, options):
 @torch.no_grad()
 def score(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
           options: SimOptions = SimOptions(), q_sim: Optional[torch.Tensor] = None, *,
-          distributed: bool = False) -> Scores:
+          distributed: bool = False, until_failure: bool = False) -> Scores:
     """Simulate every motion (unless ``q_sim`` is given) and score it; see the module.
-    ``distributed``: share the simulations among the ranks of a run."""
+    ``distributed``: share the simulations among the ranks of a run; ``until_failure``:
+    where motions are simulated one by one (after a batch ``shared`` simulation failed),
+    stop at the first that fails, the rest scored as failed ("not simulated: …") — all
+    that a judge needs for whom any failure is a refusal (:func:`tflearn.train.no_worse`),
+    without paying for the others' simulations, each as long as its evaluation budget."""
     failure = [None] * tg.N
     if q_sim is None:
         simulate = _simulate_distributed if distributed else _simulate_each
-        q_sim, failure = simulate(body, basis, weights, tg, options)
+        q_sim, failure = simulate(body, basis, weights, tg, options, until_failure)
     return _scores(body, basis, weights, tg, q_sim, failure)
 
 

@@ -155,6 +155,12 @@ def _reference(scores: Scores, ok: list) -> dict:
     return {"rmse": list(scores.rmse), "tip": list(scores.tip), "ok": list(ok)}
 
 
+def _users(weights) -> torch.Tensor:
+    """N×M bools: whether motion j has a weight (a, b or c) on field i."""
+    with torch.no_grad():
+        return (weights.a + weights.b + weights.c.sum(-1)) > 0
+
+
 def _weight_support(fields: Optional[list], P: int) -> Optional[torch.Tensor]:
     """The weights (N×M(2+P) bools, [a | b | c]) of the fields each motion may use
     (N×M lists of bools, :attr:`RunState.support`); None: every weight free."""
@@ -308,10 +314,12 @@ class Run:
         state.stage = self.sequence[self.sequence.index(state.stage) + 1]
         state.cursor = 0
 
-    def _check(self, basis, weights, tg: Targets, distributed: bool = True):
+    def _check(self, basis, weights, tg: Targets, distributed: bool = True, until_failure: bool = False):
         """(scores, success per motion); ``distributed``: the simulations shared by the
-        ranks (every rank gets all motions' scores), else simulated here."""
-        scores = score(self.body, basis, weights, tg, self.options, distributed=distributed)
+        ranks (every rank gets all motions' scores), else simulated here;
+        ``until_failure``: for a judge that refuses any failure (:func:`~tflearn.metrics.score`)."""
+        scores = score(self.body, basis, weights, tg, self.options, distributed=distributed,
+                       until_failure=until_failure)
         return scores, scores.succeeded(self.cfg.success.rmse, self.cfg.success.tip)
 
     def _tick(self, state: RunState) -> int:
@@ -544,8 +552,9 @@ class Run:
 
     def _reduce(self, state: RunState, tg: Targets):
         """Backward elimination. With model.fields = 0 a field goes only if no motion gets
-        worse (:func:`no_worse`), and a field that a motion not reproduced uses is kept
-        without a trial (:meth:`_carried`): first with every field refitted by EM (:meth:`_trial`;
+        worse (:func:`no_worse`), a field no motion uses goes as it is (:meth:`_idle`),
+        and a field that a motion not reproduced uses is kept without a trial
+        (:meth:`_carried`); any other is tried first with every field refitted by EM (:meth:`_trial`;
         ``solver.reduce.refit``), then, if that breaks a motion or refitting is off, with
         every other field held where it is (:meth:`_held_trial`: only the motions that
         used it re-solve their weights and are simulated again); with model.fields = M
@@ -576,10 +585,14 @@ class Run:
         window = self._window if together else 1
         victims = state.order[k:total(basis.M)][:window]
         carried = set() if fixed else self._carried(weights, state)
+        idle = set() if fixed else self._idle(weights, state)
         if victims[0] in carried:                    # kept without a trial
             self._apply_trial(state, self._kept(victims[0]), tg, total)
             return
-        victims = victims[:next((i for i, v in enumerate(victims) if v in carried), len(victims))]
+        if victims[0] in idle:                       # removed as it is: nothing changes
+            self._apply_trial(state, self._held_trial(basis, weights, tg, state, victims[0]), tg, total)
+            return
+        victims = victims[:next((i for i, v in enumerate(victims) if v in carried | idle), len(victims))]
         trials = [self._trial(basis, weights, tg, state, victim) for victim in victims] if refit else []
         checks = ([None] * len(trials) if fixed or not trials
                   else self._checks([t["model"] for t in trials], tg))
@@ -602,11 +615,16 @@ class Run:
         left straight_reach with two fields that shooting could not carry). The fields of
         a motion whose simulation fails are still tried: a removal that lets it be
         simulated is one that path matching needs."""
-        with torch.no_grad():
-            used = (weights.a + weights.b + weights.c.sum(-1)) > 0                 # N×M
+        used = _users(weights)
         ref = state.reference
         off = torch.tensor([not ok and math.isfinite(r) for ok, r in zip(ref["ok"], ref["rmse"])])
         return {state.ids[i] for i in used[off].any(0).nonzero().flatten().tolist()}
+
+    @staticmethod
+    def _idle(weights, state: RunState) -> set:
+        """The fields (ids) on which no motion has a weight: removed without a refit (its
+        held trial changes no motion's torques, so it needs no simulation either)."""
+        return {state.ids[i] for i in (~_users(weights).any(0)).nonzero().flatten().tolist()}
 
     @staticmethod
     def _kept(victim: int) -> dict:
@@ -619,9 +637,7 @@ class Run:
         weight on it (a, b or c) get their weights re-solved by NNLS over the fields left
         and are checked by simulation; the others keep their weights, paths and scores."""
         pos, keep, nb, nw, support = self._without(basis, weights, state, victim)
-        with torch.no_grad():
-            used = weights.a[:, pos] + weights.b[:, pos] + weights.c[:, pos].sum(-1)
-        users = [j for j in range(tg.N) if float(used[j]) > 0]
+        users = _users(weights)[:, pos].nonzero().flatten().tolist()
         self.log.busy(M=basis.M, holding=victim, motions=len(users))
         check = None
         if users:
@@ -630,7 +646,7 @@ class Run:
                                  _weight_support([support[j] for j in users], nw.P))
             keys = ("a_raw", "b_raw", "c_raw")
             nw.set_flat(keys, sub.flat(keys), users)
-            check = self._check(nb, sub, one)
+            check = self._check(nb, sub, one, until_failure=True)
         cost = float(torque.by_chunks(torque.torque_cost, nb, nw, tg).sum())
         return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support, "cost": cost,
                 "em_steps": 0, "check": check, "motions": users, "trial": "held"}
@@ -656,9 +672,11 @@ class Run:
         return pos, keep, basis.select(keep), weights.select_fields(keep), support
 
     def _checks(self, models: list, tg: Targets) -> list:
-        """(scores, success) of each model: one batch for several, else :meth:`_check`."""
+        """(scores, success) of each model, for a trial's judge (:meth:`_accepts`, which
+        refuses any failed simulation): one batch for several, else :meth:`_check` up to
+        the first failure."""
         if len(models) == 1:
-            return [self._check(*models[0], tg)]
+            return [self._check(*models[0], tg, until_failure=True)]
         return [(s, s.succeeded(self.cfg.success.rmse, self.cfg.success.tip))
                 for s in score_models(self.body, models, tg, self.options)]
 
