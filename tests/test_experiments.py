@@ -218,6 +218,18 @@ def test_reaches_quick_layout(tmp_path):
     assert {"held_out_reach_hand.png", "reach_0.7_-0.2.png"} <= set(res["figures"])
 
 
+def test_filtered_table_marks_a_path_not_simulated():
+    """A held-out motion whose simulation failed (RMSE ∞, deviation NaN) reads "–" in the
+    filtered column, not "nan%"; a simulated one its deviation in %."""
+    from tflearn.experiments import filtering
+    inf, nan = float("inf"), float("nan")
+    row = {"motions": ["held", "ok"], "rmse": [inf, 0.01], "tip": [inf, 0.002],
+           "straightness_in": [0.0, 0.001], "straightness_out": [nan, 0.0123]}
+    lines = filtering.filtered_table(row, "held-out motion").splitlines()
+    assert lines[2] == "| held | inf | inf | 0.0% | – |"
+    assert lines[3] == "| ok | 0.0100 | 0.2 | 0.1% | 1.2% |"
+
+
 def test_reach_class_is_straight_and_spread():
     """The reach class of experiment 5: eight straight-line reaches from rest (hand paths
     straight to the IK's 1 mm) to distinct targets, and a held-out one inside the class

@@ -8,6 +8,7 @@ the hand path's deviation from its chord (:func:`straightness`).
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -111,10 +112,15 @@ def filtered_table(row: dict, what: str) -> str:
     """Per motion of a filter row: its distance to its input and both hand paths'
     deviation from their chords (``what`` names the motions' column)."""
     rows = [[name, f"{row['rmse'][k]:.4f}", f"{100 * row['tip'][k]:.1f}",
-             f"{100 * row['straightness_in'][k]:.1f}%", f"{100 * row['straightness_out'][k]:.1f}%"]
+             _deviation(row["straightness_in"][k]), _deviation(row["straightness_out"][k])]
             for k, name in enumerate(row["motions"])]
     return common.table([what, "RMSE to input (rad)", "max tip distance to input (cm)",
                          "hand-path deviation from chord: input", "filtered"], rows)
+
+
+def _deviation(x: float) -> str:
+    """A hand path's deviation from its chord in %, or "–" for a path not simulated (NaN)."""
+    return f"{100 * x:.1f}%" if math.isfinite(x) else "–"
 
 
 def goals(result: dict) -> list:  # [(goal, measured, met)]
