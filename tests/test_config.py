@@ -97,6 +97,11 @@ def test_unknown_key_suggests_close_match(tmp_path):
         config.load(None, ["model.stifness=diag"])
 
 
+def test_a_moved_key_says_where_it_went():
+    with pytest.raises(ConfigError, match=r"solver.layout.rescue is now solver.rescue.enabled"):
+        config.load(None, ["solver.layout.rescue=true"])
+
+
 @pytest.mark.parametrize("override,key", [
     ("bogus=1", "bogus"),
     ("solver.em.stepz=3", "solver.em.stepz"),

@@ -516,6 +516,27 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert torch.equal(model_from_state(state.model)[1].a, a[:, [0, 1, 3]])
 
 
+def test_a_model_checked_again_is_not_simulated_again(tmp_path):
+    """:meth:`train.Run._check` of the model it checked last, on the same targets, returns
+    those scores without a simulation (rescue's opening check and the run's final one
+    repeat the path stage's); a changed weight or other targets are simulated."""
+    programs = [gestures.GESTURES["come_here"]]
+    (m0, lb), = gestures.generate(gestures=programs)
+    basis, weights, _ = gestures.library_model(programs, lb.body)
+    tg = targets.prepare(lb.body, [m0])
+    run = train.Run(small_config("gestures", tmp_path / "run"))
+    scores, ok = run._check(basis, weights, tg)
+    calls = sim_mod.calls
+    again, ok_again = run._check(basis, weights, tg)
+    assert sim_mod.calls == calls and again is scores and ok_again == ok == [True]
+    with torch.no_grad():
+        weights.a_raw.add_(0.5)
+    moved = run._check(basis, weights, tg)[0]
+    assert sim_mod.calls == calls + 1 and moved.rmse[0] > 10 * scores.rmse[0]
+    run._check(basis, weights, targets.prepare(lb.body, [m0]))
+    assert sim_mod.calls == calls + 2
+
+
 def test_reuse_takes_a_motion_onto_the_fields_found_before(tmp_path):
     """``solver.each.reuse`` (:meth:`train.Run._library`, :meth:`train.Run._reuse`): the
     fields fitted for earlier motions — come_here's twice (a copy 1e-9 rad off, merged)

@@ -342,12 +342,12 @@ def test_path_stage_starts_with_multiple_shooting(small_motions, tmp_path, monke
     seen = {}
     shoot = train.Run._shoot
 
-    def spy(self, basis, weights, tg, motions, state):
+    def spy(self, basis, weights, tg, motions, state, opts=None):
         seen.update(model=model_state(basis, weights), motions=list(motions), tg=tg)
-        return shoot(self, basis, weights, tg, motions, state)
+        return shoot(self, basis, weights, tg, motions, state, opts)
     monkeypatch.setattr(train.Run, "_shoot", spy)
     cfg = small_config(small_motions["data"], tmp_path / "run", "success.rmse=1e-6", "success.tip=1e-6",
-                       "solver.each.max_fields=1",
+                       "solver.each.max_fields=1", "solver.rescue.enabled=false",
                        "solver.path.steps=0", "solver.shooting.iterations=1")
     metrics = train.run(cfg)
     lb, tg = bio.load(tmp_path / "run" / "basis.json"), seen["tg"]

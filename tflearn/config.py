@@ -17,7 +17,15 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Type, Union
 
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
 
 from .errors import InputError
@@ -142,10 +150,32 @@ class LayoutSection(Section):                   # method layout: fields spanning
     shape: Literal["cross", "simplex"] = "cross"
     radius: float = Field(2.0, gt=0, allow_inf_nan=False)     # centres at ν̄ + radius u_i (rad)
     stiffness: float = Field(1.0, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
-    # method pipeline: motions the path stage leaves unreproduced get these fields, laid out
-    # around them, added to the basis, and their weights over it by NNLS and multiple
-    # shooting (the stage rescue; kept where it reproduces more motions)
-    rescue: bool = False
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved(cls, doc):
+        if isinstance(doc, dict) and "rescue" in doc:
+            raise PydanticCustomError("moved", "solver.layout.rescue is now solver.rescue.enabled, "
+                                      "with its own layout and shooting settings (solver.rescue)")
+        return doc
+
+
+class RescueSection(Section):
+    # method pipeline: the motions the path stage leaves unreproduced get fields laid out
+    # around them (tflearn.fit.layout) added to the basis, their weights by NNLS on those
+    # fields, then multiple shooting over the whole basis (solver.shooting's horizon); kept
+    # where it reproduces more motions. Its own settings, not the run's: those of
+    # configs/mocap.yaml's layout, which carry recorded, keyframed and reaching motion
+    # (docs/model.md "Rescue")
+    enabled: bool = True
+    iterations: int = Field(6, ge=0)                                 # its shooting's, per horizon
+    shape: Literal["cross", "simplex"] = "simplex"
+    radius: float = Field(16.0, gt=0, allow_inf_nan=False)
+    stiffness: float = Field(0.0625, gt=0, allow_inf_nan=False)
+    ridge: float = Field(1e-4, ge=0, allow_inf_nan=False)            # its NNLS' λ (solver.ridge)
+    torque_weight: Literal["uniform", "inertia"] = "inertia"         # its NNLS' (solver.torque_weight)
+    tip_weight: float = Field(100.0, ge=0, allow_inf_nan=False)      # its shooting's γ
+    velocity_weight: float = Field(0.01, ge=0)                       # and β
 
 
 class SolverSection(Section):
@@ -171,6 +201,7 @@ class SolverSection(Section):
     reduce: ReduceSection = ReduceSection()
     slsqp: SlsqpSection = SlsqpSection()
     layout: LayoutSection = LayoutSection()
+    rescue: RescueSection = RescueSection()
 
 
 class SuccessSection(Section):

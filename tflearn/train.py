@@ -26,7 +26,7 @@ result:
                 motions shared by the ranks), then, if some are still not
                 reproduced, safeguarded Adam on the simulated path loss of fields and
                 weights through ``odeint`` (one unit per step);
-5. ``rescue`` — with ``solver.layout.rescue`` only: motions still not reproduced get a
+5. ``rescue`` — with ``solver.rescue.enabled`` only: motions still not reproduced get a
                 spanning layout's fields laid out around them added to the basis, and
                 their weights over it by NNLS and multiple shooting (one unit; kept if
                 it reproduces more motions);
@@ -80,7 +80,7 @@ from .errors import InputError
 from .fields import FieldBasis, MotionWeights, model_from_state, model_state
 from .fit import layout, search, shooting, slsqp, stability, torque
 from .fit import path as path_fit
-from .fit.targets import Targets, prepare, submovement_windows
+from .fit.targets import Targets, inertia_weights, prepare, submovement_windows
 from .io import basis as basis_io
 from .io.files import replacing, write_text
 from .log import RunLog
@@ -186,6 +186,7 @@ class Run:
         self.stop_after = stop_after
         self.checkpoints = 0
         self._window = 1                             # reduce: trials checked together
+        self._checked = None                         # _check: (key, scores) of the last one
         self._t0, self._calls0 = time.time(), sim_mod.calls   # what save() counts from
         self._fields_before = (0, None)              # each: (upto, library) of _library
         self.progress = cfg.log.progress if progress is None else progress
@@ -195,7 +196,7 @@ class Run:
                        "path": self._path, "rescue": self._rescue, "slsqp": self._slsqp,
                        "layout": self._layout}
         self.sequence = tuple(x for x in SEQUENCES[cfg.solver.method]
-                              if x != "rescue" or cfg.solver.layout.rescue)
+                              if x != "rescue" or cfg.solver.rescue.enabled)
         if cfg.solver.method == "layout" and (cfg.model.stiffness == "scalar" or cfg.model.fields):
             raise ConfigError("solver.method 'layout' lays out its fields with a stiffness per "
                               "coordinate: it needs model.fields=0 and model.stiffness diag, block "
@@ -317,9 +318,14 @@ class Run:
     def _check(self, basis, weights, tg: Targets, distributed: bool = True, until_failure: bool = False):
         """(scores, success per motion); ``distributed``: the simulations shared by the
         ranks (every rank gets all motions' scores), else simulated here;
-        ``until_failure``: for a judge that refuses any failure (:func:`~tflearn.metrics.score`)."""
-        scores = score(self.body, basis, weights, tg, self.options, distributed=distributed,
-                       until_failure=until_failure)
+        ``until_failure``: for a judge that refuses any failure (:func:`~tflearn.metrics.score`).
+        The same model checked again on the same targets is not simulated again."""
+        key = (tg, model_state(basis, weights), distributed, until_failure)
+        if self._checked is None or not _same_check(self._checked[0], key):
+            scores = score(self.body, basis, weights, tg, self.options, distributed=distributed,
+                           until_failure=until_failure)
+            self._checked = (key, scores)
+        scores = self._checked[1]
         return scores, scores.succeeded(self.cfg.success.rmse, self.cfg.success.tip)
 
     def _tick(self, state: RunState) -> int:
@@ -788,11 +794,11 @@ class Run:
         state.cursor += 1
         self.save(state)
 
-    def _shoot(self, basis, weights, tg: Targets, motions: list, state: RunState) -> None:
+    def _shoot(self, basis, weights, tg: Targets, motions: list, state: RunState, opts=None) -> None:
         """Multiple-shooting path matching of ``motions``' weights, the basis fixed
-        (:func:`tflearn.fit.shooting.shooting_match`), the motions shared by the ranks;
-        ``weights`` changed in place."""
-        opts = self.cfg.solver.shooting.options(self.cfg.model.phases == "variable")
+        (:func:`tflearn.fit.shooting.shooting_match`; ``opts``, by default
+        ``solver.shooting``'s), the motions shared by the ranks; ``weights`` changed in place."""
+        opts = opts or self.cfg.solver.shooting.options(self.cfg.model.phases == "variable")
         keys = shooting.keys_of(opts)
         mine = [motions[i] for i in parallel.mine(len(motions))]
         self.log.busy(shooting=len(motions))
@@ -834,24 +840,33 @@ class Run:
         self.save(state)
 
     def _rescue(self, state: RunState, tg: Targets):
-        """(``solver.layout.rescue``) The motions the path stage's result
-        (:meth:`final_model`) does not reproduce get the spanning layout's fields around
-        them (:func:`tflearn.fit.layout.spanning_basis`, the ``solver.layout`` settings)
-        added to the basis, and their weights over the whole
-        basis by NNLS (``solver.ridge``) and multiple shooting; the other motions keep
+        """(``solver.rescue.enabled``) The motions the path stage's result
+        (:meth:`final_model`) does not reproduce get fields laid out around them
+        (:func:`tflearn.fit.layout.spanning_basis`, ``solver.rescue``'s layout) added to the
+        basis; their weights start on the new fields alone, by NNLS (its ridge and torque
+        weights), and multiple shooting (``solver.shooting``'s horizon, its iterations, tip
+        and velocity weights) then fits them over the whole basis. The other motions keep
         theirs, with zero weight on the new fields (their programs are unchanged). The
         grown model is kept if it reproduces more motions."""
+        r = self.cfg.solver.rescue
         basis, weights = self.final_model(state)
         ok = self._check(basis, weights, tg)[1]
         todo = [j for j, x in enumerate(ok) if not x]
         if todo:
             self.log.stage("rescue", 1)
-            laid = layout_basis(self.cfg, self.body, tg.select(todo))
+            sub = tg.select(todo)
+            sub = replace(sub, coord_weight=inertia_weights(self.body, sub)
+                          if r.torque_weight == "inertia" else None)
+            laid = layout_basis(self.cfg, self.body, sub, r)
             grown, more = basis.extend(laid.eta, laid.K()), weights.extend_fields(laid.M)
-            keys, sub = ("a_raw", "b_raw", "c_raw"), more.select_motions(todo)
-            torque.solve_weights(grown, sub, tg.select(todo), ridge=self.cfg.solver.ridge)
-            more.set_flat(keys, sub.flat(keys), todo)
-            self._shoot(grown, more, tg, todo, state)
+            keys, subw = ("a_raw", "b_raw", "c_raw"), more.select_motions(todo)
+            new = _weight_support([[False] * basis.M + [True] * laid.M] * len(todo), subw.P)
+            torque.solve_weights(grown, subw, sub, ridge=r.ridge, support=new)
+            more.set_flat(keys, subw.flat(keys), todo)
+            opts = replace(self.cfg.solver.shooting.options(self.cfg.model.phases == "variable"),
+                           iterations=r.iterations, tip_weight=r.tip_weight,
+                           velocity_weight=r.velocity_weight)
+            self._shoot(grown, more, tg, todo, state, opts)
             now = self._check(grown, more, tg)[1]
             kept = sum(now) > sum(ok)
             if kept:                          # the run's result from here (not path's best)
@@ -974,16 +989,28 @@ def on_device(device: torch.device):
     return contextlib.nullcontext() if device.type == "cpu" else device
 
 
+def _same_check(a: tuple, b: tuple) -> bool:
+    """Whether two :meth:`Run._check` keys (targets, model state, flags) are the same:
+    the same targets object, equal tensors and equal values."""
+    def same(x, y):
+        if isinstance(x, dict):
+            return x.keys() == y.keys() and all(same(x[k], y[k]) for k in x)
+        if isinstance(x, torch.Tensor):
+            return x.shape == y.shape and bool(torch.equal(x, y))
+        return x == y
+    return a[0] is b[0] and a[2:] == b[2:] and same(a[1], b[1])
+
+
 def empty_basis(cfg: Config, body) -> FieldBasis:
     """An empty basis of the config's stiffness kind and field damping on the body's blocks."""
     m = cfg.model
     return FieldBasis.empty(body.nv, m.stiffness, body.blocks, m.field_damping)
 
 
-def layout_basis(cfg: Config, body, tg: Targets) -> FieldBasis:
-    """The config's spanning basis (:func:`tflearn.fit.layout.spanning_basis`,
-    ``solver.layout``) around the motions of ``tg``."""
-    c = cfg.solver.layout
+def layout_basis(cfg: Config, body, tg: Targets, c=None) -> FieldBasis:
+    """The spanning basis (:func:`tflearn.fit.layout.spanning_basis`) of ``c``'s shape,
+    radius and stiffness (by default ``solver.layout``) around the motions of ``tg``."""
+    c = c or cfg.solver.layout
     return layout.spanning_basis(body, tg, empty_basis(cfg, body), c.radius, c.stiffness, c.shape)
 
 
