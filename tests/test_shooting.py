@@ -21,6 +21,7 @@ from tflearn.fields import FieldBasis, FieldProgram, MotionWeights, model_from_s
 from tflearn.fit import path as path_fit
 from tflearn.fit import shooting, targets
 from tflearn.io import basis as bio
+from tflearn.metrics import score
 from tflearn.motion import Motion
 from tflearn.simulate import SimOptions, simulate
 
@@ -403,3 +404,48 @@ def test_synthesis_reports_a_stopped_shooting():
     with pytest.warns(DivergenceWarning, match="come_here: multiple shooting stopped: cannot be"):
         w = evaluate.synthesize(lb, tg, shooting.ShootingOptions(iterations=2), SimOptions(max_evals=3))
     assert torch.equal(w.vector(), nnls.vector()) and float(w.vector().detach().sum()) > 0
+
+
+def _tuck_and_come_here():
+    """(the LearnedBasis of come_here's and tuck's generating fields and programs, their
+    motions)."""
+    from tflearn import gestures
+    from tflearn.io.basis import LearnedBasis
+    programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
+    pairs = gestures.generate(gestures=programs)
+    body = pairs[0][1].body
+    basis, weights, _ = gestures.library_model(programs, body)
+    q0 = torch.zeros(2, body.nv, dtype=DT)
+    lb = LearnedBasis(body, basis, weights, q0, q0, torch.full((2,), 100.0, dtype=DT))
+    return lb, [m for m, _ in pairs]
+
+
+def test_nearest_programs_are_the_best_matching_ones_scaled_in_time():
+    """:func:`evaluate.nearest_programs`: each motion gets the basis' program whose torques
+    match it best — a motion's own (cost 0) —, its onsets and durations scaled by the
+    ratio of the durations (a motion played at half speed: twice as long)."""
+    lb, (come, tuck) = _tuck_and_come_here()
+    got = evaluate.nearest_programs(lb, targets.prepare(lb.body, [tuck, come]))
+    assert got.names == ["tuck", "come_here"]
+    assert torch.equal(got.vector(), lb.weights.select_motions([1, 0]).vector())
+    slow = Motion("slow_tuck", 2 * tuck.t, tuck.q, tuck.qd / 2)
+    got = evaluate.nearest_programs(lb, targets.prepare(lb.body, [slow]))
+    keys = got.TIMING + got.WINDOWS
+    k = [j for j in range(2) if torch.equal(got.flat(("a_raw",)), lb.weights.flat(("a_raw",))[[j]])]
+    assert len(k) == 1 and float(got.duration[0]) == pytest.approx(2 * float(lb.weights.duration[k[0]]))
+    assert torch.allclose(got.flat(keys), 2 * lb.weights.flat(keys)[k], rtol=1e-12, atol=0)
+
+
+def test_synthesis_falls_back_on_the_nearest_program():
+    """A motion that its NNLS weights (a ridge of 1e6 shrinks them to nearly 0) and one
+    shooting iteration from them bring within 0.0017 rad of its path, where the bar is
+    1e-5 rad, is fitted again from the nearest program — its own, 2e-9 rad off — and
+    keeps that fit; with a bar the first fit meets, it keeps the first."""
+    lb, (come, tuck) = _tuck_and_come_here()
+    tg = targets.prepare(lb.body, [tuck])
+    opts, sim = shooting.ShootingOptions(iterations=1), SimOptions(max_evals=20000)
+    first = evaluate.synthesize(lb, tg, opts, sim, (0.03, 0.02), ridge=1e6)
+    assert 1e-3 < score(lb.body, lb.basis, first, tg, sim).rmse[0] < 0.03
+    w = evaluate.synthesize(lb, tg, opts, sim, (1e-5, 1e-5), ridge=1e6)
+    assert score(lb.body, lb.basis, w, tg, sim).rmse[0] < 1e-8
+    assert torch.allclose(w.vector(), lb.weights.select_motions([1]).vector(), atol=1e-6)

@@ -16,7 +16,7 @@ from .fields import FieldProgram, MotionWeights
 from .fit import stability
 from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
-from .fit.torque import DivergenceWarning, solve_weights
+from .fit.torque import DivergenceWarning, by_chunks, solve_weights, torque_cost
 from .io import basis as basis_io
 from .io.files import write_text
 from .metrics import UNITS, pooled_rmse, score, summarize
@@ -42,22 +42,64 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     hand-tip error ≤ ``success[1]`` m, as in training) then get
     their weights (and with ``shooting.phases`` their activation timing) by
     multiple-shooting path matching (:func:`tflearn.fit.shooting.shooting_match`; None:
-    NNLS only; where it stops early, a :class:`~tflearn.fit.torque.DivergenceWarning`
-    names the motion and why). The new motions get as many sub-movement windows as the basis' own
+    NNLS only). A motion that is still not reproduced is fitted again by shooting from the
+    basis' own program whose torques match it best (:func:`nearest_programs`), and keeps
+    whichever of the two simulates closer to it (joint RMSE); where the kept fit's
+    shooting stopped early, a :class:`~tflearn.fit.torque.DivergenceWarning` names the
+    motion and why. The new motions get as many sub-movement windows as the basis' own
     motions have, placed from their data (:func:`submovement_windows`)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P))
     solve_weights(lb.basis, weights, tg, ridge=ridge)
     if shooting is None or not shooting.iterations:
         return weights
-    ok = score(lb.body, lb.basis, weights, tg, options).succeeded(*success)
-    todo = [j for j, x in enumerate(ok) if not x]
+    todo = _unreproduced(lb, weights, tg, options, success, range(tg.N))[0]
     if todo:
-        res = shooting_match(lb.body, lb.basis, weights, tg, options=shooting, sim=options, motions=todo)
-        for name, why in res.failures.items():
+        failures = shooting_match(lb.body, lb.basis, weights, tg, options=shooting, sim=options,
+                                  motions=todo).failures
+        still, rmse = _unreproduced(lb, weights, tg, options, success, todo)
+        if still:
+            sub = tg.select(still)
+            alt = nearest_programs(lb, sub)
+            again = shooting_match(lb.body, lb.basis, alt, sub, options=shooting, sim=options).failures
+            keys = MotionWeights.PER_FIELD + MotionWeights.WINDOWS
+            for r, rmse_alt in enumerate(score(lb.body, lb.basis, alt, sub, options).rmse):
+                if rmse_alt < rmse[r]:
+                    name = tg.names[still[r]]
+                    weights.set_flat(keys, alt.flat(keys)[[r]], [still[r]])
+                    failures = {k: v for k, v in failures.items() if k != name}
+                    failures.update({k: v for k, v in again.items() if k == name})
+        for name, why in failures.items():
             warnings.warn(f"synthesis of {name}: multiple shooting stopped: {why}", DivergenceWarning,
                           stacklevel=2)
     return weights
+
+
+def _unreproduced(lb, weights, tg: Targets, options, success, motions) -> tuple:
+    """(the motions of ``motions`` that ``weights`` does not reproduce, their joint RMSEs)."""
+    motions = list(motions)
+    s = score(lb.body, lb.basis, weights.select_motions(motions), tg.select(motions), options)
+    bad = [r for r, ok in enumerate(s.succeeded(*success)) if not ok]
+    return [motions[r] for r in bad], [s.rmse[r] for r in bad]
+
+
+def nearest_programs(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
+    """For each motion of ``tg``, the program of one of the basis' own motions (its
+    weights and activation timing, onsets and durations scaled by the ratio of the two
+    motions' durations) whose torques match it best: the lowest relative torque cost
+    C_j (:func:`~tflearn.fit.torque.torque_cost`) over the basis' motions. A start for
+    path matching where the new motion's own NNLS weights make a program that cannot be
+    simulated along it."""
+    keys = MotionWeights.TIMING + MotionWeights.WINDOWS
+
+    def programs(rows):                  # motion rows[j]'s program, for motion j of tg
+        w = lb.weights.select_motions(rows)
+        w.set_flat(keys, w.flat(keys) * (tg.duration / w.duration)[:, None], range(tg.N))
+        w.duration.copy_(tg.duration)
+        w.names = list(tg.names)
+        return w
+    costs = [by_chunks(torque_cost, lb.basis, programs([k] * tg.N), tg) for k in range(lb.weights.N)]
+    return programs(torch.stack(costs, 1).argmin(1).tolist())
 
 
 def weights_for(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
