@@ -67,8 +67,9 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
                 if rmse_alt < rmse[r]:
                     name = tg.names[still[r]]
                     weights.set_flat(keys, alt.flat(keys)[[r]], [still[r]])
-                    failures = {k: v for k, v in failures.items() if k != name}
-                    failures.update({k: v for k, v in again.items() if k == name})
+                    failures.pop(name, None)
+                    if name in again:
+                        failures[name] = again[name]
         for name, why in failures.items():
             warnings.warn(f"synthesis of {name}: multiple shooting stopped: {why}", DivergenceWarning,
                           stacklevel=2)

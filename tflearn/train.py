@@ -27,9 +27,10 @@ result:
                 reproduced, safeguarded Adam on the simulated path loss of fields and
                 weights through ``odeint`` (one unit per step);
 5. ``rescue`` — with ``solver.rescue.enabled`` only: motions still not reproduced get a
-                spanning layout's fields laid out around them added to the basis, and
-                their weights over it by NNLS and multiple shooting (one unit; kept if
-                it reproduces more motions);
+                spanning layout's fields laid out around them added to the basis, their
+                weights by NNLS on those fields, then multiple shooting over the whole
+                basis (``solver.rescue``'s settings; one unit; kept if it reproduces
+                more motions);
 6. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard.
 
 What the run shows and logs meanwhile (progress bars, TensorBoard) is :mod:`tflearn.log`.
