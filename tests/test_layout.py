@@ -220,15 +220,9 @@ def test_layout_carries_a_recorded_window(mocap):
     assert errors["inertia"] <= 0.1 and errors["uniform"] > 1.5 * errors["inertia"]
 
 
-def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
-    """A three-keyframe spline the pipeline cannot reproduce with one field of its own
-    (``solver.each.max_fields=1``, one Adam step) is rescued by default: the stage
-    ``rescue`` lays out a simplex of eight fields around it, adds them to the basis, solves
-    its weights on them and fits them over all nine by multiple shooting with the hand's
-    distance in the residuals (``solver.rescue``), and that model, not the Adam step's
-    best point, is the run's (measured: 0.0087 rad / 0.80 cm, M = 1 → 9; with rescue's
-    weights solved over all nine fields, 0.0061 rad / 0.83 cm)."""
-    from tflearn import train
+def _spline_run(tmp_path, *overrides):
+    """The config of a three-keyframe come-here spline that the pipeline cannot reproduce
+    with one field of its own (``solver.each.max_fields=1``, one Adam step)."""
     from tflearn.body import arm
     from tflearn.keyframes import keyframe_motion
     body = arm()
@@ -237,13 +231,47 @@ def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
     keys = keyframe_motion("come_here_keys", body, m.q[[0, T // 2, T - 1]],
                            [0.0, float(m.t[T // 2]), float(m.t[-1])])
     motion_mod.save(keys, tmp_path / "come_here_keys.npz")
-    cfg = load(None, [f"data={tmp_path / 'come_here_keys.npz'}", f"out={tmp_path / 'run'}",
-                      "model.phases=variable", "model.field_damping=0.2", "model.windows=2",
-                      "solver.each.max_fields=1", "solver.init.candidates=8", "solver.em.steps=20",
-                      "solver.path.steps=1", "log.tensorboard=false", "log.progress=false"])
-    metrics = train.run(cfg)
-    rescue = metrics["history"]["rescue"]
-    assert rescue["motions"] == ["come_here_keys"] and rescue["kept"]
+    return load(None, [f"data={tmp_path / 'come_here_keys.npz'}", f"out={tmp_path / 'run'}",
+                       "model.phases=variable", "model.field_damping=0.2", "model.windows=2",
+                       "solver.each.max_fields=1", "solver.init.candidates=8", "solver.em.steps=20",
+                       "solver.path.steps=1", "log.tensorboard=false", "log.progress=false",
+                       *overrides])
+
+
+def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
+    """A three-keyframe spline the pipeline cannot reproduce with one field of its own
+    is rescued by default: the stage
+    ``rescue`` lays out a simplex of eight fields around it, adds them to the basis, solves
+    its weights on them and fits them over all nine by multiple shooting with the hand's
+    distance in the residuals (``solver.rescue``), and that model, not the Adam step's
+    best point, is the run's (measured: 0.0087 rad / 0.80 cm, M = 1 → 9; with rescue's
+    weights solved over all nine fields, 0.0061 rad / 0.83 cm)."""
+    from tflearn import train
+    metrics = train.run(_spline_run(tmp_path))
+    rescue, = metrics["history"]["rescue"]                # one round: nothing is left
+    assert rescue["motions"] == rescue["reproduced"] == ["come_here_keys"] and rescue["kept"]
     assert rescue["added"] == 8 and metrics["overall"]["M"] == rescue["M"] == 9
     row = metrics["motions"]["come_here_keys"]
     assert row["success"] and row["rmse"] <= 0.03 and row["tip"] <= 0.02
+
+
+def test_a_rescue_round_that_improves_no_motion_changes_nothing(tmp_path, monkeypatch):
+    """With no shooting (``solver.rescue.iterations=0``) the spline's program on the
+    simplex alone is farther from it than path matching's (measured: 0.0709 rad before):
+    the motion keeps its program, the basis its one field, and the rounds stop after the
+    first although three are allowed."""
+    from tflearn import train
+    seen = []
+    round_ = train.Run._rescue_round
+
+    def spy(self, state, tg, basis, weights, scores, ok):
+        seen.append((basis.M, scores.rmse[0], scores.tip[0]))
+        return round_(self, state, tg, basis, weights, scores, ok)
+    monkeypatch.setattr(train.Run, "_rescue_round", spy)
+    metrics = train.run(_spline_run(tmp_path, "solver.rescue.iterations=0", "solver.rescue.rounds=3"))
+    rescue, = metrics["history"]["rescue"]
+    assert rescue == {"motions": ["come_here_keys"], "added": 8, "M": 1, "reproduced": [],
+                      "improved": [], "kept": False}
+    row = metrics["motions"]["come_here_keys"]
+    assert seen[0][0] == metrics["overall"]["M"] == 1 and seen[0][1] > 0.03
+    assert (row["rmse"], row["tip"]) == pytest.approx(seen[0][1:], rel=1e-9)

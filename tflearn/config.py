@@ -166,8 +166,10 @@ class RescueSection(Section):
     # fields, then multiple shooting over the whole basis (solver.shooting's horizon); kept
     # where it reproduces more motions. Its own settings, not the run's: those of
     # configs/mocap.yaml's layout, which carry recorded, keyframed and reaching motion
-    # (docs/model.md "Rescue")
+    # (docs/model.md "Rescue"). Rounds: the motions a round leaves unreproduced get a
+    # layout of their own in the next, until all are reproduced or a round improves none
     enabled: bool = True
+    rounds: int = Field(2, ge=1)
     iterations: int = Field(6, ge=0)                                 # its shooting's, per horizon
     shape: Literal["cross", "simplex"] = "simplex"
     radius: float = Field(16.0, gt=0, allow_inf_nan=False)

@@ -29,8 +29,10 @@ result:
 5. ``rescue`` — with ``solver.rescue.enabled`` only: motions still not reproduced get a
                 spanning layout's fields laid out around them added to the basis, their
                 weights by NNLS on those fields, then multiple shooting over the whole
-                basis (``solver.rescue``'s settings; one unit; kept if it reproduces
-                more motions);
+                basis (``solver.rescue``'s settings); a motion keeps the new program if
+                it reproduces it or comes closer, and those still not reproduced get a
+                layout of their own in the next round (one unit per round, at most
+                ``solver.rescue.rounds``, until a round improves none);
 6. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard.
 
 What the run shows and logs meanwhile (progress bars, TensorBoard) is :mod:`tflearn.log`.
@@ -841,46 +843,70 @@ class Run:
         self.save(state)
 
     def _rescue(self, state: RunState, tg: Targets):
-        """(``solver.rescue.enabled``) The motions the path stage's result
-        (:meth:`final_model`) does not reproduce get fields laid out around them
-        (:func:`tflearn.fit.layout.spanning_basis`, ``solver.rescue``'s layout) added to the
-        basis; their weights start on the new fields alone, by NNLS (its ridge and torque
-        weights), and multiple shooting (``solver.shooting``'s horizon, its iterations, tip
-        and velocity weights) then fits them over the whole basis. The other motions keep
-        theirs, with zero weight on the new fields (their programs are unchanged). The
-        grown model is kept if it reproduces more motions."""
-        r = self.cfg.solver.rescue
-        basis, weights = self.final_model(state)
-        ok = self._check(basis, weights, tg)[1]
-        todo = [j for j, x in enumerate(ok) if not x]
-        if todo:
-            self.log.stage("rescue", 1)
-            sub = tg.select(todo)
-            sub = replace(sub, coord_weight=inertia_weights(self.body, sub)
-                          if r.torque_weight == "inertia" else None)
-            laid = layout_basis(self.cfg, self.body, sub, r)
-            grown, more = basis.extend(laid.eta, laid.K()), weights.extend_fields(laid.M)
-            keys, subw = ("a_raw", "b_raw", "c_raw"), more.select_motions(todo)
-            new = _weight_support([[False] * basis.M + [True] * laid.M] * len(todo), subw.P)
-            torque.solve_weights(grown, subw, sub, ridge=r.ridge, support=new)
-            more.set_flat(keys, subw.flat(keys), todo)
-            opts = replace(self.cfg.solver.shooting.options(self.cfg.model.phases == "variable"),
-                           iterations=r.iterations, tip_weight=r.tip_weight,
-                           velocity_weight=r.velocity_weight)
-            self._shoot(grown, more, tg, todo, state, opts)
-            now = self._check(grown, more, tg)[1]
-            kept = sum(now) > sum(ok)
-            if kept:                          # the run's result from here (not path's best)
-                state.model, state.path["best"] = model_state(grown, more), None
-            state.history["rescue"] = {"motions": [tg.names[j] for j in todo], "M": grown.M,
-                                       "added": laid.M,
-                                       "reproduced": [tg.names[j] for j in todo if now[j]],
-                                       "kept": kept}
-            self.log.status(M=grown.M if kept else basis.M, reproduced=f"{sum(now)}/{tg.N}",
-                            kept=kept)
-            self.log.end_stage()
+        """(``solver.rescue.enabled``) Rounds (at most ``solver.rescue.rounds``; one unit
+        each) of :meth:`_rescue_round` on the motions the run's result (:meth:`final_model`)
+        still does not reproduce, until every motion is reproduced, a round improves none,
+        or the motions left are the last round's (a layout depends on its motions alone);
+        each round is recorded in ``history.rescue`` (a list)."""
+        rounds = self.cfg.solver.rescue.rounds
+        while state.cursor < rounds:
+            basis, weights = self.final_model(state)
+            scores, ok = self._check(basis, weights, tg)
+            last = state.history.get("rescue", [{}])[-1].get("motions")
+            if all(ok) or last == [n for n, x in zip(tg.names, ok) if not x]:
+                break                   # (the last round's motions: its fields laid out again)
+            self.log.stage("rescue", rounds, state.cursor)
+            record = self._rescue_round(state, tg, basis, weights, scores, ok)
+            state.history.setdefault("rescue", []).append(record)
+            state.cursor += 1
+            self.log.status(M=record["M"], reproduced=f"{sum(ok) + len(record['reproduced'])}/{tg.N}",
+                            kept=record["kept"])
+            if not record["kept"]:
+                break
+            self.save(state)
+        self.log.end_stage()
         self._advance(state)
         self.save(state)
+
+    def _rescue_round(self, state: RunState, tg: Targets, basis, weights, scores: Scores,
+                      ok: list) -> dict:
+        """The motions that ``basis``, ``weights`` do not reproduce (``scores``, ``ok``) get
+        fields laid out around them (:func:`tflearn.fit.layout.spanning_basis`,
+        ``solver.rescue``'s layout) added to the basis; their weights start on the new
+        fields alone, by NNLS (its ridge and torque weights), and multiple shooting
+        (``solver.shooting``'s horizon, ``solver.rescue``'s iterations, tip and velocity
+        weights) then fits them over the whole basis. A motion takes its new program where
+        that reproduces it or, failing that, is simulated closer to it (joint RMSE); the
+        others keep theirs, with zero weight on the new fields (their programs unchanged).
+        The grown model becomes the run's result if some motion took its new program;
+        returns the round's record."""
+        r = self.cfg.solver.rescue
+        todo = [j for j, x in enumerate(ok) if not x]
+        sub = tg.select(todo)
+        sub = replace(sub, coord_weight=inertia_weights(self.body, sub)
+                      if r.torque_weight == "inertia" else None)
+        laid = layout_basis(self.cfg, self.body, sub, r)
+        grown, more = basis.extend(laid.eta, laid.K()), weights.extend_fields(laid.M)
+        keys, subw = MotionWeights.PER_FIELD + MotionWeights.WINDOWS, more.select_motions(todo)
+        new = _weight_support([[False] * basis.M + [True] * laid.M] * len(todo), subw.P)
+        torque.solve_weights(grown, subw, sub, ridge=r.ridge, support=new)
+        more.set_flat(keys, subw.flat(keys), todo)
+        opts = replace(self.cfg.solver.shooting.options(self.cfg.model.phases == "variable"),
+                       iterations=r.iterations, tip_weight=r.tip_weight,
+                       velocity_weight=r.velocity_weight)
+        self._shoot(grown, more, tg, todo, state, opts)
+        after, now = self._check(grown, more, tg)
+        took = [j for j in todo
+                if now[j] or (after.failure[j] is None and after.rmse[j] < scores.rmse[j])]
+        back = [j for j in todo if j not in took]
+        if back:
+            more.set_flat(keys, weights.extend_fields(laid.M).flat(keys)[back], back)
+        if took:                              # the run's result from here (not path's best)
+            state.model, state.path["best"] = model_state(grown, more), None
+        return {"motions": [tg.names[j] for j in todo], "added": laid.M,
+                "M": grown.M if took else basis.M,
+                "reproduced": [tg.names[j] for j in todo if now[j]],
+                "improved": [tg.names[j] for j in took], "kept": bool(took)}
 
     def _slsqp(self, state: RunState, tg: Targets):
         gen = self._gen(state)
