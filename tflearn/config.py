@@ -163,11 +163,12 @@ class LayoutSection(Section):                   # method layout: fields spanning
 class RescueSection(Section):
     # method pipeline: the motions the path stage leaves unreproduced get fields laid out
     # around them (tflearn.fit.layout) added to the basis, their weights by NNLS on those
-    # fields, then multiple shooting over the whole basis (solver.shooting's horizon); kept
-    # where it reproduces more motions. Its own settings, not the run's: those of
-    # configs/mocap.yaml's layout, which carry recorded, keyframed and reaching motion
-    # (docs/model.md "Rescue"). Rounds: the motions a round leaves unreproduced get a
-    # layout of their own in the next, until all are reproduced or a round improves none
+    # fields, then multiple shooting over the whole basis (solver.shooting's horizon); a
+    # motion takes the new program where it reproduces it or comes closer. Its own
+    # settings, not the run's: those of configs/mocap.yaml's layout, which carry recorded,
+    # keyframed and reaching motion (docs/model.md "Rescue"). Rounds: the motions a round
+    # leaves unreproduced get a layout of their own in the next, until all are reproduced
+    # or a round improves none
     enabled: bool = True
     rounds: int = Field(2, ge=1)
     iterations: int = Field(6, ge=0)                                 # its shooting's, per horizon
