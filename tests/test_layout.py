@@ -47,7 +47,7 @@ def test_uniform_weights_are_the_thesis_cost(come_here):
     tg = targets.prepare(body, [m])
     assert tg.coord_weight is None
     with pytest.warns(UserWarning, match="come_here leaves the cross"):  # a cost identity: no span needed
-        basis = layout.spanning_basis(body, tg, FieldBasis.empty(7, "diag", body.blocks), 2.5, 3.0)
+        basis = layout.spanning_basis(body, tg, FieldBasis.empty(7, "diag", body.blocks), 2.5, 3.0, "cross")
     w = MotionWeights.zeros(14, tg.duration, tg.names)
     plain = torque.solve_weights(basis, w, tg)
     ones = replace(tg, coord_weight=torch.ones(1, 7, dtype=DT))
@@ -71,7 +71,7 @@ def test_weighted_solves_agree(come_here):
     (1e-10), and EM's residual norm² is the weighted cost (1e-10)."""
     body, m = come_here
     tw = targets.prepare(body, [m], weight="inertia")
-    basis = layout.spanning_basis(body, tw, FieldBasis.empty(7, "diag", body.blocks), 4.0, 3.0)
+    basis = layout.spanning_basis(body, tw, FieldBasis.empty(7, "diag", body.blocks), 4.0, 3.0, "cross")
     w = MotionWeights.zeros(14, tw.duration, tw.names)
     cost = float(torque.solve_weights(basis, w, tw)[0])
     assert 1e-6 < cost < 0.99
@@ -177,11 +177,11 @@ def test_spanning_basis_spans_every_torque(come_here, shape):
         assert worst(torch.full((7,), r / 2, dtype=DT)) > 0.05
     far = float(layout.reach(shape, tg.q[0] - centre).max())
     with pytest.warns(UserWarning, match=rf"come_here leaves the {shape} .* radius of {far:.2f} rad"):
-        layout.spanning_basis(body, tg, template, radius=0.9 * far, shape=shape)
+        layout.spanning_basis(body, tg, template, radius=0.9 * far, stiffness=1.0, shape=shape)
     with pytest.raises(ValueError, match="not scalar"):
-        layout.spanning_basis(body, tg, FieldBasis.empty(7, "scalar", body.blocks))
+        layout.spanning_basis(body, tg, FieldBasis.empty(7, "scalar", body.blocks), 2.0, 1.0, "cross")
     with pytest.raises(ValueError, match="unknown shape 'star'"):
-        layout.spanning_basis(body, tg, template, shape="star")
+        layout.spanning_basis(body, tg, template, 2.0, 1.0, "star")
 
 
 def test_layout_config_refusals(tmp_path):
@@ -212,7 +212,8 @@ def test_layout_carries_a_recorded_window(mocap):
     errors = {}
     for weight in ("inertia", "uniform"):
         tg = targets.prepare(r.body, [win], weight=weight)
-        basis = layout.spanning_basis(r.body, tg, FieldBasis.empty(7, "diag", r.body.blocks, 0.2))
+        basis = layout.spanning_basis(r.body, tg, FieldBasis.empty(7, "diag", r.body.blocks, 0.2),
+                                       2.0, 1.0, "cross")
         w = MotionWeights.zeros(14, tg.duration, tg.names, targets.submovement_windows(tg, 16))
         torque.solve_weights(basis, w, tg)
         s = score(r.body, basis, w, tg, SimOptions(max_evals=20000))

@@ -145,12 +145,16 @@ class SlsqpSection(Section):
     max_iter: int = Field(200, ge=1)             # iterations of the baseline
 
 
-class LayoutSection(Section):                   # method layout: fields spanning joint space
-    # cross: 2n fields at ν̄ ± radius e_k | simplex: n + 1 at a regular simplex's vertices
-    shape: Literal["cross", "simplex"] = "cross"
-    radius: float = Field(2.0, gt=0, allow_inf_nan=False)     # centres at ν̄ + radius u_i (rad)
-    stiffness: float = Field(1.0, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
+class Layout(Section):
+    # the fields of a spanning layout (tflearn.fit.layout), method layout's and rescue's.
+    # cross: 2n fields at ν̄ ± radius e_k | simplex: n + 1 at a regular simplex's vertices.
+    # The defaults carry recorded, keyframed and reaching motion (docs/model.md)
+    shape: Literal["cross", "simplex"] = "simplex"
+    radius: float = Field(16.0, gt=0, allow_inf_nan=False)    # centres at ν̄ + radius u_i (rad)
+    stiffness: float = Field(0.0625, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
 
+
+class LayoutSection(Layout):                    # method layout: fields spanning joint space
     @model_validator(mode="before")
     @classmethod
     def _moved(cls, doc):
@@ -160,21 +164,18 @@ class LayoutSection(Section):                   # method layout: fields spanning
         return doc
 
 
-class RescueSection(Section):
+class RescueSection(Layout):
     # method pipeline: the motions the path stage leaves unreproduced get fields laid out
     # around them (tflearn.fit.layout) added to the basis, their weights by NNLS on those
     # fields, then multiple shooting over the whole basis (solver.shooting's horizon); a
     # motion takes the new program where it reproduces it or comes closer. Its own
-    # settings, not the run's: those of configs/mocap.yaml's layout, which carry recorded,
+    # settings, not the run's: those of configs/mocap.yaml, which carry recorded,
     # keyframed and reaching motion (docs/model.md "Rescue"). Rounds: the motions a round
     # leaves unreproduced get a layout of their own in the next, until all are reproduced
     # or a round improves none
     enabled: bool = True
     rounds: int = Field(2, ge=1)
     iterations: int = Field(6, ge=0)                                 # its shooting's, per horizon
-    shape: Literal["cross", "simplex"] = "simplex"
-    radius: float = Field(16.0, gt=0, allow_inf_nan=False)
-    stiffness: float = Field(0.0625, gt=0, allow_inf_nan=False)
     ridge: float = Field(1e-4, ge=0, allow_inf_nan=False)            # its NNLS' λ (solver.ridge)
     torque_weight: Literal["uniform", "inertia"] = "inertia"         # its NNLS' (solver.torque_weight)
     tip_weight: float = Field(100.0, ge=0, allow_inf_nan=False)      # its shooting's γ

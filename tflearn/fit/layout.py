@@ -80,8 +80,8 @@ def reach(shape: str, x: torch.Tensor) -> torch.Tensor:
     return (x @ facets.T).amax(-1).clamp_min(0)
 
 
-def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float = 2.0,
-                   stiffness: float = 1.0, shape: str = "cross") -> FieldBasis:
+def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
+                   stiffness: float, shape: str) -> FieldBasis:
     """The fields of ``SHAPES[shape]`` like ``template`` (its kind must hold a diagonal K:
     not ``scalar``; its damping ratio is kept) at ν̄ + ``radius`` u_i, K = ``stiffness`` ·
     diag(m̄), ν̄ and m̄ the mean posture and mean inertia over every real sample of the
