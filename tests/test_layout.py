@@ -246,9 +246,20 @@ def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
     its weights on them and fits them over all nine by multiple shooting with the hand's
     distance in the residuals (``solver.rescue``), and that model, not the Adam step's
     best point, is the run's (measured: 0.0087 rad / 0.80 cm, M = 1 → 9; with rescue's
-    weights solved over all nine fields, 0.0061 rad / 0.83 cm)."""
+    weights solved over all nine fields, 0.0061 rad / 0.83 cm). The run is killed right
+    after the round's checkpoint and resumed there: nothing is left, no round follows."""
     from tflearn import train
-    metrics = train.run(_spline_run(tmp_path))
+    cfg, save = _spline_run(tmp_path), train.Run.save
+
+    def kill(self, state):
+        save(self, state)
+        if state.stage == "rescue" and state.cursor == 1:
+            raise train.Interrupted("killed after rescue's first round")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(train.Run, "save", kill)
+        with pytest.raises(train.Interrupted):
+            train.run(cfg)
+    metrics = train.run(cfg)
     rescue, = metrics["history"]["rescue"]                # one round: nothing is left
     assert rescue["motions"] == rescue["reproduced"] == ["come_here_keys"] and rescue["kept"]
     assert rescue["added"] == 8 and metrics["overall"]["M"] == rescue["M"] == 9
