@@ -449,3 +449,25 @@ def test_synthesis_falls_back_on_the_nearest_program():
     w = evaluate.synthesize(lb, tg, opts, sim, (1e-5, 1e-5), ridge=1e6)
     assert score(lb.body, lb.basis, w, tg, sim).rmse[0] < 1e-8
     assert torch.allclose(w.vector(), lb.weights.select_motions([1]).vector(), atol=1e-6)
+
+
+def test_synthesis_keeps_the_nearest_program_when_no_fit_comes_closer(monkeypatch):
+    """Where both shooting fits (from the NNLS weights and from the nearest program) end
+    with weights that cannot be simulated (a stand-in solver that throws every weight to
+    10⁴), synthesis keeps the nearest program as it is — the motion's own, 2e-9 rad off —
+    and warns that no fit came closer."""
+    lb, (come, tuck) = _tuck_and_come_here()
+    tg = targets.prepare(lb.body, [tuck])
+    sim = SimOptions(max_evals=2000)
+
+    def wild(body, basis, weights, tg, options, sim, motions=None):
+        with torch.no_grad():
+            weights.a_raw[list(range(weights.N)) if motions is None else motions] = 1e4
+        return shooting.ShootingResult(loss=[])
+    monkeypatch.setattr(evaluate, "shooting_match", wild)
+    from tflearn.fit.torque import DivergenceWarning
+    with pytest.warns(DivergenceWarning, match="no fit came closer than the nearest trained program"):
+        w = evaluate.synthesize(lb, tg, shooting.ShootingOptions(iterations=1), sim, (1e-5, 1e-5),
+                                ridge=1e6)
+    assert score(lb.body, lb.basis, w, tg, sim).rmse[0] < 1e-8
+    assert torch.allclose(w.vector(), lb.weights.select_motions([1]).vector(), atol=1e-6)

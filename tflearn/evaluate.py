@@ -44,7 +44,8 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     multiple-shooting path matching (:func:`tflearn.fit.shooting.shooting_match`; None:
     NNLS only). A motion that is still not reproduced is fitted again by shooting from the
     basis' own program whose torques match it best (:func:`nearest_programs`), and keeps
-    whichever of the two simulates closer to it (joint RMSE); where the kept fit's
+    whichever of the two fits, or that program as it is, simulates closest to it (joint
+    RMSE; one that cannot be simulated is farthest); where the kept fit's
     shooting stopped early, a :class:`~tflearn.fit.torque.DivergenceWarning` names the
     motion and why. The new motions get as many sub-movement windows as the basis' own
     motions have, placed from their data (:func:`submovement_windows`)."""
@@ -61,15 +62,18 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
         if still:
             sub = tg.select(still)
             alt = nearest_programs(lb, sub)
+            near = alt.select_motions(range(sub.N))          # the nearest programs as they are
             again = shooting_match(lb.body, lb.basis, alt, sub, options=shooting, sim=options).failures
             keys = MotionWeights.PER_FIELD + MotionWeights.WINDOWS
-            for r, rmse_alt in enumerate(score(lb.body, lb.basis, alt, sub, options).rmse):
-                if rmse_alt < rmse[r]:
-                    name = tg.names[still[r]]
-                    weights.set_flat(keys, alt.flat(keys)[[r]], [still[r]])
+            shot, kept = (score(lb.body, lb.basis, w, sub, options).rmse for w in (alt, near))
+            for r, (name, j) in enumerate(zip(sub.names, still)):
+                best = min((rmse[r], None), (shot[r], alt), (kept[r], near), key=lambda x: x[0])[1]
+                if best is not None:
+                    weights.set_flat(keys, best.flat(keys)[[r]], [j])
                     failures.pop(name, None)
-                    if name in again:
-                        failures[name] = again[name]
+                    if name in again or best is near:
+                        failures[name] = again.get(name, "no fit came closer than the nearest "
+                                                         "trained program as it is")
         for name, why in failures.items():
             warnings.warn(f"synthesis of {name}: multiple shooting stopped: {why}", DivergenceWarning,
                           stacklevel=2)
