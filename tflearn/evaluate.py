@@ -65,9 +65,9 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
             near = alt.select_motions(range(sub.N))          # the nearest programs as they are
             again = shooting_match(lb.body, lb.basis, alt, sub, options=shooting, sim=options).failures
             keys = MotionWeights.PER_FIELD + MotionWeights.WINDOWS
-            shot, kept = (score(lb.body, lb.basis, w, sub, options).rmse for w in (alt, near))
+            shot, as_is = (score(lb.body, lb.basis, w, sub, options).rmse for w in (alt, near))
             for r, (name, j) in enumerate(zip(sub.names, still)):
-                best = min((rmse[r], None), (shot[r], alt), (kept[r], near), key=lambda x: x[0])[1]
+                best = min((rmse[r], None), (shot[r], alt), (as_is[r], near), key=lambda x: x[0])[1]
                 if best is not None:
                     weights.set_flat(keys, best.flat(keys)[[r]], [j])
                     failures.pop(name, None)
