@@ -28,7 +28,9 @@ itself) is what its extra freedom buys. Centres and stiffnesses are held: left f
 the fit of every model takes stiffnesses to 1e-100 along some coordinates and centres
 hundreds of radians away, springs that push the same way everywhere. Each fit is simulated from every motion's
 initial state (every motion its own dopri5 steps, rtol 1e-7, atol 1e-9, at most 20,000
-evaluations, the training budget): joint RMSE, hand-tip error, or the failure.
+evaluations, the training budget): joint RMSE, hand-tip error, or the failure; and its
+local error growth along the target paths (:mod:`tflearn.fit.stability`), the peak rate
+λ and the e-folds Λ per motion.
 
     PYTHONPATH=. python bench/representations.py --out runs/bench/representations.json
 """
@@ -222,15 +224,32 @@ def fit(model: Model, x: torch.Tensor, tg, prof, steps: int):
     return x, cost0, cost, taken
 
 
-def simulate(body, model: Model, x: torch.Tensor, tg, pulses: int) -> dict:
-    """Every motion simulated from its initial state under its fitted program."""
-    from tflearn.metrics import path_errors
-    from tflearn.simulate import SimOptions
-    from tflearn.simulate import simulate as sim
+def program_of(model: Model, x: torch.Tensor, tg, pulses: int):
+    """The fitted program, τ(t, ν, v) with t each motion's own time (...×N)."""
     c = model.unpack(x)[1]
 
     def program(t, q, v):
-        return model.torques(x, q, v, torch.einsum("np,nmp->nm", activations(t / tg.duration, pulses), c))
+        w = torch.einsum("...np,nmp->...nm", activations(t / tg.duration, pulses), c)
+        return model.torques(x, q, v, w)
+    return program
+
+
+def growth(body, program, tg) -> dict:
+    """Per motion, the local error growth rate's peak λ (1/s) and e-folds Λ along the
+    target path (:mod:`tflearn.fit.stability`: the closed loop linearised about it)."""
+    from tflearn.fit.stability import program_jacobians
+    rate = torch.linalg.eigvals(program_jacobians(body, program, tg)).real.amax(-1)
+    rate = rate.masked_fill(~tg.mask, float("nan"))
+    peak = rate.nan_to_num(-torch.inf).amax(-1)
+    efolds = (rate.clamp_min(0).nan_to_num(0.0) * tg.w).sum(-1)
+    return {n: {"peak_per_s": float(a), "efolds": float(b)} for n, a, b in zip(tg.names, peak, efolds)}
+
+
+def simulate(body, program, tg) -> dict:
+    """Every motion simulated from its initial state under ``program``."""
+    from tflearn.metrics import path_errors
+    from tflearn.simulate import SimOptions
+    from tflearn.simulate import simulate as sim
     out = {}
     with torch.no_grad():
         traj = sim(body, program, tg.q0, tg.qd0, tg.grid,
@@ -260,7 +279,8 @@ def run(kind: str, body, tg, prof, fields: tuple, zeta: float, steps: int) -> di
         row["skew_over_stiffness"] = (skew / k.norm(dim=-1)).tolist()
     if kind == "cocontraction":
         row["gamma_times_largest_weight"] = (extra.squeeze(-1) * c.sum(-1).amax(0)).tolist()
-    row["paths"] = simulate(body, model, x, tg, prof.shape[-1] - 2)
+    program = program_of(model, x, tg, prof.shape[-1] - 2)
+    row["paths"], row["growth"] = simulate(body, program, tg), growth(body, program, tg)
     return row
 
 
@@ -287,10 +307,13 @@ def main(argv=None) -> int:
         for row in rows:
             paths = row["paths"]
             ok = [v for v in paths.values() if "rmse_rad" in v]
+            g = row["growth"].values()
             print(f"{name:10s} {row['model']:14s} cost {row['cost_start']:.4g} -> {row['cost']:.4g} "
                   f"({row['steps']} steps, {row['fit_s']:.0f} s)  {len(paths) - len(ok)} failed, "
                   f"worst of the rest {max((v['rmse_rad'] for v in ok), default=math.nan):.3f} rad / "
-                  f"{max((v['tip_cm'] for v in ok), default=math.nan):.1f} cm", flush=True)
+                  f"{max((v['tip_cm'] for v in ok), default=math.nan):.1f} cm; growth peak "
+                  f"{max(v['peak_per_s'] for v in g):.1f} /s, e-folds {max(v['efolds'] for v in g):.1f}",
+                  flush=True)
             doc["rows"].append({"set": name, **row})
         if args.out:
             args.out.parent.mkdir(parents=True, exist_ok=True)

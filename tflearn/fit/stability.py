@@ -45,12 +45,18 @@ class Growth:
     efolds: torch.Tensor
 
 
-@torch.no_grad()
 def jacobians(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
               h: float = 1e-6) -> torch.Tensor:
-    """Bᵀ A(t) B, A = ∂f/∂y of the closed loop, at every target sample (N×T×D'×D', D' =
-    D − nr the state's size less one per quaternion; see the module), A by central
-    differences of step ``h`` in each state entry, all in one batch."""
+    """:func:`program_jacobians` of the motions' field program."""
+    return program_jacobians(body, FieldProgram(basis, weights), tg, h)
+
+
+@torch.no_grad()
+def program_jacobians(body: Body, program, tg: Targets, h: float = 1e-6) -> torch.Tensor:
+    """Bᵀ A(t) B, A = ∂f/∂y of the closed loop under ``program(t, ν, v) → τ`` (t: each
+    member's own time, 2D×T×N), at every target sample (N×T×D'×D', D' = D − nr the
+    state's size less one per quaternion; see the module), A by central differences of
+    step ``h`` in each state entry, all in one batch."""
     y = pack(body, tg.q, tg.v).transpose(0, 1)                       # T×N×D
     D = y.shape[-1]
     step = h * torch.eye(D, dtype=y.dtype)                             # D×D
@@ -59,7 +65,7 @@ def jacobians(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets
     base = None
     if tg.base is not None:
         base = tg.base.take(torch.arange(tg.N).expand(2 * D, tg.t.shape[1], -1))
-    f = ArmODE(body, FieldProgram(basis, weights), base=base, strict=False)(t, ys)
+    f = ArmODE(body, program, base=base, strict=False)(t, ys)
     cols = (f[:D] - f[D:]) / (2 * h)                                   # D(column)×T×N×D(row)
     A = cols.permute(2, 1, 3, 0)                                       # N×T×D×D
     B = state_tangent_basis(body, y.transpose(0, 1))                   # N×T×D×D'
