@@ -6,7 +6,7 @@ import torch
 from tflearn import body as tb
 from tflearn import dynamics
 from tflearn.fields import FieldBasis, MotionWeights
-from tflearn.fit.stability import growth, jacobians
+from tflearn.fit.stability import growth, jacobians, program_jacobians
 from tflearn.fit.targets import prepare
 from tflearn.motion import Motion
 from tflearn.torso import BaseMotion, Bases
@@ -63,6 +63,30 @@ def test_hinge_chain_at_a_field_centre_is_a_spring_damper():
     g = growth(body, basis, weights, tg)
     assert (g.rate[0, 1:] < 0).all()       # damped: errors decay once the field is on
     assert abs(float(g.rate[0, 0])) < 1e-9 and abs(float(g.efolds[0])) < 1e-9   # w(0) = 0: free
+
+
+def test_any_program_linearises_to_its_own_spectrum():
+    """A program that is no field, a circulatory spring τ = −(k I + S) ν − c ν̇ with S
+    skew-symmetric, on a chain held at ν = 0 (no gravity): A has the spectrum of
+    M δν̈ = −(k I + S) δν − (c + c_joint) δν̇: decaying for a small S, growing
+    (flutter) for a large one with little damping."""
+    body = tb.chain(2, "hinge", damping=0.05)
+    q = torch.zeros(2, dtype=F64)
+    tg = prepare(body, [held(body, q)])
+    M = dynamics.mass_matrix(body, q)
+    for s_, c in ((0.3, 0.5), (40.0, 0.01)):
+        K = torch.tensor([[2.0, s_], [-s_, 2.0]], dtype=F64)
+
+        def program(t, nu, v, K=K, c=c):
+            return -nu @ K.T - c * v
+        lam = torch.linalg.eigvals(program_jacobians(body, program, tg)[0, 10])
+        Minv = torch.linalg.inv(M)
+        want = torch.linalg.eigvals(torch.cat([
+            torch.cat([torch.zeros(2, 2, dtype=F64), torch.eye(2, dtype=F64)], 1),
+            torch.cat([-Minv @ K, -(c + body.damping) * Minv], 1)]))
+        assert_same_spectrum(lam, want, 1e-6)
+        assert (float(lam.real.max()) > 0.1) == (s_ > 1)      # flutter only for the large S
+        assert (float(lam.real.max()) < 0) == (s_ < 1)
 
 
 def test_arm_at_rest_in_a_field_has_the_spring_damper_spectrum():
