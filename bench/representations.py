@@ -237,12 +237,9 @@ def program_of(model: Model, x: torch.Tensor, tg, pulses: int):
 def growth(body, program, tg) -> dict:
     """Per motion, the local error growth rate's peak λ (1/s) and e-folds Λ along the
     target path (:mod:`tflearn.fit.stability`: the closed loop linearised about it)."""
-    from tflearn.fit.stability import program_jacobians
-    rate = torch.linalg.eigvals(program_jacobians(body, program, tg)).real.amax(-1)
-    rate = rate.masked_fill(~tg.mask, float("nan"))
-    peak = rate.nan_to_num(-torch.inf).amax(-1)
-    efolds = (rate.clamp_min(0).nan_to_num(0.0) * tg.w).sum(-1)
-    return {n: {"peak_per_s": float(a), "efolds": float(b)} for n, a, b in zip(tg.names, peak, efolds)}
+    from tflearn.fit.stability import program_growth
+    g = program_growth(body, program, tg)
+    return {n: {"peak_per_s": float(a), "efolds": float(b)} for n, a, b in zip(tg.names, g.peak, g.efolds)}
 
 
 def simulate(body, program, tg) -> dict:

@@ -6,7 +6,7 @@ import torch
 from tflearn import body as tb
 from tflearn import dynamics
 from tflearn.fields import FieldBasis, MotionWeights
-from tflearn.fit.stability import growth, jacobians, program_jacobians
+from tflearn.fit.stability import growth, jacobians, program_growth, program_jacobians
 from tflearn.fit.targets import prepare
 from tflearn.motion import Motion
 from tflearn.torso import BaseMotion, Bases
@@ -87,6 +87,9 @@ def test_any_program_linearises_to_its_own_spectrum():
         assert_same_spectrum(lam, want, 1e-6)
         assert (float(lam.real.max()) > 0.1) == (s_ > 1)      # flutter only for the large S
         assert (float(lam.real.max()) < 0) == (s_ < 1)
+        g = program_growth(body, program, tg)
+        assert torch.allclose(g.peak, lam.real.max().expand(1), atol=1e-6)   # held: λ constant
+        assert abs(float(g.efolds[0]) - max(float(lam.real.max()), 0.0) * 1.0) < 1e-6
 
 
 def test_arm_at_rest_in_a_field_has_the_spring_damper_spectrum():

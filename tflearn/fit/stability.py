@@ -82,6 +82,17 @@ def growth(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
         part = tg.select(idx, trim=True)
         A = jacobians(body, basis, weights.select_motions(idx), part, h)
         rate[idx, :part.mask.shape[1]] = torch.linalg.eigvals(A).real.amax(-1)
+    return _summary(rate, tg)
+
+
+def program_growth(body: Body, program, tg: Targets, h: float = 1e-6) -> Growth:
+    """The local error growth of every motion under ``program(t, ν, v) → τ`` (see
+    :func:`program_jacobians`), all motions in one batch (memory grows with them)."""
+    return _summary(torch.linalg.eigvals(program_jacobians(body, program, tg, h)).real.amax(-1), tg)
+
+
+def _summary(rate: torch.Tensor, tg: Targets) -> Growth:
+    """:class:`Growth` of the rates λ (N×T) at the samples of ``tg`` (padding: NaN)."""
     rate = rate.masked_fill(~tg.mask, float("nan"))
     peak = rate.nan_to_num(-torch.inf).amax(-1)
     efolds = (rate.clamp_min(0).nan_to_num(0.0) * tg.w).sum(-1)
