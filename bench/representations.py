@@ -100,13 +100,12 @@ class Model:
         theta = self.unpack(x)[0]
         return theta[:, :self.n], theta[:, self.n:2 * self.n].exp(), theta[:, 2 * self.n:]
 
-    def bounds(self) -> tuple:
-        """Lower and upper bounds of x: c ≥ 0, γ ≥ 0, the rest free."""
+    def lower(self) -> torch.Tensor:
+        """Lower bounds of x: c ≥ 0, γ ≥ 0, the rest free (−∞)."""
         lo = torch.full((self.M, self.width), -math.inf, dtype=F64)
         if self.kind == "cocontraction":
             lo[:, -1] = 0.0
-        lo = torch.cat([lo.reshape(-1), torch.zeros(self.N * self.M * self.P, dtype=F64)])
-        return lo.numpy(), torch.full_like(lo, math.inf).numpy()
+        return torch.cat([lo.reshape(-1), torch.zeros(self.N * self.M * self.P, dtype=F64)])
 
     def _lower(self, extra: torch.Tensor) -> torch.Tensor:
         """The strictly lower triangular n×n matrix of ``extra`` (...×e)."""
@@ -178,9 +177,12 @@ def start(body, tg, prof, zeta: float) -> tuple:
     (N×M×(2+P)): every model's start."""
     from scipy.optimize import nnls
 
+    from tflearn.config import Layout
     from tflearn.fields import FieldBasis
     from tflearn.fit.layout import spanning_basis
-    basis = spanning_basis(body, tg, FieldBasis.empty(body.nv, "diag"), 16.0, 0.0625, "simplex")
+    lay = Layout()                                     # the layout method's defaults
+    basis = spanning_basis(body, tg, FieldBasis.empty(body.nv, "diag"), lay.radius, lay.stiffness,
+                           lay.shape)
     eta, k = basis.eta.detach(), torch.diagonal(basis.K().detach(), dim1=-2, dim2=-1)
     model = Model("diag", len(eta), body.nv, tg.N, prof.shape[-1], zeta)
     x = model.pack(eta, k, torch.zeros(tg.N, len(eta), prof.shape[-1], dtype=F64))
@@ -195,7 +197,7 @@ def fit(model: Model, x: torch.Tensor, tg, prof, steps: int):
     (Marquardt's diagonal scaling; a bounded variable at its bound whose gradient pushes
     it out is held there for the step); (x, the relative torque cost at the start and
     the end, the steps taken)."""
-    lo = torch.as_tensor(model.bounds()[0])
+    lo = model.lower()
     held = torch.zeros_like(x, dtype=torch.bool)
     held[:model.M * model.width].view(model.M, model.width)[:, :2 * model.n] = True
     r = residual(model, x, tg, prof)
