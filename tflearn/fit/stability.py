@@ -80,8 +80,8 @@ def growth(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
     rate = torch.full(tg.mask.shape, float("nan"), dtype=tg.q.dtype)
     for idx in chunks(tg, 2 * D * (basis.M + 4)):
         part = tg.select(idx, trim=True)
-        A = jacobians(body, basis, weights.select_motions(idx), part, h)
-        rate[idx, :part.mask.shape[1]] = torch.linalg.eigvals(A).real.amax(-1)
+        program = FieldProgram(basis, weights.select_motions(idx))
+        rate[idx, :part.mask.shape[1]] = program_growth(body, program, part, h).rate
     return _summary(rate, tg)
 
 
