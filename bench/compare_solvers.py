@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import math
 import os
 import platform
@@ -342,9 +341,7 @@ def main(argv=None) -> dict:
               "settings": settings, "rows": rows,
               "elapsed_s": elapsed, "torch": torch.__version__, "python": platform.python_version(),
               "cpu_count": os.cpu_count(), "table": text}
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1))
+    revision.write_json(args.out, result)
     return result
 
 

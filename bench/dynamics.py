@@ -227,8 +227,7 @@ def main(argv=None) -> int:
         doc["commit"] = revision.head()
         if args.ref:
             doc["reference"] = {"rev": args.ref, "tflearn": at_revision(args.ref, args)}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1))
+    revision.write_json(args.out, doc)
     print(f"wrote {args.out}")
     return 0
 

@@ -118,9 +118,7 @@ def write(path: Path | None, commit: str, overrides: list, rows: list, library: 
     done = [r for r in rows if "error" not in r]
     if len(done) > 1:
         doc["exponents"] = {k: exponent(done, k) for k in ("make_s", "train_s")}
-    if path:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(doc, indent=1))
+    revision.write_json(path, doc)
 
 
 if __name__ == "__main__":

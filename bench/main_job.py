@@ -95,8 +95,7 @@ def main(argv=None) -> int:
             r["basis_vs_current"] = max_difference(bases["current"], bases[name])
     doc = {"ref": args.ref, "commit": revision.head(), "launcher": args.launcher, "runs": runs,
            "cores": os.cpu_count()}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1))
+    revision.write_json(args.out, doc)
     print(json.dumps(doc, indent=1))
     return 0
 

@@ -22,10 +22,9 @@ after, the joint RMSE and maximum hand-tip error of the result
 from __future__ import annotations
 
 import argparse
-import json
 import time
-from pathlib import Path
 
+import revision
 import torch
 
 
@@ -101,10 +100,7 @@ def main(argv=None) -> None:
         print(f"{r['method']:9s} loss {sum(r['loss_before']):.3e} -> {sum(r['loss_after']):.3e}  "
               f"worst RMSE {max(r['rmse']):.4f} rad  worst tip {max(r['tip_cm']):.2f} cm  "
               f"{r['wall_s']:.0f} s  {r['simulations']} simulations")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps({"case": "file" if args.basis else "gestures",
-                                              "rows": rows}, indent=1))
+    revision.write_json(args.out, {"case": "file" if args.basis else "gestures", "rows": rows})
 
 
 if __name__ == "__main__":

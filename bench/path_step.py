@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import revision
 import torch
 
 
@@ -95,9 +96,7 @@ def main(argv=None) -> int:
                     rows.append({"motions": n, "method": method, "adjoint": mode == "adjoint",
                                  "error": err.stderr.strip().splitlines()[-1][:200]})
                 print(json.dumps(rows[-1]), flush=True)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({"rows": rows}, indent=1))
+    revision.write_json(args.out, {"rows": rows})
     return 0
 
 

@@ -37,7 +37,6 @@ local error growth along the target paths (:mod:`tflearn.fit.stability`), the pe
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -314,9 +313,7 @@ def main(argv=None) -> int:
                   f"{max(v['peak_per_s'] for v in g):.1f} /s, e-folds {max(v['efolds'] for v in g):.1f}",
                   flush=True)
             doc["rows"].append({"set": name, **row})
-        if args.out:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(json.dumps(doc, indent=1))
+        revision.write_json(args.out, doc)
     return 0
 
 

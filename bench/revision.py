@@ -1,7 +1,9 @@
-"""The checked-out commit of this tree, for the benchmarks' JSON (imported by the scripts
-beside it, which run as ``python bench/NAME.py`` with this folder on the path)."""
+"""What the benchmarks record: the checked-out commit of this tree, and their JSON
+written (imported by the scripts beside it, which run as ``python bench/NAME.py`` with
+this folder on the path)."""
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
 
@@ -24,3 +26,12 @@ def head() -> str:
 def dirty() -> bool:
     """Whether tflearn/ has uncommitted changes."""
     return bool(_git("status", "--porcelain", "--", "tflearn"))
+
+
+def write_json(path: Path | str | None, doc) -> None:
+    """``doc`` as indented JSON at ``path``, its folder made; nothing where ``path`` is None."""
+    if path is None:
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=1))

@@ -93,9 +93,7 @@ def main(argv=None) -> int:
         keys = ["generate_s", "em_step_s"] + [k for k in done[0] if k.startswith("score_")]
         doc["exponents"] = {k: exponent(done, k) for k in keys}
         print(json.dumps(doc["exponents"]))
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(doc, indent=1))
+    revision.write_json(args.out, doc)
     return 0
 
 
