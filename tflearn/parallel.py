@@ -96,20 +96,32 @@ def group(device: str = "cpu", timeout_s: float = 1800.0):
             dist.destroy_process_group()
 
 
-def _to(obj, device):
-    """``obj`` with every tensor in it (nested in lists, tuples, dicts) moved to ``device``."""
+def _map(obj, f):
+    """``obj`` with ``f`` applied to every tensor in it (nested in lists, tuples, dicts)."""
     if isinstance(obj, torch.Tensor):
-        return obj.to(device)
+        return f(obj)
     if isinstance(obj, (list, tuple)):
-        return type(obj)(_to(x, device) for x in obj)
+        return type(obj)(_map(x, f) for x in obj)
     if isinstance(obj, dict):
-        return {k: _to(v, device) for k, v in obj.items()}
+        return {k: _map(v, f) for k, v in obj.items()}
     return obj
 
 
+def _to(obj, device):
+    """``obj`` with every tensor in it moved to ``device``."""
+    return _map(obj, lambda t: t.to(device))
+
+
+def _own(t: torch.Tensor) -> torch.Tensor:
+    """``t``, copied where its storage holds more than its elements: a pickled tensor
+    carries its whole storage, so each row of a matrix sent as a view would carry the
+    matrix (a thousand motions' rows, a thousand matrices)."""
+    return t if t.untyped_storage().nbytes() == t.numel() * t.element_size() else t.clone()
+
+
 def _cpu(obj):
-    """``obj``'s tensors on the CPU, to be pickled."""
-    return _to(obj, "cpu")
+    """``obj``'s tensors on the CPU, each in storage of its own size, to be pickled."""
+    return _map(obj, lambda t: _own(t.to("cpu")))
 
 
 def _here(obj):
