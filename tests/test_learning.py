@@ -140,6 +140,68 @@ def test_weight_support_restricts_nnls(come_here):
     assert float(cost) > float(free)
 
 
+def test_weight_support_builds_the_supported_fields_only(monkeypatch):
+    """Two motions, four fields with two sub-movement windows, field 2 supported by
+    neither (its weights nonzero before): the weights are each motion's NNLS optimum on
+    its supported columns (scipy), every other weight exactly 0, and the normal equations
+    are built for the three supported fields only."""
+    import numpy as np
+    from scipy.optimize import nnls as scipy_nnls
+    programs = gestures.random_gestures(2, seed=3, ranges={"duration": (0.4, 0.5)})
+    tg = targets.prepare(gestures.arm(), [m for m, _ in gestures.generate(gestures=programs)])
+    gen = torch.Generator().manual_seed(2)
+    M, P = 4, 2
+    basis = FieldBasis(0.5 * torch.randn(M, 7, generator=gen, dtype=DT),
+                       torch.diag_embed(1 + torch.rand(M, 7, generator=gen, dtype=DT)), kind="diag")
+    ones = torch.ones(tg.N, M, dtype=DT)
+    weights = MotionWeights(ones, ones, tg.duration, names=tg.names, c=torch.ones(tg.N, M, P, dtype=DT),
+                            window_onset=torch.tensor([[0.05, 0.2]], dtype=DT).expand(tg.N, P),
+                            window_duration=torch.full((tg.N, P), 0.2, dtype=DT))
+    fields = torch.tensor([[1, 1, 0, 0], [0, 1, 0, 1]], dtype=torch.bool)
+    support = torch.cat([fields, fields & torch.tensor([True, False, False, True]),
+                         fields.repeat_interleave(P, dim=1)], dim=1)
+    support[1, 2 * M + P * 3] = False                   # motion 1: field 3's first window off
+    with torch.no_grad():
+        G, h = torque.normal_equations(basis, weights, tg)
+    built = []
+    real = torque.normal_equations
+    monkeypatch.setattr(torque, "normal_equations", lambda b, *a: built.append(b.M) or real(b, *a))
+    cost = torque.solve_weights(basis, weights, tg, support)
+    x = weights.vector().detach()
+    assert built == [3] and float(x[:, [2, M + 2, 2 * M + 4, 2 * M + 5]].abs().max()) == 0.0
+    assert float(x[~support].abs().max()) == 0.0 and float(x[support].max()) > 0.1
+    for j in range(tg.N):
+        s = support[j].numpy()
+        L = np.linalg.cholesky(G[j][s][:, s].numpy())
+        ref, _ = scipy_nnls(L.T, np.linalg.solve(L, h[j][s].numpy()))
+        np.testing.assert_allclose(x[j][s].numpy(), ref, rtol=1e-7, atol=1e-10)
+        ref = torch.as_tensor(ref)
+        c = 1 - 2 * h[j][s] @ ref + ref @ G[j][s][:, s] @ ref
+        assert float(cost[j]) == pytest.approx(float(c), rel=1e-9)
+
+
+def test_torque_costs_build_the_used_fields_only(monkeypatch):
+    """torque_costs (no gradient) equals torque_cost where no motion has a weight on
+    field 2, and builds the design of the three fields used only."""
+    programs = gestures.random_gestures(2, seed=3, ranges={"duration": (0.4, 0.5)})
+    tg = targets.prepare(gestures.arm(), [m for m, _ in gestures.generate(gestures=programs)])
+    gen = torch.Generator().manual_seed(5)
+    M = 4
+    basis = FieldBasis(0.5 * torch.randn(M, 7, generator=gen, dtype=DT),
+                       torch.diag_embed(1 + torch.rand(M, 7, generator=gen, dtype=DT)), kind="diag")
+    a, b = torch.rand(tg.N, M, generator=gen, dtype=DT), torch.rand(tg.N, M, generator=gen, dtype=DT)
+    a[:, 2] = b[:, 2] = 0.0
+    weights = MotionWeights(a, b, tg.duration, names=tg.names)
+    with torch.no_grad():
+        whole = torque.torque_cost(basis, weights, tg)
+    built = []
+    real = torque.design
+    monkeypatch.setattr(torque, "design", lambda bs, *rest: built.append(bs.M) or real(bs, *rest))
+    costs = torque.torque_costs(basis, weights, tg)
+    assert built == [3] and float(whole.min()) > 0.1
+    torch.testing.assert_close(costs, whole, rtol=1e-13, atol=0)
+
+
 def test_failed_simulation_reproduces_nothing(come_here):
     """metrics of a simulation past its budget: rmse = tip = inf (never a success), the
     path NaN, and the reason given; the torque error is still reported."""
@@ -1002,3 +1064,21 @@ def test_em_and_weights_a_chunk_of_motions_at_a_time(monkeypatch):
     assert torch.allclose(e1, e0, rtol=0, atol=1e-10) and torch.allclose(k1, k0, rtol=1e-7, atol=0)
     assert torch.allclose(x1, x0, rtol=0, atol=1e-10)
     assert float(x1[1:][~support[1:]].abs().max()) == 0.0   # outside the support: zero
+
+
+def test_em_min_gain_stops_at_the_first_step_worth_less_per_motion():
+    """Two gestures, their fields perturbed: EM with ``min_gain`` g takes the same steps as
+    without it and stops at the first whose gain on the summed cost is ≤ N·g (N = 2),
+    not ≤ g, as a per-motion threshold must."""
+    pairs = gestures.generate(gestures=[gestures.GESTURES[k] for k in ("come_here", "backwards_reach")])
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    eta = torch.cat([lb.basis.eta.detach() for _, lb in pairs]) + ETA_SHIFT
+    K = K_FACTOR * torch.cat([lb.basis.K().detach() for _, lb in pairs])
+    full = torque.em(*_fresh(eta, K, tg), tg, steps=40, tol=0.0)
+    gains = [a - b for a, b in zip(full, full[1:])]
+    assert len(gains) >= 6 and all(d > 0 for d in gains)   # measured: 9 steps, 0.078 → 7e-16
+    g = 0.6 * gains[3]                    # the 4th step gains g / 0.6: more than g, ≤ N·g
+    stop = next(i for i, d in enumerate(gains) if d <= tg.N * g)
+    assert stop == 3 and gains[stop] > g
+    short = torque.em(*_fresh(eta, K, tg), tg, steps=40, tol=0.0, min_gain=g)
+    assert short == full[:stop + 2]

@@ -124,6 +124,11 @@ class PoolSection(Section):
     # starts on its own fields only (the union of the per-motion fits, each as it was
     # alone), and a motion may use the other fields once one of its own is eliminated
     sharing: Literal["joint", "own"] = "joint"
+    # the pooled EM also stops once a step lowers the mean motion's relative torque cost
+    # by less than this (absolute; 0: off). solver.em.tol is relative to the summed cost,
+    # which grows with the motions, so with many motions every step passes it: 1e-7
+    # (1% of solver.each.tol) stops the refit where it no longer pays (docs/benchmarks.md)
+    min_gain: float = Field(0.0, ge=0, allow_inf_nan=False)
 
 
 class ReduceSection(Section):                   # backward elimination of pooled fields

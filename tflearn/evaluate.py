@@ -16,7 +16,7 @@ from .fields import FieldProgram, MotionWeights
 from .fit import stability
 from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
-from .fit.torque import DivergenceWarning, by_chunks, solve_weights, torque_cost
+from .fit.torque import DivergenceWarning, solve_weights, torque_costs
 from .io import basis as basis_io
 from .io.files import write_text
 from .metrics import UNITS, pooled_rmse, score, summarize
@@ -103,7 +103,7 @@ def nearest_programs(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
         w.duration.copy_(tg.duration)
         w.names = list(tg.names)
         return w
-    costs = [by_chunks(torque_cost, lb.basis, programs([k] * tg.N), tg) for k in range(lb.weights.N)]
+    costs = [torque_costs(lb.basis, programs([k] * tg.N), tg) for k in range(lb.weights.N)]
     return programs(torch.stack(costs, 1).argmin(1).tolist())
 
 

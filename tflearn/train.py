@@ -336,9 +336,11 @@ class Run:
         state.step += 1
         return state.step
 
-    def _em(self, basis, weights, tg, state: RunState, tag: str | None = None, support=None):
+    def _em(self, basis, weights, tg, state: RunState, tag: str | None = None, support=None,
+            min_gain: float = 0.0):
         """EM refinement; ``tag``: log the summed torque cost at every step under it;
-        ``support``: the fields each motion may use (N×M lists of bools), None for all."""
+        ``support``: the fields each motion may use (N×M lists of bools), None for all;
+        ``min_gain``: :func:`tflearn.fit.torque.em`'s."""
         c = self.cfg.solver.em
 
         def cb(step, costs):
@@ -349,7 +351,7 @@ class Run:
             self.log.busy(em_step=step + 1, cost=cost)
         return torque.em(basis, weights, tg, steps=c.steps, tol=c.tol, max_step=c.max_step,
                          phases=self.cfg.model.phases == "variable", callback=cb, distributed=True,
-                         support=_weight_support(support, weights.P))
+                         support=_weight_support(support, weights.P), min_gain=min_gain)
 
     def _each(self, state: RunState, tg: Targets):
         """One round: motions cursor, cursor + 1, … one per rank, each fitted alone
@@ -499,7 +501,8 @@ class Run:
                     row[i] = row[i] or row[k]
             state.support = [[x for i, x in enumerate(row) if i not in drop] for row in state.support]
         if merged or self.cfg.model.phases == "variable":   # other motions' phases: default
-            self._em(basis, weights, tg, state, tag="torque_cost/pool", support=state.support)
+            self._em(basis, weights, tg, state, tag="torque_cost/pool", support=state.support,
+                     min_gain=self.cfg.solver.pool.min_gain)
         cost = float(torque.solve_weights(basis, weights, tg,
                                           _weight_support(state.support, weights.P)).sum())
         scores, ok = self._adopt(state, tg, "pool", basis, weights, cost, merged=merged)
@@ -656,7 +659,7 @@ class Run:
             keys = ("a_raw", "b_raw", "c_raw")
             nw.set_flat(keys, sub.flat(keys), users)
             check = self._check(nb, sub, one, until_failure=True)
-        cost = float(torque.by_chunks(torque.torque_cost, nb, nw, tg).sum())
+        cost = float(torque.torque_costs(nb, nw, tg).sum())
         return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support, "cost": cost,
                 "em_steps": 0, "check": check, "motions": users, "trial": "held"}
 

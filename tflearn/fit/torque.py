@@ -112,6 +112,8 @@ def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
 
 
 def _solve_weights(basis, weights, tg, support, ridge):
+    if support is not None and not (kept := _used(support, basis.M).any(0)).all():
+        return _solve_on(kept.nonzero().flatten().tolist(), basis, weights, tg, support, ridge)
     G, h = normal_equations(basis, weights, tg)
     A = _with_ridge(G, ridge)
     if support is not None:
@@ -123,6 +125,27 @@ def _solve_weights(basis, weights, tg, support, ridge):
     x = sol.x
     weights.set_vector(x)
     return 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+
+
+def _solve_on(fields: list, basis, weights, tg, support, ridge):
+    """:func:`_solve_weights` with the design of ``fields`` only, those that some motion's
+    ``support`` holds: the other fields' weights are 0 either way, and a motion's normal
+    equations over every field cost O(M²) where its own few fields cost O(1) (many
+    motions pooled with :attr:`~tflearn.config.PoolSection.sharing` own)."""
+    cols = _columns(fields, basis.M, weights.P)
+    sub = weights.select_fields(fields)
+    costs = _solve_weights(basis.select(fields), sub, tg, support[:, cols], ridge)
+    x = torch.zeros_like(weights.vector())
+    x[:, cols] = sub.vector()
+    weights.set_vector(x)
+    return costs
+
+
+def _columns(fields: list, M: int, P: int) -> torch.Tensor:
+    """The columns of ``fields``' weights in the layout of :meth:`MotionWeights.vector`
+    (a, b, then c field by field), in the order of ``fields``."""
+    i = torch.as_tensor(fields, dtype=torch.long)
+    return torch.cat([i, M + i, 2 * M + (P * i[:, None] + torch.arange(P)).flatten()])
 
 
 def _with_ridge(G: torch.Tensor, ridge: float) -> torch.Tensor:
@@ -155,9 +178,24 @@ def by_chunks(f, basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torc
         return out
 
 
+def torque_costs(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
+    """C_j (N), no gradient: :func:`torque_cost` a chunk of motions at a time
+    (:func:`by_chunks`), each chunk's design built for the fields its motions have a
+    weight on only (the others' torques are multiplied by 0): O(fields used), not O(M),
+    for many motions on fields of their own."""
+    return by_chunks(_cost_on_used, basis, weights, tg)
+
+
+def _cost_on_used(basis, weights, tg):
+    fields = _used(weights.vector().detach(), basis.M).any(0).nonzero().flatten().tolist()
+    if len(fields) == basis.M:
+        return torque_cost(basis, weights, tg)
+    return torque_cost(basis.select(fields), weights.select_fields(fields), tg)
+
+
 def relative_rms_torque_error(basis, weights, tg: Targets) -> torch.Tensor:
     """sqrt(C_j): RMS torque error relative to the RMS torque, per motion (N)."""
-    return by_chunks(torque_cost, basis, weights, tg).clamp_min(0).sqrt()
+    return torque_costs(basis, weights, tg).clamp_min(0).sqrt()
 
 
 def field_parameters(basis: FieldBasis, weights: MotionWeights, phases: bool) -> list:
@@ -430,7 +468,7 @@ class _Motions:
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
        phases: bool = False, tol: float = 1e-10, callback: Optional[Callable] = None,
        support: Optional[torch.Tensor] = None, distributed: bool = False,
-       max_step: Optional[float] = None) -> list:
+       max_step: Optional[float] = None, min_gain: float = 0.0) -> list:
     """EM-style alternation: exact NNLS weights, then a damped Gauss–Newton step on the
     fields' centres and stiffnesses (and phases) with those weights held.
 
@@ -443,7 +481,9 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     cannot absorb, so the step follows the reduced cost along the long curved valleys
     (centre distance, stiffness and weights trade off far from a centre) that
     first-order descent crawls along. Stops after ``steps`` accepted or rejected
-    steps, or when the cost falls by less than ``tol`` (relative). ``callback(step, costs)``
+    steps, or when the cost falls by less than ``tol`` (relative) or by less than ``min_gain``
+    per motion (absolute: N·min_gain on the sum, so the rule does not tighten as motions are
+    added, as ``tol`` on a sum of N costs does). ``callback(step, costs)``
     is called every step. ``support`` restricts the weights (see :func:`solve_weights`).
     ``max_step``: a trust region in θ's own units (centres in rad, stiffness as log of
     the factor's diagonal): μ grows until every |δθ_k| ≤ max_step. Marquardt's scaling
@@ -489,7 +529,7 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
         history.append(float(costs.sum()))
         if callback:
             callback(step, costs.detach())
-        if gain <= tol * max(history[-2], 1e-300):
+        if gain <= tol * max(history[-2], 1e-300) or gain <= min_gain * own.N:
             break
     own.finish()
     return history
