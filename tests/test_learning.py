@@ -578,6 +578,38 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert torch.equal(model_from_state(state.model)[1].a, a[:, [0, 1, 3]])
 
 
+def test_reach_narrows_the_fields_a_motion_that_lost_one_draws_on(tmp_path):
+    """Fields of their own (``solver.pool.sharing: own``): come_here on its field 0 and a
+    copy 3, tuck on its field 1, field 2 centred 3 rad from both paths. Once the copy
+    goes, come_here may draw on every field left; with ``solver.reduce.reach`` 1e-6 on
+    its own field and those whose Gaussian reaches 1e-6 on its path (tuck's, here), not
+    the far one; tuck, which lost nothing, keeps its row. The Gaussians are
+    exp(−½ dᵀKd) (FieldBasis.gaussians, against the closed form)."""
+    programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
+    (m0, lb), (m1, _) = gestures.generate(gestures=programs)
+    lib, w0, _ = gestures.library_model(programs, lb.body)
+    eta = torch.cat([lib.eta.detach(), torch.full((1, 7), 3.0, dtype=DT), lib.eta.detach()[:1]])
+    K = lib.K().detach()
+    basis = FieldBasis(eta, torch.cat([K, K[:1], K[:1]]), kind="diag")
+    a = torch.tensor([[1.5, 0.0, 0.0, 1.5], [0.0, 2.0, 0.0, 0.0]], dtype=DT)
+    weights = MotionWeights(a, torch.zeros_like(a), w0.duration, names=["come_here", "tuck"])
+    tg = targets.prepare(lb.body, [m0, m1])
+    q = tg.q[0][tg.mask[0]]
+    g = basis.gaussians(q)
+    d = q - eta[2]
+    assert g.shape == (len(q), 4) and float(g[:, 2].max()) < 1e-12 and float(g[:, 0].max()) > 0.5
+    torch.testing.assert_close(g[:, 2], torch.exp(-0.5 * torch.einsum("ti,ij,tj->t", d, K[0], d)),
+                               rtol=1e-12, atol=0)
+    state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(), ids=[0, 1, 2, 3],
+                           support=[[True, False, False, True], [False, True, False, False]])
+    rows = {}
+    for reach in (0.0, 1e-6):
+        run = train.Run(small_config("gestures", tmp_path / f"r{reach}", f"solver.reduce.reach={reach}"))
+        rows[reach] = run._without(basis, weights, state, 3, tg)[-1]
+    assert rows[0.0] == [[True, True, True], [False, True, False]]
+    assert rows[1e-6] == [[True, True, False], [False, True, False]]
+
+
 def test_a_model_checked_again_is_not_simulated_again(tmp_path):
     """:meth:`train.Run._check` of the model it checked last, on the same targets, returns
     those scores without a simulation (rescue's opening check and the run's final one

@@ -139,6 +139,11 @@ class ReduceSection(Section):                   # backward elimination of pooled
     # e-folds of local error growth along its path (tflearn.fit.stability) a removal may
     # add to any motion it touches; null: removals are judged by simulation alone
     growth: Optional[float] = Field(None, ge=0)
+    # with solver.pool.sharing own, a motion that loses one of its fields may draw on its
+    # own fields left and on those whose Gaussian exp(−½ dᵀKd) reaches this somewhere on
+    # its path (0: on every field left; for a thousand motions, whose every weight solve
+    # over every field left costs O(M²): docs/benchmarks.md)
+    reach: float = Field(0.0, ge=0, le=1)
 
 
 class MergeSection(Section):                    # merge pooled fields that nearly coincide

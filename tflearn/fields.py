@@ -257,6 +257,13 @@ class FieldBasis(nn.Module):
         self.eta.clamp_(-ETA_MAX, ETA_MAX)
         self.stiffness.project_()
 
+    @torch.no_grad()
+    def gaussians(self, q: torch.Tensor) -> torch.Tensor:
+        """g_i(q) = exp(−½ dᵀK_i d), d = q − η_i, of every field: q (...×n) → (...×M), the
+        factor by which field i's torque falls off away from its centre."""
+        d = q.unsqueeze(-2) - self.eta
+        return torch.exp(-0.5 * torch.einsum("...mi,mij,...mj->...m", d, self.K(), d))
+
     def forward(self, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
         """χ_i(q, v) for every field (:func:`field_torques`): q, v (...×n) → (...×M×n).
         Scalar and diagonal stiffness take the product K d elementwise."""

@@ -648,7 +648,7 @@ class Run:
         """The basis without field ``victim``, every other field held: the motions with a
         weight on it (a, b or c) get their weights re-solved by NNLS over the fields left
         and are checked by simulation; the others keep their weights, paths and scores."""
-        pos, keep, nb, nw, support = self._without(basis, weights, state, victim)
+        pos, keep, nb, nw, support = self._without(basis, weights, state, victim, tg)
         users = _users(weights)[:, pos].nonzero().flatten().tolist()
         self.log.busy(M=basis.M, holding=victim, motions=len(users))
         check = None
@@ -666,22 +666,35 @@ class Run:
     def _trial(self, basis, weights, tg: Targets, state: RunState, victim: int) -> dict:
         """The basis without field ``victim``, refitted by EM (its EM steps counted, to
         be logged when the trial is applied)."""
-        _, keep, nb, nw, support = self._without(basis, weights, state, victim)
+        _, keep, nb, nw, support = self._without(basis, weights, state, victim, tg)
         self.log.busy(M=basis.M, trying=victim)
         steps = SimpleNamespace(step=0)          # _em ticks it; the run's step when applied
         cost = self._em(nb, nw, tg, steps, support=support)[-1]
         return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support,
                 "cost": cost, "em_steps": steps.step, "motions": list(range(tg.N)), "trial": "refit"}
 
-    @staticmethod
-    def _without(basis, weights, state: RunState, victim: int) -> tuple:
+    def _without(self, basis, weights, state: RunState, victim: int, tg: Targets) -> tuple:
         """(its position, the positions kept, basis, weights, support) once field
-        ``victim`` is gone; a motion that lost it may use any field left."""
+        ``victim`` is gone; a motion that lost it may use any field left, or with
+        ``solver.reduce.reach`` its own and those in reach (:meth:`_reach`)."""
         pos = state.ids.index(victim)
         keep = [i for i in range(basis.M) if i != pos]
-        support = None if state.support is None else [
-            [True] * len(keep) if row[pos] else [row[i] for i in keep] for row in state.support]
-        return pos, keep, basis.select(keep), weights.select_fields(keep), support
+        nb = basis.select(keep)
+        support = None if state.support is None else [[row[i] for i in keep] for row in state.support]
+        for j, row in enumerate(state.support or []):
+            if row[pos]:
+                support[j] = self._reach(nb, tg, j, support[j])
+        return pos, keep, nb, weights.select_fields(keep), support
+
+    def _reach(self, basis, tg: Targets, j: int, own: list) -> list:
+        """The fields motion j may draw on once it has lost one: every field of ``basis``,
+        or with ``solver.reduce.reach`` r > 0 its ``own`` (bools) and those whose Gaussian
+        reaches r at one of its samples at least."""
+        r = self.cfg.solver.reduce.reach
+        if not r:
+            return [True] * basis.M
+        near = (basis.gaussians(tg.q[j][tg.mask[j]]) >= r).any(0).tolist()
+        return [a or b for a, b in zip(own, near)]
 
     def _checks(self, models: list, tg: Targets) -> list:
         """(scores, success) of each model, for a trial's judge (:meth:`_accepts`, which
