@@ -112,8 +112,8 @@ def solve_weights(basis: FieldBasis, weights: MotionWeights, tg: Targets,
 
 
 def _solve_weights(basis, weights, tg, support, ridge):
-    if support is not None and not (kept := _used(support, basis.M).any(0)).all():
-        return _solve_on(kept.nonzero().flatten().tolist(), basis, weights, tg, support, ridge)
+    if support is not None and len(fields := _fields_used(support, basis.M)) < basis.M:
+        return _solve_on(fields, basis, weights, tg, support, ridge)
     G, h = normal_equations(basis, weights, tg)
     A = _with_ridge(G, ridge)
     if support is not None:
@@ -187,7 +187,7 @@ def torque_costs(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torc
 
 
 def _cost_on_used(basis, weights, tg):
-    fields = _used(weights.vector().detach(), basis.M).any(0).nonzero().flatten().tolist()
+    fields = _fields_used(weights.vector().detach(), basis.M)
     if len(fields) == basis.M:
         return torque_cost(basis, weights, tg)
     return torque_cost(basis.select(fields), weights.select_fields(fields), tg)
@@ -275,7 +275,7 @@ class _FieldParameters:
     def active(self, x) -> list:
         """The fields some motion has a weight on (a, b or c of ``x`` > 0): the others'
         columns of ∂r/∂θ are zero, their torque being multiplied by zero."""
-        return _used(x, self.M).any(0).nonzero().flatten().tolist()
+        return _fields_used(x, self.M)
 
     def field_jacobian(self, i: int, th: torch.Tensor, x: torch.Tensor, out: torch.Tensor) -> None:
         """∂(:meth:`field_term`)/∂θ_i in closed form, written into ``out`` (N×T×n×p, a
@@ -352,6 +352,12 @@ def _used(x: torch.Tensor, M: int) -> torch.Tensor:
     """Which of M fields each motion has a weight on (N×M bools) in weights x (N×M(2+P),
     the layout of :meth:`MotionWeights.vector`)."""
     return (x[:, :M] > 0) | (x[:, M:2 * M] > 0) | (x[:, 2 * M:].reshape(len(x), M, -1) > 0).any(-1)
+
+
+def _fields_used(x: torch.Tensor, M: int) -> list:
+    """The fields (indices, ascending) on which some motion has a weight in ``x``
+    (N×M(2+P), :func:`_used`; weights > 0, or a support's True)."""
+    return _used(x, M).any(0).nonzero().flatten().tolist()
 
 
 def _projected_normal(J, Phi, r, x):
