@@ -81,14 +81,19 @@ def growth(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
     for idx in chunks(tg, 2 * D * (basis.M + 4)):
         part = tg.select(idx, trim=True)
         program = FieldProgram(basis, weights.select_motions(idx))
-        rate[idx, :part.mask.shape[1]] = program_growth(body, program, part, h).rate
+        rate[idx, :part.mask.shape[1]] = _rates(body, program, part, h)
     return _summary(rate, tg)
 
 
 def program_growth(body: Body, program, tg: Targets, h: float = 1e-6) -> Growth:
     """The local error growth of every motion under ``program(t, ν, v) → τ`` (see
     :func:`program_jacobians`), all motions in one batch (memory grows with them)."""
-    return _summary(torch.linalg.eigvals(program_jacobians(body, program, tg, h)).real.amax(-1), tg)
+    return _summary(_rates(body, program, tg, h), tg)
+
+
+def _rates(body: Body, program, tg: Targets, h: float) -> torch.Tensor:
+    """λ (N×T): the largest real part of the closed loop's eigenvalues at every sample."""
+    return torch.linalg.eigvals(program_jacobians(body, program, tg, h)).real.amax(-1)
 
 
 def _summary(rate: torch.Tensor, tg: Targets) -> Growth:
