@@ -578,6 +578,42 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert torch.equal(model_from_state(state.model)[1].a, a[:, [0, 1, 3]])
 
 
+def test_held_trial_in_chunks_stops_at_the_first_motion_worse_than_before(tmp_path):
+    """``solver.reduce.chunk``: a held trial simulates its users c at a time, the one
+    whose torque cost the removal raised most first, and stops once one is worse than
+    before. come_here on its field 0, tuck on its field 1, both with weights of 1e-4 on
+    each other's field and on a far field 2. Without tuck's field, tuck is simulated first
+    and alone, and the trial is refused as it is when both are simulated; without the far
+    field both are simulated and it goes, with each motion's scores as in one check, to
+    the simulator's tolerance."""
+    programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
+    (m0, lb), (m1, _) = gestures.generate(gestures=programs)
+    lib, w0, _ = gestures.library_model(programs, lb.body)
+    basis = FieldBasis(torch.cat([lib.eta.detach(), torch.full((1, 7), 1.0, dtype=DT)]),
+                       torch.cat([lib.K().detach(), lib.K().detach()[:1]]), kind="diag")
+    a = torch.tensor([[3.0, 1e-4, 1e-4], [1e-4, 2.0, 1e-4]], dtype=DT)
+    weights = MotionWeights(a, torch.zeros_like(a), w0.duration, names=["come_here", "tuck"])
+    tg = targets.prepare(lb.body, [m0, m1])
+    trials = {}
+    for chunk in (0, 1):
+        run = train.Run(small_config("gestures", tmp_path / f"c{chunk}", f"solver.reduce.chunk={chunk}"))
+        scores, ok = run._check(basis, weights, tg)
+        assert ok == [True, True]
+        state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(),
+                               reference=train._reference(scores, ok), ids=[0, 1, 2])
+        trials[chunk] = [run._held_trial(basis, weights, tg, state, v) for v in (1, 2)]
+        assert [run._accepts(state, t, tg) for t in trials[chunk]] == [False, True]
+    (tuck0, far0), (tuck1, far1) = trials[0], trials[1]
+    assert tuck0["motions"] == [0, 1] and tuck1["motions"] == [1]
+    assert tuck1["check"][0].rmse[0] == pytest.approx(tuck0["check"][0].rmse[1], rel=1e-6)
+    assert tuck1["check"][0].rmse[0] > 0.03
+    assert far0["motions"] == [0, 1] and sorted(far1["motions"]) == [0, 1]
+    for i, j in enumerate(far1["motions"]):
+        # one check steps both with one step size, chunks each alone (measured: 2.5e-8 rad)
+        assert far1["check"][0].rmse[i] == pytest.approx(far0["check"][0].rmse[j], abs=1e-7)
+        assert far1["check"][1][i]
+
+
 def test_reach_narrows_the_fields_a_motion_that_lost_one_draws_on(tmp_path):
     """Fields of their own (``solver.pool.sharing: own``): come_here on its field 0 and a
     copy 3, tuck on its field 1, field 2 centred 3 rad from both paths. Once the copy

@@ -144,6 +144,11 @@ class ReduceSection(Section):                   # backward elimination of pooled
     # its path (0: on every field left; for a thousand motions, whose every weight solve
     # over every field left costs O(M²): docs/benchmarks.md)
     reach: float = Field(0.0, ge=0, le=1)
+    # a held trial's users simulated this many at a time, those whose torque cost the
+    # removal raised most first, until one is worse than before (the trial refused, as it
+    # would be after simulating them all); 0: all users in one check (for a field that
+    # hundreds of motions use and none can lose: docs/benchmarks.md)
+    chunk: int = Field(0, ge=0)
 
 
 class MergeSection(Section):                    # merge pooled fields that nearly coincide

@@ -45,6 +45,12 @@ class Scores:
     q_sim: torch.Tensor
     failure: list
 
+    @classmethod
+    def join(cls, parts: Sequence[Scores]) -> Scores:
+        """The scores of several groups of motions (on one time grid), in order."""
+        lists = {k: [x for p in parts for x in getattr(p, k)] for k in ("rmse", "tip", "torque", "failure")}
+        return cls(q_sim=torch.cat([p.q_sim for p in parts]), **lists)
+
     def worst(self, count: Optional[int]) -> list:
         """The indices of the ``count`` motions furthest from their paths (joint RMSE; a
         failed simulation counts as furthest), worst first; None: every motion, in order."""

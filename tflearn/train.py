@@ -654,14 +654,43 @@ class Run:
         check = None
         if users:
             sub, one = nw.select_motions(users), tg.select(users)
-            torque.solve_weights(nb, sub, one, None if support is None else
-                                 _weight_support([support[j] for j in users], nw.P))
+            after = torque.solve_weights(nb, sub, one, None if support is None else
+                                         _weight_support([support[j] for j in users], nw.P))
             keys = ("a_raw", "b_raw", "c_raw")
             nw.set_flat(keys, sub.flat(keys), users)
-            check = self._check(nb, sub, one, until_failure=True)
+            users, check = self._held_check(state, (basis, weights), (nb, nw), tg, users, after)
         cost = float(torque.torque_costs(nb, nw, tg).sum())
         return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support, "cost": cost,
                 "em_steps": 0, "check": check, "motions": users, "trial": "held"}
+
+    def _held_check(self, state: RunState, old: tuple, new: tuple, tg: Targets, users: list,
+                    costs: torch.Tensor) -> tuple:
+        """(the motions simulated, their (scores, success)) for a held trial, ``new``
+        (basis, weights) the model without the field, ``old`` with it: ``users`` all in
+        one check, or with ``solver.reduce.chunk`` c > 0, c at a time, those whose torque
+        cost rose most (``costs``: theirs on ``new``, over theirs on ``old``) first, until
+        a chunk holds a motion worse than its reference: the trial is then refused, as it
+        would be had every user been simulated."""
+        c, (basis, weights), one = self.cfg.solver.reduce.chunk, new, tg.select(users)
+        if not c:
+            return users, self._check(basis, weights.select_motions(users), one, until_failure=True)
+        rise = costs / torque.torque_costs(old[0], old[1].select_motions(users), one).clamp_min(1e-300)
+        order = [users[i] for i in torch.argsort(rise, descending=True, stable=True).tolist()]
+        done, parts = [], []
+        for lo in range(0, len(order), c):
+            part = order[lo:lo + c]
+            scores, ok = self._check(basis, weights.select_motions(part), tg.select(part), until_failure=True)
+            done, parts = done + part, parts + [scores]
+            if not self._no_worse(state, part, scores, ok):
+                break
+        scores = Scores.join(parts)
+        return done, (scores, scores.succeeded(self.cfg.success.rmse, self.cfg.success.tip))
+
+    @staticmethod
+    def _no_worse(state: RunState, motions: list, scores: Scores, ok: list) -> bool:
+        """:func:`no_worse` of ``motions``' scores against their references."""
+        return no_worse({k: [state.reference[k][j] for j in motions] for k in ("rmse", "tip", "ok")},
+                        scores, ok)
 
     def _trial(self, basis, weights, tg: Targets, state: RunState, victim: int) -> dict:
         """The basis without field ``victim``, refitted by EM (its EM steps counted, to
@@ -720,8 +749,7 @@ class Run:
         if trial["check"] is None:
             return True
         motions = trial["motions"]
-        ref = {k: [state.reference[k][j] for j in motions] for k in ("rmse", "tip", "ok")}
-        if not no_worse(ref, *trial["check"]):
+        if not self._no_worse(state, motions, *trial["check"]):
             return False
         allow = self.cfg.solver.reduce.growth
         if allow is None:
