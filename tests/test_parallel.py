@@ -10,6 +10,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -98,6 +99,71 @@ def test_world_size_without_an_address_is_refused(monkeypatch):
     with pytest.raises(RuntimeError, match="MASTER_ADDR"):
         with parallel.group("cpu"):
             pass
+
+
+class _Threads:
+    """A world of ``size`` ranks as threads: :func:`parallel.rank`, :func:`parallel.size`
+    and :func:`parallel.all_gather` (a barrier) for the test of code above them."""
+    def __init__(self, monkeypatch, size: int):
+        self.local, self.barrier, self.box = threading.local(), threading.Barrier(size), [None] * size
+        monkeypatch.setattr(parallel, "rank", lambda: self.local.rank)
+        monkeypatch.setattr(parallel, "size", lambda: size)
+        monkeypatch.setattr(parallel, "all_gather", self.all_gather)
+
+    def all_gather(self, obj) -> list:
+        self.box[self.local.rank] = obj
+        self.barrier.wait()
+        out = list(self.box)
+        self.barrier.wait()
+        return out
+
+    def run(self, f) -> list:
+        """f() on every rank, its results by rank."""
+        results = [None] * len(self.box)
+
+        def main(r):
+            self.local.rank = r
+            results[r] = f()
+        threads = [threading.Thread(target=main, args=(r,)) for r in range(len(self.box))]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        return results
+
+
+@pytest.mark.parametrize("library", [None, "fields"])
+def test_each_deals_the_declined_motions_searches_to_the_ranks_in_turn(monkeypatch, tmp_path, library):
+    """:meth:`train.Run._fits` on two ranks: the motions of a block (10 … 17) are tried on
+    the library by one rank each (rank = position mod 2), and the three it declines
+    (11, 12, 15) are searched in turn — 11 and 15 by rank 0, 12 by rank 1, where the
+    motions' own ranks would give two to rank 1 — each with its seed and told why it was
+    declined; both ranks get every fit in motion order. Without a library every motion
+    is searched, dealt the same way."""
+    world, calls = _Threads(monkeypatch, 2), []
+    run = train.Run(small_config("gestures", tmp_path / "run"))
+
+    def reuse(lib, tg, k):
+        calls.append(("try", parallel.rank(), k))
+        return (None, f"why {k}") if k in (11, 12, 15) else ({"fit": k, "reused": True}, None)
+
+    def fit_one(tg, k, seed):
+        calls.append(("search", parallel.rank(), k))
+        return {"fit": k, "seed": seed}
+    monkeypatch.setattr(run, "_reuse", reuse)
+    monkeypatch.setattr(run, "_fit_one", fit_one)
+    batch, seeds = list(range(10, 18)), [100 + k for k in range(20)]
+    fits = world.run(lambda: run._fits(library, None, batch, seeds))
+    assert fits[0] == fits[1]
+    if library is None:
+        assert fits[0] == [{"fit": k, "seed": 100 + k, "declined": None} for k in batch]
+        assert sorted(calls) == sorted(("search", i % 2, k) for i, k in enumerate(batch))
+        return
+    assert fits[0] == [{"fit": k, "seed": 100 + k, "declined": f"why {k}"} if k in (11, 12, 15)
+                       else {"fit": k, "reused": True} for k in batch]
+    assert sorted(c for c in calls if c[0] == "try") == sorted(("try", i % 2, k) for i, k in enumerate(batch))
+    assert sorted(c for c in calls if c[0] == "search") == [("search", 0, 11), ("search", 0, 15),
+                                                          ("search", 1, 12)]
 
 
 def _free_port() -> int:

@@ -354,8 +354,9 @@ class Run:
                          support=_weight_support(support, weights.P), min_gain=min_gain)
 
     def _each(self, state: RunState, tg: Targets):
-        """One round: motions cursor, cursor + 1, … one per rank, each fitted alone
-        (:meth:`_fit_one`), gathered in motion order, then one checkpoint."""
+        """One round: the motions from the cursor to the end of its block of
+        ``solver.each.reuse`` (without reuse, one per rank), each fitted alone
+        (:meth:`_fits`), gathered in motion order, then one checkpoint."""
         j = state.cursor
         self.log.stage("each", tg.N, j)
         gen = self._gen(state)
@@ -366,11 +367,10 @@ class Run:
             self.log.end_stage()
             return self._advance(state)
         B = self.cfg.solver.each.reuse
-        batch = list(range(j, min(j + parallel.size(), tg.N, (j // B + 1) * B if B else tg.N)))
-        library = self._library(state, tg, B * (j // B) if B else 0)
-        mine = [self._alone(library, tg, batch[i], seeds[batch[i]]) for i in parallel.mine(len(batch))]
+        batch = list(range(j, min(tg.N, (j // B + 1) * B if B else j + parallel.size())))
+        fits = self._fits(self._library(state, tg, B * (j // B) if B else 0), tg, batch, seeds)
         alone = state.history.setdefault("each", {"reproduced": [], "reused": [], "declined": {}})
-        for k, fit in zip(batch, parallel.gather_motions(len(batch), mine)):
+        for k, fit in zip(batch, fits):
             state.fits.append(fit["fit"])
             alone["reproduced"].append(fit["reproduced"])
             if fit.get("reused"):
@@ -404,15 +404,21 @@ class Run:
         library = self._fields_before[1]
         return library if library.M else None
 
-    def _alone(self, library: Optional[FieldBasis], tg: Targets, k: int, seed: int) -> dict:
-        """Motion k's fit in the per-motion stage: on the ``library``'s fields where they
-        do (:meth:`_reuse`), else its own search (:meth:`_fit_one`), which then records
-        why the library did not do (``"declined"``)."""
-        fit, why = self._reuse(library, tg, k)
-        if fit is None:
-            fit = self._fit_one(tg, k, seed)
-            fit["declined"] = why
-        return fit
+    def _fits(self, library: Optional[FieldBasis], tg: Targets, batch: list, seeds: list) -> list:
+        """The fits of motions ``batch`` in the per-motion stage, in order: each on the
+        ``library``'s fields where they do (:meth:`_reuse`), the motions shared by the
+        ranks; then the declined ones' own searches (:meth:`_fit_one`, each recording why
+        the library did not do, ``"declined"``), shared by the ranks in turn, so that
+        each rank gets as many of the costly searches as the others."""
+        tries = [(None, None)] * len(batch) if library is None else parallel.gather_motions(
+            len(batch), [self._reuse(library, tg, batch[i]) for i in parallel.mine(len(batch))])
+        todo = [i for i, (fit, _) in enumerate(tries) if fit is None]
+        own = parallel.gather_motions(len(todo), [self._fit_one(tg, batch[todo[i]], seeds[batch[todo[i]]])
+                                                  for i in parallel.mine(len(todo))])
+        fits = [fit for fit, _ in tries]
+        for i, fit in zip(todo, own):
+            fits[i] = {**fit, "declined": tries[i][1]}
+        return fits
 
     def _reuse(self, library: Optional[FieldBasis], tg: Targets, k: int):
         """Motion k on the ``library``'s fields (:meth:`_library`): its NNLS weights over
