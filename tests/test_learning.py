@@ -144,7 +144,8 @@ def test_weight_support_builds_the_supported_fields_only(monkeypatch):
     """Two motions, four fields with two sub-movement windows, field 2 supported by
     neither (its weights nonzero before): the weights are each motion's NNLS optimum on
     its supported columns (scipy), every other weight exactly 0, and the normal equations
-    are built for the three supported fields only."""
+    are built for the three supported fields only, each motion's NNLS solved on its own
+    7 and 6 supported weights (one 7×7 system each, not the three fields' 12×12)."""
     import numpy as np
     from scipy.optimize import nnls as scipy_nnls
     programs = gestures.random_gestures(2, seed=3, ranges={"duration": (0.4, 0.5)})
@@ -166,8 +167,11 @@ def test_weight_support_builds_the_supported_fields_only(monkeypatch):
     built = []
     real = torque.normal_equations
     monkeypatch.setattr(torque, "normal_equations", lambda b, *a: built.append(b.M) or real(b, *a))
+    solved, nnls = [], torque.nnls
+    monkeypatch.setattr(torque, "nnls", lambda G, h: solved.append(tuple(G.shape)) or nnls(G, h))
     cost = torque.solve_weights(basis, weights, tg, support)
     x = weights.vector().detach()
+    assert support.sum(-1).tolist() == [7, 6] and solved == [(2, 7, 7)]
     assert built == [3] and float(x[:, [2, M + 2, 2 * M + 4, 2 * M + 5]].abs().max()) == 0.0
     assert float(x[~support].abs().max()) == 0.0 and float(x[support].max()) > 0.1
     for j in range(tg.N):

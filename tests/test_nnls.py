@@ -22,7 +22,16 @@ import pytest
 import scipy.optimize as so
 import torch
 
-from tflearn.fit.nnls import NNLSError, NNLSResult, NNLSWarning, nnls, nnls_lstsq, warn_unconverged
+from tflearn.fit.nnls import (
+    NNLSError,
+    NNLSResult,
+    NNLSWarning,
+    nnls,
+    nnls_lstsq,
+    packed,
+    take,
+    warn_unconverged,
+)
 
 BATCH = (3, 4)
 
@@ -164,6 +173,41 @@ def test_mixed_active_sets():
     ref = scipy_nnls(A, y)
     assert rel_err(x, ref) <= 1e-10
     assert [int((xi > 0).sum()) for xi in x] == n_pos
+
+
+def test_packed_takes_each_rows_indices_in_order():
+    """packed: each row's True indices first, in order, padded to the most any row has;
+    take: those rows and columns of G and entries of h."""
+    mask = torch.tensor([[False, True, False, True], [True, False, False, False], [False] * 4])
+    cols, pad = packed(mask)
+    assert cols[:, :2].tolist()[0] == [1, 3] and cols[1, 0] == 0
+    assert pad.tolist() == [[False, False], [False, True], [True, True]]
+    G = torch.arange(48.0).reshape(3, 4, 4)
+    h = torch.arange(12.0).reshape(3, 4)
+    Gp, hp = take(G, h, cols)
+    assert Gp[0].tolist() == [[5.0, 7.0], [13.0, 15.0]] and hp[0].tolist() == [1.0, 3.0]
+    assert Gp[1, 0, 0] == 16.0 and hp[1, 0] == 4.0
+
+
+def test_passive_solves_are_the_size_of_the_passive_set(monkeypatch):
+    """Three problems of 40 unknowns whose optimum has 3 positive entries: x is that
+    optimum, and no linear solve on the way is larger than the passive set grew (≤ 6),
+    not 40×40."""
+    gen = torch.Generator().manual_seed(4)
+    k = 40
+    A = torch.randn(3, 60, k, generator=gen, dtype=torch.float64)
+    G = A.transpose(-1, -2) @ A
+    x_true = torch.zeros(3, k, dtype=torch.float64)
+    for b, idx in enumerate(([0, 7, 30], [5, 6, 39], [12, 20, 21])):
+        x_true[b, idx] = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
+    h = (G @ x_true.unsqueeze(-1)).squeeze(-1)
+    sizes, solve = [], torch.linalg.solve
+    monkeypatch.setattr(torch.linalg, "solve", lambda a, b: sizes.append(a.shape[-1]) or solve(a, b))
+    res = nnls(G, h)
+    assert bool(res.converged.all())
+    torch.testing.assert_close(res.x, x_true, rtol=1e-9, atol=1e-10)
+    print("passive system sizes:", sorted(set(sizes)))
+    assert 3 <= max(sizes) <= 6
 
 
 def test_shared_G_broadcasts():

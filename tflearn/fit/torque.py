@@ -32,7 +32,7 @@ import torch
 
 from .. import parallel
 from ..fields import FieldBasis, MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
-from .nnls import nnls, warn_unconverged
+from .nnls import nnls, packed, take, warn_unconverged
 from .targets import Targets, chunks
 
 
@@ -116,15 +116,28 @@ def _solve_weights(basis, weights, tg, support, ridge):
         return _solve_on(fields, basis, weights, tg, support, ridge)
     G, h = normal_equations(basis, weights, tg)
     A = _with_ridge(G, ridge)
-    if support is not None:
-        both = support.unsqueeze(-1) & support.unsqueeze(-2)
-        A = torch.where(both, A, 0.0) + torch.diag_embed((~support).to(G.dtype))
-        h = torch.where(support, h, -1.0)
-    sol = nnls(A, h)
+    if support is None:
+        sol = nnls(A, h)
+        x = sol.x
+    else:
+        A, hs, cols, pad = _on_support(A, h, support)
+        sol = nnls(A, hs)
+        x = torch.zeros_like(h).scatter_(-1, cols, torch.where(pad, 0.0, sol.x))
     warn_unconverged(sol, tg.names, "solve_weights")
-    x = sol.x
     weights.set_vector(x)
     return 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+
+
+def _on_support(G: torch.Tensor, h: torch.Tensor, support: torch.Tensor) -> tuple:
+    """Each motion's normal equations (G N×k×k, h N×k) on its ``support`` (N×k bools)
+    only, packed in front (:func:`~.nnls.packed`): (G N×W×W, h N×W, the columns N×W,
+    padding N×W), W the most any motion supports. A padding row reads x_i = 0 with a
+    negative gradient, so that Lawson–Hanson never frees it: each motion's solve costs
+    O(W³), not O(k³), where motions of a chunk hold different fields (their union k)."""
+    cols, pad = packed(support)
+    A, hs = take(G, h, cols)
+    A = torch.where(pad.unsqueeze(-1) | pad.unsqueeze(-2), 0.0, A) + torch.diag_embed(pad.to(G.dtype))
+    return A, torch.where(pad, -1.0, hs), cols, pad
 
 
 def _solve_on(fields: list, basis, weights, tg, support, ridge):
