@@ -177,16 +177,17 @@ def test_mixed_active_sets():
 
 def test_packed_takes_each_rows_indices_in_order():
     """packed: each row's True indices first, in order, padded to the most any row has;
-    take: those rows and columns of G and entries of h."""
+    take: those rows and columns of G and entries of h, 0 in the padding."""
     mask = torch.tensor([[False, True, False, True], [True, False, False, False], [False] * 4])
     cols, pad = packed(mask)
     assert cols[:, :2].tolist()[0] == [1, 3] and cols[1, 0] == 0
     assert pad.tolist() == [[False, False], [False, True], [True, True]]
     G = torch.arange(48.0).reshape(3, 4, 4)
     h = torch.arange(12.0).reshape(3, 4)
-    Gp, hp = take(G, h, cols)
+    Gp, hp = take(G, h, cols, pad)
     assert Gp[0].tolist() == [[5.0, 7.0], [13.0, 15.0]] and hp[0].tolist() == [1.0, 3.0]
-    assert Gp[1, 0, 0] == 16.0 and hp[1, 0] == 4.0
+    assert Gp[1].tolist() == [[16.0, 0.0], [0.0, 0.0]] and hp[1].tolist() == [4.0, 0.0]
+    assert float(Gp[2].abs().max()) == 0.0 and float(hp[2].abs().max()) == 0.0
 
 
 def test_passive_solves_are_the_size_of_the_passive_set(monkeypatch):

@@ -52,20 +52,21 @@ def packed(mask: torch.Tensor) -> tuple:
     return cols, ~torch.gather(mask, -1, cols)
 
 
-def take(G: torch.Tensor, h: torch.Tensor, cols: torch.Tensor) -> tuple:
-    """(G[b, cols_b][:, cols_b], h[b, cols_b]) for each row b: B×W×W, B×W."""
+def take(G: torch.Tensor, h: torch.Tensor, cols: torch.Tensor, pad: torch.Tensor) -> tuple:
+    """(G[b, cols_b][:, cols_b], h[b, cols_b]) for each row b (B×W×W, B×W), 0 in the
+    rows, columns and entries of the padding (:func:`packed`)."""
     W = cols.shape[-1]
     rows = torch.gather(G, -2, cols.unsqueeze(-1).expand(-1, -1, G.shape[-1]))
-    return torch.gather(rows, -1, cols.unsqueeze(-2).expand(-1, W, -1)), torch.gather(h, -1, cols)
+    Gp = torch.gather(rows, -1, cols.unsqueeze(-2).expand(-1, W, -1))
+    return (torch.where(pad.unsqueeze(-1) | pad.unsqueeze(-2), 0.0, Gp),
+            torch.where(pad, 0.0, torch.gather(h, -1, cols)))
 
 
 def _solve_passive(G: torch.Tensor, h: torch.Tensor, P: torch.Tensor, ridge: float) -> torch.Tensor:
     """Unconstrained minimiser restricted to the passive set P (zeros elsewhere), solved
     on each element's passive indices only (:func:`packed`): O(|P|³), not O(k³)."""
     cols, pad = packed(P)
-    Gp, hp = take(G, h, cols)
-    Gp = torch.where(pad.unsqueeze(-1) | pad.unsqueeze(-2), 0.0, Gp)
-    hp = torch.where(pad, 0.0, hp)
+    Gp, hp = take(G, h, cols, pad)
     eye = torch.eye(Gp.shape[-1], dtype=G.dtype, device=G.device)
     scale = torch.diagonal(G, dim1=-2, dim2=-1).abs().amax(-1, keepdim=True).clamp_min(1e-300)
     on = (~pad).to(G.dtype)

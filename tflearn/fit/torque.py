@@ -135,9 +135,8 @@ def _on_support(G: torch.Tensor, h: torch.Tensor, support: torch.Tensor) -> tupl
     negative gradient, so that Lawson–Hanson never frees it: each motion's solve costs
     O(W³), not O(k³), where motions of a chunk hold different fields (their union k)."""
     cols, pad = packed(support)
-    A, hs = take(G, h, cols)
-    A = torch.where(pad.unsqueeze(-1) | pad.unsqueeze(-2), 0.0, A) + torch.diag_embed(pad.to(G.dtype))
-    return A, torch.where(pad, -1.0, hs), cols, pad
+    A, hs = take(G, h, cols, pad)
+    return A + torch.diag_embed(pad.to(G.dtype)), torch.where(pad, -1.0, hs), cols, pad
 
 
 def _solve_on(fields: list, basis, weights, tg, support, ridge):
