@@ -664,30 +664,32 @@ class Run:
                                          _weight_support([support[j] for j in users], nw.P))
             keys = ("a_raw", "b_raw", "c_raw")
             nw.set_flat(keys, sub.flat(keys), users)
-            users, check = self._held_check(state, (basis, weights), (nb, nw), tg, users, after)
+            users, check = self._held_check(state, users, (basis, weights.select_motions(users)), (nb, sub),
+                                            one, after)
         cost = float(torque.torque_costs(nb, nw, tg).sum())
         return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support, "cost": cost,
                 "em_steps": 0, "check": check, "motions": users, "trial": "held"}
 
-    def _held_check(self, state: RunState, old: tuple, new: tuple, tg: Targets, users: list,
+    def _held_check(self, state: RunState, users: list, old: tuple, new: tuple, one: Targets,
                     costs: torch.Tensor) -> tuple:
-        """(the motions simulated, their (scores, success)) for a held trial, ``new``
-        (basis, weights) the model without the field, ``old`` with it: ``users`` all in
-        one check, or with ``solver.reduce.chunk`` c > 0, c at a time, those whose torque
-        cost rose most (``costs``: theirs on ``new``, over theirs on ``old``) first, until
-        a chunk holds a motion worse than its reference: the trial is then refused, as it
-        would be had every user been simulated."""
-        c, (basis, weights), one = self.cfg.solver.reduce.chunk, new, tg.select(users)
+        """(the motions simulated, their (scores, success)) for a held trial of ``users``
+        (their targets ``one``): ``new`` (basis, their weights) the model without the
+        field, ``old`` with it; all in one check, or with ``solver.reduce.chunk`` c > 0,
+        c at a time, those whose torque cost rose most (``costs``: theirs on ``new``, over
+        theirs on ``old``) first, until a chunk holds a motion worse than its reference:
+        the trial is then refused, as it would be had every user been simulated."""
+        c, (basis, weights) = self.cfg.solver.reduce.chunk, new
         if not c:
-            return users, self._check(basis, weights.select_motions(users), one, until_failure=True)
-        rise = costs / torque.torque_costs(old[0], old[1].select_motions(users), one).clamp_min(1e-300)
-        order = [users[i] for i in torch.argsort(rise, descending=True, stable=True).tolist()]
+            return users, self._check(basis, weights, one, until_failure=True)
+        rise = costs / torque.torque_costs(*old, one).clamp_min(1e-300)
+        order = torch.argsort(rise, descending=True, stable=True).tolist()
         done, parts = [], []
         for lo in range(0, len(order), c):
             part = order[lo:lo + c]
-            scores, ok = self._check(basis, weights.select_motions(part), tg.select(part), until_failure=True)
-            done, parts = done + part, parts + [scores]
-            if not self._no_worse(state, part, scores, ok):
+            scores, ok = self._check(basis, weights.select_motions(part), one.select(part),
+                                     until_failure=True)
+            done, parts = done + [users[i] for i in part], parts + [scores]
+            if not self._no_worse(state, [users[i] for i in part], scores, ok):
                 break
         scores = Scores.join(parts)
         return done, (scores, scores.succeeded(self.cfg.success.rmse, self.cfg.success.tip))
