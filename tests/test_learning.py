@@ -547,8 +547,9 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     run = train.Run(small_config("gestures", tmp_path / "run"))
     scores, ok = run._check(basis, weights, tg)
     assert ok == [True, True]
+    costs = torque.torque_costs(basis, weights, tg).tolist()      # as _reduce sets them
     state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(),
-                           reference=train._reference(scores, ok), ids=[0, 1, 2, 3])
+                           reference={**train._reference(scores, ok), "cost": costs}, ids=[0, 1, 2, 3])
     unused = run._held_trial(basis, weights, tg, state, 2)
     assert unused["motions"] == [] and unused["check"] is None and run._accepts(state, unused, tg)
     assert torch.equal(unused["model"][1].a, a[:, [0, 1, 3]])
@@ -560,6 +561,9 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert float(a_new[0, 1:].abs().max()) < 1e-4 and float(b_new[0].abs().max()) < 1e-4
     assert torch.equal(a_new[1], a[1, :3]) and torch.equal(b_new[1], torch.zeros(3, dtype=DT))
     assert copy["check"][0].rmse[0] < 1e-4
+    for trial in (unused, copy):         # the sum of the costs kept and the users' re-solved
+        assert trial["cost"] == pytest.approx(float(torque.torque_costs(*trial["model"], tg).sum()), rel=1e-9)
+    assert copy["costs"][1] == costs[1] and copy["costs"][0] != costs[0]
     alone = run._held_trial(basis, weights, tg, state, 1)
     assert alone["motions"] == [1] and not run._accepts(state, alone, tg)
     assert alone["check"][0].rmse[0] > 0.03
@@ -603,8 +607,9 @@ def test_held_trial_in_chunks_stops_at_the_first_motion_worse_than_before(tmp_pa
         run = train.Run(small_config("gestures", tmp_path / f"c{chunk}", f"solver.reduce.chunk={chunk}"))
         scores, ok = run._check(basis, weights, tg)
         assert ok == [True, True]
+        costs = torque.torque_costs(basis, weights, tg).tolist()
         state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(),
-                               reference=train._reference(scores, ok), ids=[0, 1, 2])
+                               reference={**train._reference(scores, ok), "cost": costs}, ids=[0, 1, 2])
         trials[chunk] = [run._held_trial(basis, weights, tg, state, v) for v in (1, 2)]
         assert [run._accepts(state, t, tg) for t in trials[chunk]] == [False, True]
     (tuck0, far0), (tuck1, far1) = trials[0], trials[1]
@@ -616,6 +621,10 @@ def test_held_trial_in_chunks_stops_at_the_first_motion_worse_than_before(tmp_pa
         # one check steps both with one step size, chunks each alone (measured: 2.5e-8 rad)
         assert far1["check"][0].rmse[i] == pytest.approx(far0["check"][0].rmse[j], abs=1e-7)
         assert far1["check"][1][i]
+    (tmp_path / "c1").mkdir()                      # applied: the users' re-solved costs are the reference
+    run._apply_trial(state, far1, tg, lambda M: M)
+    assert state.ids == [0, 1] and state.reference["cost"] == far1["costs"] != costs
+    assert far1["costs"] == pytest.approx(torque.torque_costs(*far1["model"], tg).tolist(), rel=1e-9)
 
 
 def test_reach_narrows_the_fields_a_motion_that_lost_one_draws_on(tmp_path):

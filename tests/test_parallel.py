@@ -243,8 +243,9 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
     (two on rank 0, one on rank 1; losses gathered, gradients all-reduced) and EM
     (weights solved per rank, JᵀJ and Jᵀr all-reduced) end where one process's do;
     then both ranks fit the two motions of the small run in one round of ``each`` and
-    stop at its checkpoint, written by rank 0 alone: the fits are the one-process run's
-    (each motion's search has its own seeded generator)."""
+    stop at its checkpoint, written by rank 0 alone: the fits are those of one process
+    stopped after the same two motions (each motion's search has its own seeded
+    generator; a finished run's checkpoint holds no fits, dropped once pooled)."""
     out, steps = tmp_path / "run", tmp_path / "steps.pt"
     mp.spawn(_rank_main, args=(2, _free_port(), str(run_dir["data"]), str(out), str(steps)), nprocs=2)
     shared, alone = torch.load(steps, weights_only=True), _path_steps(distributed=False)
@@ -258,9 +259,12 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
                 assert torch.allclose(shared[model][part][key], value, rtol=1e-10, atol=1e-12), key
         assert not torch.equal(alone[model]["basis"]["eta"], _path_problem()[1].eta.detach())
     assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
+    with pytest.raises(train.Interrupted):
+        train.run(small_config(run_dir["data"], tmp_path / "one"), stop_after=2)
     state = torch.load(out / "checkpoint.pt", weights_only=True)
-    ref = torch.load(run_dir["out"] / "checkpoint.pt", weights_only=True)
+    ref = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
     assert (state["stage"], state["cursor"], state["step"]) == ("each", 2, 2)
+    assert torch.load(run_dir["out"] / "checkpoint.pt", weights_only=True)["fits"] == []
     assert len(state["fits"]) == len(ref["fits"]) == 2
     for (eta, K, timing), (eta0, K0, timing0) in zip(state["fits"], ref["fits"]):
         assert torch.equal(eta, eta0) and torch.equal(K, K0)

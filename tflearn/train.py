@@ -66,7 +66,7 @@ import contextlib
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Optional
@@ -107,8 +107,8 @@ class CheckpointError(InputError):
 class RunState:
     """Everything a run needs to resume: where it is (stage, cursor within the stage),
     the random generator, the per-motion fits of ``each``, the current model
-    (:func:`~tflearn.fields.model_state`), the reference scores of ``reduce`` and
-    its elimination order, path matching's optimizer and best point, the history
+    (:func:`~tflearn.fields.model_state`), the reference scores and torque costs of
+    ``reduce`` and its elimination order, path matching's optimizer and best point, the history
     reported in metrics.json, and the compute time and simulations spent so far."""
 
     config: dict
@@ -118,17 +118,19 @@ class RunState:
     step: int = 0
     elapsed: float = 0.0
     simulations: int = 0                               # this process' (rank 0's), over resumes
-    fits: list = field(default_factory=list)          # [(η, K, timing and weights)]: search.pool
+    fits: list = field(default_factory=list)          # [(η, K, timing and weights)]: until pool
     model: Optional[dict] = None
     history: dict = field(default_factory=dict)
-    reference: Optional[dict] = None                   # {"rmse", "tip", "ok"} per motion
+    reference: Optional[dict] = None                   # {"rmse", "tip", "ok", "cost"} per motion
     order: Optional[list] = None                       # reduce: fields by share
     ids: Optional[list] = None                         # reduce: original ids kept
     path: Optional[dict] = None                        # {"needed", "lr", "optimizer", "best"}
     support: Optional[list] = None                     # N×M: fields each motion may use, or all
 
     def to_dict(self) -> dict:
-        return {"format": CHECKPOINT_FORMAT, **asdict(self)}
+        """The fields as they are, not copied (``torch.save`` writes them at once): a deep
+        copy of a thousand motions' state cost a second per checkpoint."""
+        return {"format": CHECKPOINT_FORMAT, **{f.name: getattr(self, f.name) for f in fields(self)}}
 
     @classmethod
     def from_dict(cls, doc: dict, where: str) -> RunState:
@@ -513,6 +515,7 @@ class Run:
                                           _weight_support(state.support, weights.P)).sum())
         scores, ok = self._adopt(state, tg, "pool", basis, weights, cost, merged=merged)
         scores, ok = self._restore(state, tg, scores, ok)
+        state.fits = []                              # read by no later stage: not saved again
         state.reference = _reference(scores, ok)
         if self.cfg.solver.reduce.growth is not None:
             state.reference["efolds"] = self._efolds(*model_from_state(state.model), tg)
@@ -589,6 +592,8 @@ class Run:
             shares = search.field_shares(basis, weights, tg)
             state.order = [int(i) for i in torch.argsort(shares)]
             state.ids = list(range(basis.M))
+        if "cost" not in state.reference:            # kept up to date by _apply_trial
+            state.reference["cost"] = torque.torque_costs(basis, weights, tg).tolist()
         k = state.cursor
         floor = max(fixed, 1)
 
@@ -658,30 +663,33 @@ class Run:
         users = _users(weights)[:, pos].nonzero().flatten().tolist()
         self.log.busy(M=basis.M, holding=victim, motions=len(users))
         check = None
+        costs = state.reference["cost"]
         if users:
             sub, one = nw.select_motions(users), tg.select(users)
             after = torque.solve_weights(nb, sub, one, None if support is None else
                                          _weight_support([support[j] for j in users], nw.P))
             keys = ("a_raw", "b_raw", "c_raw")
             nw.set_flat(keys, sub.flat(keys), users)
-            users, check = self._held_check(state, users, (basis, weights.select_motions(users)), (nb, sub),
-                                            one, after)
-        cost = float(torque.torque_costs(nb, nw, tg).sum())
-        return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support, "cost": cost,
-                "em_steps": 0, "check": check, "motions": users, "trial": "held"}
+            costs = costs.copy()
+            for j, x in zip(users, after.tolist()):
+                costs[j] = x
+            users, check = self._held_check(state, users, (nb, sub), one, after)
+        return {"victim": victim, "keep": keep, "model": (nb, nw), "support": support,
+                "cost": math.fsum(costs), "costs": costs, "em_steps": 0, "check": check, "motions": users,
+                "trial": "held"}
 
-    def _held_check(self, state: RunState, users: list, old: tuple, new: tuple, one: Targets,
+    def _held_check(self, state: RunState, users: list, new: tuple, one: Targets,
                     costs: torch.Tensor) -> tuple:
         """(the motions simulated, their (scores, success)) for a held trial of ``users``
         (their targets ``one``): ``new`` (basis, their weights) the model without the
-        field, ``old`` with it; all in one check, or with ``solver.reduce.chunk`` c > 0,
-        c at a time, those whose torque cost rose most (``costs``: theirs on ``new``, over
-        theirs on ``old``) first, until a chunk holds a motion worse than its reference:
-        the trial is then refused, as it would be had every user been simulated."""
+        field; all in one check, or with ``solver.reduce.chunk`` c > 0, c at a time, those
+        whose torque cost rose most (``costs``: theirs on ``new``, over their reference's)
+        first, until a chunk holds a motion worse than its reference: the trial is then
+        refused, as it would be had every user been simulated."""
         c, (basis, weights) = self.cfg.solver.reduce.chunk, new
         if not c:
             return users, self._check(basis, weights, one, until_failure=True)
-        rise = costs / torque.torque_costs(*old, one).clamp_min(1e-300)
+        rise = costs / torch.tensor([state.reference["cost"][j] for j in users]).clamp_min(1e-300)
         order = torch.argsort(rise, descending=True, stable=True).tolist()
         done, parts = [], []
         for lo in range(0, len(order), c):
@@ -782,6 +790,8 @@ class Run:
             state.model = model_state(nb, nw)
             state.ids = [state.ids[i] for i in trial["keep"]]
             state.support = trial["support"]
+            costs = trial.get("costs")                 # a refitted trial changes every motion's
+            state.reference["cost"] = costs if costs is not None else torque.torque_costs(nb, nw, tg).tolist()
             self.log.model(nb, nw, step)
             if check is not None:
                 scores, ok = check
