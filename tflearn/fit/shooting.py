@@ -140,14 +140,14 @@ class _Segments:
 
 def segments(tg: Targets, horizon: float, motions=None) -> _Segments:
     """The multiple-shooting segments of length ``horizon`` (s) of ``motions`` (indices,
-    default all), see the module docstring."""
+    default all), see the module docstring. Every segment holds K + 1 samples, K the most
+    that any motion of ``tg`` takes, whichever ``motions`` are asked for: a motion's
+    residuals are then the same beside any others (a Jacobian from one batch, residuals
+    from another, :func:`_broyden`)."""
     motions = range(tg.N) if motions is None else motions
-    rows = []
-    for j in motions:
-        L = int(tg.mask[j].sum())
-        K = max(1, min(L - 1, round(horizon * float(tg.rate[j]))))
-        rows += [(j, k0, K) for k0 in range(0, L - 1, K)]
-    K = max(r[2] for r in rows)
+    counts = [max(1, min(int(tg.mask[j].sum()) - 1, round(horizon * float(tg.rate[j])))) for j in range(tg.N)]
+    rows = [(j, k0, counts[j]) for j in motions for k0 in range(0, int(tg.mask[j].sum()) - 1, counts[j])]
+    K = max(counts)
     motion = torch.tensor([r[0] for r in rows])
     k0 = torch.tensor([r[1] for r in rows])
     offset = torch.arange(K + 1)
