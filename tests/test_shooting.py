@@ -185,6 +185,31 @@ def test_recovers_the_generating_weights(problem):
     assert horizons == sorted(horizons) and horizons[-1] >= 1.0
 
 
+def test_used_fits_each_motion_on_the_fields_it_has_a_weight_on(problem, monkeypatch):
+    """``ShootingOptions(used=True)`` with a third field, 2 rad from both paths, on which
+    no motion has a weight: each motion is fitted alone on its two fields (Jacobians of
+    8 parameters, a, b and two c's per field, not 12), the third field's weights stay 0,
+    and the generating weights are recovered as in one fit of both motions."""
+    body, basis, weights, tg = problem
+    far = FieldBasis(torch.cat([basis.eta, torch.full((1, 2), 2.0, dtype=DT)]),
+                     torch.cat([basis.K(), torch.eye(2, dtype=DT)[None]]), kind="diag", damping=0.2)
+    widths, real = [], shooting._Problem.jacobian
+
+    def jacobian(self, theta, h, motions):
+        widths.append((len(motions), theta.shape[1]))
+        return real(self, theta, h, motions)
+    monkeypatch.setattr(shooting._Problem, "jacobian", jacobian)
+    w = _perturbed(weights).extend_fields(1)
+    res = shooting.shooting_match(body, far, w, tg, options=shooting.ShootingOptions(used=True))
+    print("loss", res.loss, "Jacobians (motions, parameters)", sorted(set(widths)))
+    assert set(widths) == {(1, 8)} and max(res.loss) < 1e-9 and not res.failures
+    assert len(res.loss) == 2 and [len(row["cost"]) for row in res.history] == [1] * len(res.history)
+    for k in ("a", "b", "c"):
+        got = getattr(w, k).detach()
+        assert torch.equal(got[:, 2], torch.zeros_like(got[:, 2])), k
+        assert torch.allclose(got[:, :2], getattr(weights, k).detach(), rtol=0, atol=1e-4), k
+
+
 def test_broyden_update_is_the_least_change_secant():
     """J + (Δr − J δ) δᵀ / δᵀδ maps δ to Δr exactly and leaves J unchanged on every
     direction orthogonal to δ; a zero step leaves J as it was."""

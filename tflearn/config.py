@@ -110,13 +110,17 @@ class ShootingSection(Section):
     # formula (one simulation) instead of D + 1 differenced copies; differences again at
     # each horizon, after a poorly predicted step, and before a motion is let stop
     broyden: bool = False
+    # true: each motion is fitted alone on the fields it has a weight on, its others held
+    # at 0 (len(θ) ∝ those fields, not M: for a basis of many fields; not in the
+    # per-motion stage, whose fields are the motion's own)
+    used: bool = False
 
     def options(self, phases: bool):
         """These settings as :class:`tflearn.fit.shooting.ShootingOptions`."""
         from .fit.shooting import ShootingOptions
         return ShootingOptions(horizon=self.horizon, iterations=self.iterations, phases=phases,
                                velocity_weight=self.velocity_weight, tip_weight=self.tip_weight,
-                               broyden=self.broyden)
+                               broyden=self.broyden, used=self.used)
 
 
 class PoolSection(Section):

@@ -92,7 +92,9 @@ class ShootingOptions:
     like 0.1 rad of joint angle); mu: the initial damping; step: the relative
     forward-difference step; fields: also fit the basis' fields (one motion only: they
     are otherwise shared); broyden: after a successful step update J by Broyden's
-    formula instead of differences (module docstring)."""
+    formula instead of differences (module docstring); used: fit each motion alone on
+    the fields it has a weight on (a, b or c > 0), its weights on the others held at 0:
+    D ∝ those fields, not M, for a basis of many fields (not with ``fields``)."""
 
     horizon: float = 0.25
     iterations: int = 6
@@ -105,6 +107,7 @@ class ShootingOptions:
     step: float = 1e-6
     fields: bool = False
     broyden: bool = False
+    used: bool = False
 
 
 @dataclass
@@ -356,6 +359,8 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
         return result
     if options.fields and tg.N != 1:
         raise ValueError(f"shooting_match: free fields need one motion (fields are shared), got {tg.N}")
+    if options.used and not options.fields:
+        return _on_used(body, basis, weights, tg, options, sim, callback)
     keys = keys_of(options)
     prob = _Problem(body, basis, weights, tg, keys, options, sim)
     theta = prob.theta()
@@ -380,6 +385,32 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     theta[worse], after[worse] = start[worse], before[worse]
     prob.assign(theta)
     result.loss, result.simulations = after.tolist(), prob.simulations
+    return result
+
+
+def _on_used(body, basis, weights, tg, options, sim, callback) -> ShootingResult:
+    """:func:`shooting_match` of each motion alone on the fields it has a weight on
+    (``options.used``); the results joined in motion order (each history row one
+    motion's, its cost of length 1)."""
+    result, keys = ShootingResult(loss=[]), keys_of(options)
+    for j in range(tg.N):
+        with torch.no_grad():
+            used = ((weights.a + weights.b)[j] + weights.c[j].sum(-1) > 0).nonzero().flatten().tolist()
+        used = used or list(range(basis.M))      # no weight yet: every field
+        sub = weights.select_motions([j]).select_fields(used)
+        res = shooting_match(body, basis.select(used), sub, tg.select([j]),
+                             options=replace(options, used=False), sim=sim, callback=callback)
+        with torch.no_grad():
+            for key in keys:                     # per field, or (windows) per motion
+                x = getattr(weights, key)
+                if key in MotionWeights.PER_FIELD:
+                    x[j, used] = getattr(sub, key)[0]
+                else:
+                    x[j] = getattr(sub, key)[0]
+        result.loss += res.loss
+        result.history += res.history
+        result.failures.update(res.failures)
+        result.simulations += res.simulations
     return result
 
 
