@@ -169,6 +169,52 @@ def test_motions_taken_a_chunk_at_a_time_give_the_same_rates(monkeypatch):
     assert torch.equal(whole.efolds, parts.efolds) and float(whole.efolds.max()) > 0
 
 
+def test_each_motion_is_linearised_on_the_fields_it_uses(monkeypatch):
+    """Two motions, each on its own field (and a third field that neither uses), one held
+    at its field's centre and one past its field's inflection: each motion's program
+    holds its own field alone (:func:`own_fields`), in one chunk or one motion per chunk,
+    and the rates are those of the whole basis (errors damped in the first, pushed apart
+    in the second)."""
+    from tflearn import fields
+    from tflearn.fit import stability, targets
+    body = tb.chain(2, "hinge", damping=0.02)
+    eta = torch.tensor([[0.2, -0.4], [-0.3, 0.5], [1.5, 1.5]], dtype=F64)
+    k = torch.tensor([5.0, 12.0, 3.0], dtype=F64)[:, None, None]
+    basis = FieldBasis(eta, k * torch.eye(2, dtype=F64), kind="scalar")
+    a = torch.tensor([[1.5, 0.0, 0.0], [0.0, 1.5, 0.0]], dtype=F64)
+    weights = MotionWeights(a, torch.zeros_like(a), torch.tensor([1.0, 1.0], dtype=F64))
+    off = eta[1] + torch.tensor([0.6, 0.0], dtype=F64)           # past the inflection, 1/√12
+    tg = prepare(body, [held(body, eta[0], name="m0"), held(body, off, name="m1")])
+    full = program_growth(body, fields.FieldProgram(basis, weights), tg)
+    assert float(full.rate[0, 25:].max()) < 0 < float(full.rate[1, 25:].min())   # the step on
+    built = []
+    monkeypatch.setattr(stability, "FieldProgram",
+                        lambda b, w: built.append(b.eta.tolist()) or fields.FieldProgram(b, w))
+    for size, chunked in ((None, [[[eta[0].tolist()], [eta[1].tolist()]]]),
+                          (1, [[[eta[0].tolist()]], [[eta[1].tolist()]]])):
+        built.clear()
+        if size:
+            monkeypatch.setattr(targets, "CHUNK_BYTES", size)
+        own = growth(body, basis, weights, tg)
+        assert built == chunked
+        assert torch.allclose(own.rate, full.rate, rtol=0, atol=1e-12)
+
+
+def test_own_fields_pad_with_zero_weights():
+    """Motion 0 on fields 2 and 0, motion 1 on field 1 alone: packed in field order, W = 2,
+    motion 1's second slot a padding with a, b, c = 0 (its field's timing kept)."""
+    from tflearn.fit.stability import own_fields
+    eta = torch.arange(6, dtype=F64).reshape(3, 2)
+    basis = FieldBasis(eta, torch.eye(2, dtype=F64).expand(3, 2, 2).clone(), kind="scalar")
+    a = torch.tensor([[1.0, 0.0, 2.0], [0.0, 0.0, 0.0]], dtype=F64)
+    b = torch.tensor([[0.0, 0.0, 0.0], [0.0, 3.0, 0.0]], dtype=F64)
+    weights = MotionWeights(a, b, torch.tensor([1.0, 2.0], dtype=F64))
+    fields, w = own_fields(basis, weights)
+    assert fields.eta.tolist() == [[eta[0].tolist(), eta[2].tolist()], [eta[1].tolist(), eta[0].tolist()]]
+    assert w.a.tolist() == [[1.0, 2.0], [0.0, 0.0]] and w.b.tolist() == [[0.0, 0.0], [3.0, 0.0]]
+    assert torch.equal(w.step_duration, weights.step_duration[:, :2])
+
+
 def test_elimination_refuses_a_removal_that_adds_error_growth(tmp_path):
     """``solver.reduce.growth``: a trial that keeps every motion it touches reproduced is
     still refused when it adds more than that many e-folds of error growth to one of them

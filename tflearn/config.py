@@ -111,8 +111,8 @@ class ShootingSection(Section):
     # each horizon, after a poorly predicted step, and before a motion is let stop
     broyden: bool = False
     # true: each motion is fitted alone on the fields it has a weight on, its others held
-    # at 0 (len(θ) ∝ those fields, not M: for a basis of many fields; not in the
-    # per-motion stage, whose fields are the motion's own)
+    # at 0 (len(θ) ∝ those fields, not M: for a basis of many fields; in rescue, the new
+    # fields its weights start on; not in the per-motion stage, whose fields are its own)
     used: bool = False
 
     def options(self, phases: bool):

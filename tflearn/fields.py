@@ -389,6 +389,16 @@ class MotionWeights(nn.Module):
         return self._with({k: v[:, idx] if k in self.PER_FIELD else v
                            for k, v in self._arrays().items()})
 
+    def take_fields(self, cols: torch.Tensor, pad: torch.Tensor) -> MotionWeights:
+        """New weights (detached), motion j's on its own fields ``cols[j]`` (N×W indices),
+        a, b and c 0 where ``pad`` (N×W bools)."""
+        def take(k, x):                              # N×M(×P) → N×W(×P)
+            idx = cols.reshape(cols.shape + (1,) * (x.ndim - 2)).expand(cols.shape + x.shape[2:])
+            x = torch.gather(x, 1, idx)
+            zero = k in ("a_raw", "b_raw", "c_raw")
+            return x.masked_fill(pad.reshape(pad.shape + (1,) * (x.ndim - 2)), 0.0) if zero else x
+        return self._with({k: take(k, v) if k in self.PER_FIELD else v for k, v in self._arrays().items()})
+
     def extend_fields(self, k: int = 1) -> MotionWeights:
         """New weights (detached) with k more fields: zero weights, default phases."""
         z = torch.zeros(self.N, k, dtype=self.a_raw.dtype)
@@ -422,6 +432,11 @@ class MotionWeights(nn.Module):
     @property
     def c(self) -> torch.Tensor:
         return self.c_raw.clamp(min=0.0)
+
+    def used(self) -> torch.Tensor:
+        """N×M bools: whether motion j has a weight (a, b or c > 0) on field i."""
+        with torch.no_grad():
+            return (self.a + self.b + self.c.sum(-1)) > 0
 
     def vector(self) -> torch.Tensor:
         """x = [a (M) | b (M) | c (M·P, field by field)] per motion (N×M(2+P)): the layout

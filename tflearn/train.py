@@ -160,12 +160,6 @@ def _reference(scores: Scores, ok: list) -> dict:
     return {"rmse": list(scores.rmse), "tip": list(scores.tip), "ok": list(ok)}
 
 
-def _users(weights) -> torch.Tensor:
-    """N×M bools: whether motion j has a weight (a, b or c) on field i."""
-    with torch.no_grad():
-        return (weights.a + weights.b + weights.c.sum(-1)) > 0
-
-
 def _weight_support(fields: Optional[list], P: int) -> Optional[torch.Tensor]:
     """The weights (N×M(2+P) bools, [a | b | c]) of the fields each motion may use
     (N×M lists of bools, :attr:`RunState.support`); None: every weight free."""
@@ -638,7 +632,7 @@ class Run:
         left straight_reach with two fields that shooting could not carry). The fields of
         a motion whose simulation fails are still tried: a removal that lets it be
         simulated is one that path matching needs."""
-        used = _users(weights)
+        used = weights.used()
         ref = state.reference
         off = torch.tensor([not ok and math.isfinite(r) for ok, r in zip(ref["ok"], ref["rmse"])])
         return {state.ids[i] for i in used[off].any(0).nonzero().flatten().tolist()}
@@ -647,7 +641,7 @@ class Run:
     def _idle(weights, state: RunState) -> set:
         """The fields (ids) on which no motion has a weight: removed without a refit (its
         held trial changes no motion's torques, so it needs no simulation either)."""
-        return {state.ids[i] for i in (~_users(weights).any(0)).nonzero().flatten().tolist()}
+        return {state.ids[i] for i in (~weights.used().any(0)).nonzero().flatten().tolist()}
 
     @staticmethod
     def _kept(victim: int) -> dict:
@@ -660,7 +654,7 @@ class Run:
         weight on it (a, b or c) get their weights re-solved by NNLS over the fields left
         and are checked by simulation; the others keep their weights, paths and scores."""
         pos, keep, nb, nw, support = self._without(basis, weights, state, victim, tg)
-        users = _users(weights)[:, pos].nonzero().flatten().tolist()
+        users = weights.used()[:, pos].nonzero().flatten().tolist()
         self.log.busy(M=basis.M, holding=victim, motions=len(users))
         check = None
         costs = state.reference["cost"]
@@ -937,7 +931,8 @@ class Run:
         ``solver.rescue``'s layout) added to the basis; their weights start on the new
         fields alone, by NNLS (its ridge and torque weights), and multiple shooting
         (``solver.shooting``'s horizon, ``solver.rescue``'s iterations, tip and velocity
-        weights) then fits them over the whole basis. A motion takes its new program where
+        weights) then fits them over the whole basis (with ``solver.shooting.used``, over
+        the new fields their weights are on). A motion takes its new program where
         that reproduces it or, failing that, is simulated closer to it (joint RMSE); the
         others keep theirs, with zero weight on the new fields (their programs unchanged).
         The grown model becomes the run's result if some motion took its new program;

@@ -394,9 +394,7 @@ def _on_used(body, basis, weights, tg, options, sim, callback) -> ShootingResult
     motion's, its cost of length 1)."""
     result, keys = ShootingResult(loss=[]), keys_of(options)
     for j in range(tg.N):
-        with torch.no_grad():
-            used = ((weights.a + weights.b)[j] + weights.c[j].sum(-1) > 0).nonzero().flatten().tolist()
-        used = used or list(range(basis.M))      # no weight yet: every field
+        used = weights.used()[j].nonzero().flatten().tolist() or list(range(basis.M))  # none: all
         sub = weights.select_motions([j]).select_fields(used)
         res = shooting_match(body, basis.select(used), sub, tg.select([j]),
                              options=replace(options, used=False), sim=sim, callback=callback)

@@ -30,8 +30,9 @@ import torch
 
 from ..body import Body
 from ..configspace import n_position, pack, state_tangent_basis
-from ..fields import FieldBasis, FieldProgram, MotionWeights
+from ..fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
 from ..simulate import ArmODE
+from .nnls import packed
 from .targets import Targets, chunks
 
 
@@ -75,14 +76,25 @@ def program_jacobians(body: Body, program, tg: Targets, h: float = 1e-6) -> torc
 def growth(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
            h: float = 1e-6) -> Growth:
     """The local error growth of every motion under its program (see the module), a
-    chunk of motions at a time (:func:`~.targets.chunks`: memory stays bounded)."""
+    chunk of motions at a time (:func:`~.targets.chunks`: memory stays bounded), each
+    motion's program on the fields it has a weight on only (:func:`own_fields`)."""
     D = n_position(body) + body.nv                                   # the state's size
     rate = torch.full(tg.mask.shape, float("nan"), dtype=tg.q.dtype)
     for idx in chunks(tg, 2 * D * (basis.M + 4)):
         part = tg.select(idx, trim=True)
-        program = FieldProgram(basis, weights.select_motions(idx))
+        program = FieldProgram(*own_fields(basis, weights.select_motions(idx)))
         rate[idx, :part.mask.shape[1]] = _rates(body, program, part, h)
     return _summary(rate, tg)
+
+
+def own_fields(basis: FieldBasis, weights: MotionWeights) -> tuple:
+    """(each motion's fields (:class:`~tflearn.fields.MotionFields`, N×W), its weights on
+    them): the fields it has a weight on, in order, padded to the most any motion has (W)
+    with weights of 0. Its torques are those of the whole basis, whose other fields'
+    torques are multiplied by 0, at O(W) cost, not O(M)."""
+    cols, pad = packed(weights.used())
+    fields = MotionFields(basis.eta.detach()[cols], basis.K().detach()[cols], basis.damping)
+    return fields, weights.take_fields(cols, pad)
 
 
 def program_growth(body: Body, program, tg: Targets, h: float = 1e-6) -> Growth:
