@@ -148,13 +148,14 @@ def segments(tg: Targets, horizon: float, motions=None) -> _Segments:
     residuals are then the same beside any others (a Jacobian from one batch, residuals
     from another, :func:`_broyden`)."""
     motions = range(tg.N) if motions is None else motions
-    counts = [max(1, min(int(tg.mask[j].sum()) - 1, round(horizon * float(tg.rate[j])))) for j in range(tg.N)]
-    rows = [(j, k0, counts[j]) for j in motions for k0 in range(0, int(tg.mask[j].sum()) - 1, counts[j])]
+    L = tg.mask.sum(-1).tolist()                                        # samples per motion
+    counts = [max(1, min(L[j] - 1, round(horizon * float(tg.rate[j])))) for j in range(tg.N)]
+    rows = [(j, k0, counts[j]) for j in motions for k0 in range(0, L[j] - 1, counts[j])]
     K = max(counts)
     motion = torch.tensor([r[0] for r in rows])
     k0 = torch.tensor([r[1] for r in rows])
     offset = torch.arange(K + 1)
-    length = torch.tensor([min(r[2], int(tg.mask[r[0]].sum()) - 1 - r[1]) for r in rows])
+    length = torch.tensor([min(r[2], L[r[0]] - 1 - r[1]) for r in rows])
     sample = k0[:, None] + offset.clamp(max=length[:, None])           # B×(K+1), clamped at the end
     inside = (offset > 0) & (offset <= length[:, None])
     weight = torch.where(inside, tg.w[motion[:, None], sample], torch.zeros(()))
@@ -392,9 +393,9 @@ def _on_used(body, basis, weights, tg, options, sim, callback) -> ShootingResult
     """:func:`shooting_match` of each motion alone on the fields it has a weight on
     (``options.used``); the results joined in motion order (each history row one
     motion's, its cost of length 1)."""
-    result, keys = ShootingResult(loss=[]), keys_of(options)
+    result, keys, rows = ShootingResult(loss=[]), keys_of(options), weights.used()
     for j in range(tg.N):
-        used = weights.used()[j].nonzero().flatten().tolist() or list(range(basis.M))  # none: all
+        used = rows[j].nonzero().flatten().tolist() or list(range(basis.M))  # no weight: every field
         sub = weights.select_motions([j]).select_fields(used)
         res = shooting_match(body, basis.select(used), sub, tg.select([j]),
                              options=replace(options, used=False), sim=sim, callback=callback)
