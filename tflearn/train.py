@@ -429,8 +429,7 @@ class Run:
         w = MotionWeights.zeros(library.M, one.duration, one.names,
                                 submovement_windows(one, self.cfg.model.windows))
         cost, tol = float(torque.solve_weights(library, w, one)[0]), self.cfg.solver.each.tol
-        with torch.no_grad():
-            used = ((w.a + w.b)[0] + w.c[0].sum(-1) > 0).nonzero().flatten().tolist()
+        used = w.used()[0].nonzero().flatten().tolist()
         if not used or not cost <= tol:
             return None, f"torque cost {cost:.3g} > {tol:g} on {len(used)} of {library.M} fields"
         basis, w = library.select(used), w.select_fields(used)
