@@ -712,6 +712,39 @@ def test_reuse_takes_a_motion_onto_the_fields_found_before(tmp_path):
     assert run._library(state, tg, 0) is None
 
 
+def test_reuse_tol_lets_simulation_judge_a_library_fit_above_tol(tmp_path):
+    """``solver.each.reuse_tol``: come_here's field moved 0.03 rad carries come_again
+    (a = 2.2, λ = 2.4 s) at a relative torque cost of 2.3e-4 — above ``solver.each.tol``
+    (1e-5), so by default it is declined on its torque cost — and simulation reproduces
+    it: with reuse_tol = 1e-3 it is taken onto that field. Simulation stays the bar:
+    planar_line (torque cost 0.19 on these fields) is tried with reuse_tol = 1 and
+    declined by its simulation's errors."""
+    import dataclasses
+    come, tuck = gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]
+    new = dataclasses.replace(come, name="come_again", a=(2.2,), duration=2.4)
+    pairs = gestures.generate(gestures=[new, gestures.GESTURES["planar_line"]])
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    lib, _, _ = gestures.library_model([come, tuck])
+    eta = lib.eta.detach().clone()
+    eta[0, 0] += 0.03
+    library = lib.like(eta, lib.K().detach())
+
+    def reuse(k, *extra):
+        run = train.Run(small_config("gestures", tmp_path / "run", "solver.each.reuse=3", *extra))
+        return run._reuse(library, tg, k)
+    fit, why = reuse(0)
+    assert fit is None and why.startswith("torque cost ") and why.endswith(" > 1e-05 on 1 of 2 fields")
+    cost = float(why.split()[2])
+    assert 1e-4 < cost < 1e-3                      # measured: 0.000231
+    fit, why = reuse(0, "solver.each.reuse_tol=1e-3")
+    assert why is None and fit["reused"] and fit["reproduced"] and fit["M"] == 1
+    assert fit["cost"] == pytest.approx(cost, rel=1e-2)
+    fit, why = reuse(1, "solver.each.reuse_tol=1")
+    print("planar_line tried by simulation:", why)
+    assert fit is None and why.startswith("simulation on 1 fields (torque cost 0.1")
+    assert float(why.split("rmse ")[1].split()[0]) > 0.03   # measured: 0.265 rad
+
+
 def test_pool_restores_the_fields_a_motion_was_reproduced_with(tmp_path):
     """:meth:`train.Run._restore`: tuck, reproduced by its own fit (its generating field,
     a = 2), is not by a pooled model whose copy of its field was moved 0.2 rad (as a merge

@@ -63,6 +63,10 @@ class EachSection(Section):                     # per-motion growth
     # reproduced by simulation: those fields are its fit — and is searched only if they
     # do not do; 0: every motion searched alone (for many motions of a shared basis)
     reuse: int = Field(0, ge=0)
+    # with reuse: the torque cost on the library under which a motion is tried by
+    # simulation (null: tol). Simulation is the bar; an own search too may end above tol
+    # when a further field gains too little, so a library fit within a few tol often does
+    reuse_tol: Optional[float] = Field(None, ge=0)
 
 
 class EMSection(Section):                       # Levenberg–Marquardt steps per EM refinement

@@ -418,17 +418,19 @@ class Run:
 
     def _reuse(self, library: Optional[FieldBasis], tg: Targets, k: int):
         """Motion k on the ``library``'s fields (:meth:`_library`): its NNLS weights over
-        them; if its relative torque cost is within ``solver.each.tol`` and simulation
-        reproduces it, (its fit (as :meth:`_fit_one`'s) on the fields it uses, None), else
-        (None, why not: a line naming the cost or the simulation's errors; None without a
-        library)."""
+        them; if its relative torque cost is within ``solver.each.reuse_tol`` (unset:
+        ``solver.each.tol``) and simulation reproduces it, (its fit (as :meth:`_fit_one`'s)
+        on the fields it uses, None), else (None, why not: a line naming the cost or the
+        simulation's errors; None without a library)."""
         if library is None:
             return None, None
         one = tg.select([k])
         self.log.busy(motion=tg.names[k], reusing=library.M)
         w = MotionWeights.zeros(library.M, one.duration, one.names,
                                 submovement_windows(one, self.cfg.model.windows))
-        cost, tol = float(torque.solve_weights(library, w, one)[0]), self.cfg.solver.each.tol
+        each = self.cfg.solver.each
+        tol = each.tol if each.reuse_tol is None else each.reuse_tol
+        cost = float(torque.solve_weights(library, w, one)[0])
         used = w.used()[0].nonzero().flatten().tolist()
         if not used or not cost <= tol:
             return None, f"torque cost {cost:.3g} > {tol:g} on {len(used)} of {library.M} fields"
