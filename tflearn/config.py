@@ -59,9 +59,10 @@ class EachSection(Section):                     # per-motion growth
     max_fields: int = Field(3, ge=1)
     tol: float = Field(1e-5, ge=0)               # relative torque cost
     # B > 0: motions in blocks of B; a motion first tries the fields found for the motions
-    # of the blocks before its own (near-duplicates merged) — NNLS weights, within tol and
-    # reproduced by simulation: those fields are its fit — and is searched only if they
-    # do not do; 0: every motion searched alone (for many motions of a shared basis)
+    # of the blocks before its own (near-duplicates merged) — NNLS weights, within tol (or
+    # reuse_tol) and reproduced by simulation: those fields are its fit — and is searched
+    # only if they do not do; 0: every motion searched alone (for many motions of a shared
+    # basis)
     reuse: int = Field(0, ge=0)
     # with reuse: the torque cost on the library under which a motion is tried by
     # simulation (null: tol). Simulation is the bar; an own search too may end above tol
