@@ -46,7 +46,7 @@ def dynamics_section(d: dict) -> list:
         "`pin.crba` call from Python; *Pinocchio C++* is its compiled batch loop "
         "(`rneaInParallel`, `abaInParallel`, one thread), the cost of the algorithm "
         "without Python. *ratio* = tflearn ÷ Pinocchio Python call. tflearn's RNEA and "
-        "forward dynamics without a gradient to carry run compiled (`tflearn.kernels`); "
+        "forward dynamics without a gradient to carry run compiled (`tflearn.physics.kernels`); "
         "*with gradient* is the same call with q requiring grad (torch's recursions, the "
         "forward pass only).", "",
         "| batch | RNEA | ratio | Pinocchio C++ | forward dynamics (ABA) | ratio | Pinocchio C++ | "
@@ -82,7 +82,7 @@ def latency_section(d: dict) -> list:
              ref and ref["gesture"]["seconds"], "≤ 0.1 s")]
     c = tf.get("gesture_compiled")
     if c:
-        rows += [(f"one right-hand side inside the compiled simulator (`tflearn.simkernel`; "
+        rows += [(f"one right-hand side inside the compiled simulator (`tflearn.simulation.simkernel`; "
                   f"the gesture's time ÷ its {c['rhs_evals']} right-hand sides, solver included)",
                   c["seconds"] / c["rhs_evals"], ref and ref["rhs_batch1"], "≤ 50 µs"),
                  (f"the same gesture, batch `each`: compiled ({c['rhs_evals']} right-hand sides)",
@@ -167,7 +167,7 @@ def scale_section(d: dict) -> list:
                     "motion and one Levenberg–Marquardt step on the shared fields) and one batched "
                     "scoring simulation of all N motions, its batch stepped together (*shared*, "
                     "torchdiffeq's dopri5) and each motion on its own steps (*each*, "
-                    "`tflearn.ode`), at the pipeline's default tolerances"
+                    "`tflearn.simulation.ode`), at the pipeline's default tolerances"
                     + (f"; at commit {d['commit']}." if d.get("commit") else "."),
                     ["motions N", "samples", "making the motions", "EM step", "scoring, shared",
                      "scoring, each", "peak memory"])

@@ -11,12 +11,12 @@ project's environment):
 
 ``prepare`` imports one clip's right arm, exports it alone as DIR/arm.bvh and writes
 DIR/expected.json (frame count, frame time, and per frame the shoulder, elbow, wrist and
-hand-tip positions from :func:`tflearn.dynamics.forward_kinematics`, metres, model
+hand-tip positions from :func:`tflearn.physics.dynamics.forward_kinematics`, metres, model
 world). ``check`` imports DIR/arm.bvh with Blender's BVH importer (global scale 0.01:
 centimetres → metres; its default axis conversion, BVH Y up → Blender Z up, turns the
 export's world back into the model's) and compares the bones' heads (and the hand's
 tail) frame by frame over the imported action's keyframes. ``prepare`` also exports the
-arm inside the clip's own full skeleton (:func:`tflearn.mocap.export` with the clip as
+arm inside the clip's own full skeleton (:func:`tflearn.mocap.clips.export` with the clip as
 ``skeleton``) as DIR/full.bvh, prints how far its arm joints lie from the recorded
 clip's, and writes DIR/expected_full.json (the shoulder, elbow and wrist joints' world
 positions by tflearn's BVH forward kinematics of full.bvh, BVH world, metres);
@@ -42,8 +42,10 @@ def prepare(out: Path, clip: str) -> None:
     import numpy as np
     import torch
 
-    from tflearn import bvh, dynamics, mocap
-    from tflearn import retarget as rt
+    from tflearn.mocap import bvh
+    from tflearn.mocap import clips as mocap
+    from tflearn.mocap import retarget as rt
+    from tflearn.physics import dynamics
     folder = Path(os.environ.get("TFLEARN_MOCAP") or ROOT.parent / "shared" / "data" / "mocap")
     frames = rt.arm_frames(bvh.read(folder / f"{clip}.bvh"), "right")
     r = rt.retarget_all([frames])[0]

@@ -4,7 +4,7 @@ For the 7-DOF arm in float64:
 
 * inverse dynamics (RNEA), forward dynamics (ABA) and the mass matrix per sample at
   batches 1 … 10⁶: on the GPU torch's recursions (the compiled kernels of
-  :mod:`tflearn.kernels` are CPU code), on the CPU the compiled kernels on one thread,
+  :mod:`tflearn.physics.kernels` are CPU code), on the CPU the compiled kernels on one thread,
   as ``bench/dynamics.py`` measures them;
 * the same two with a gradient (a forward and a backward pass of their sum, q requiring
   grad: what path matching differentiates), torch's recursions on both;
@@ -68,8 +68,8 @@ def once(fn, device) -> tuple:
 
 
 def dynamics_section(out, device, max_batch, min_time) -> None:
-    from tflearn import dynamics
-    from tflearn.body import arm
+    from tflearn.physics import dynamics
+    from tflearn.physics.body import arm
 
     body = arm()
     out.update(rnea={}, forward={}, mass={})
@@ -84,8 +84,8 @@ def dynamics_section(out, device, max_batch, min_time) -> None:
 
 
 def gradient_section(out, device, batches, min_time) -> None:
-    from tflearn import dynamics
-    from tflearn.body import arm
+    from tflearn.physics import dynamics
+    from tflearn.physics.body import arm
 
     body = arm()
     out.update(rnea={}, forward={})
@@ -111,7 +111,7 @@ def problem(n: int, device):
 def path_step_section(out, device, sizes) -> None:
     from tflearn.fit.path import path_loss
     from tflearn.fit.targets import simulate_targets
-    from tflearn.simulate import SimOptions
+    from tflearn.simulation.simulate import SimOptions
 
     for n in sizes:                          # one call each: the simulation section warmed up
         body, basis, weights, tg = problem(n, device)
@@ -127,7 +127,7 @@ def path_step_section(out, device, sizes) -> None:
 
 def simulation_section(out, device, sizes) -> None:
     from tflearn.fit.targets import simulate_targets
-    from tflearn.simulate import SimOptions
+    from tflearn.simulation.simulate import SimOptions
 
     options = SimOptions(batch="shared" if device.type == "cuda" else "each")
     with torch.no_grad():

@@ -8,11 +8,11 @@ For the 7-DOF arm (float64, one torch thread), per sample:
   Pinocchio's C++ batch loops ``rneaInParallel`` / ``abaInParallel`` on one thread (the
   cost of the compiled algorithm itself, without Python);
 * the same two with a gradient to carry (q requires grad: torch's recursions, what path
-  matching differentiates; without one, tflearn runs them compiled, :mod:`tflearn.kernels`);
-* one right-hand side of the arm's ODE (:class:`tflearn.simulate.ArmODE`, batch 1, a
+  matching differentiates; without one, tflearn runs them compiled, :mod:`tflearn.physics.kernels`);
+* one right-hand side of the arm's ODE (:class:`tflearn.simulation.simulate.ArmODE`, batch 1, a
   gesture's field program, no gradient) and a 3 s gesture simulated at the default
-  tolerances (:class:`tflearn.simulate.SimOptions`), and the same gesture stepped alone
-  (batch ``each``) by the compiled simulator (:mod:`tflearn.simkernel`), whose time per
+  tolerances (:class:`tflearn.simulation.simulate.SimOptions`), and the same gesture stepped alone
+  (batch ``each``) by the compiled simulator (:mod:`tflearn.simulation.simkernel`), whose time per
   right-hand side includes its solver;
 * how many ATen operators each of those dispatches at batch 1 (the profile that
   explains small-batch latency);
@@ -85,11 +85,12 @@ def states(nv: int, batch: int, seed: int = 0):
 
 def tflearn_figures(max_batch: int, min_time: float) -> dict:
     """Seconds per call of tflearn's algorithms, the RHS and a gesture simulation."""
-    from tflearn import dynamics, gestures
-    from tflearn import simulate as sim
-    from tflearn.body import arm
-    from tflearn.configspace import pack
-    from tflearn.fields import FieldProgram
+    from tflearn.data import gestures
+    from tflearn.model.fields import FieldProgram
+    from tflearn.physics import dynamics
+    from tflearn.physics.body import arm
+    from tflearn.physics.configspace import pack
+    from tflearn.simulation import simulate as sim
 
     body = arm()
     out = {"rnea": {}, "forward": {}, "mass": {}}
@@ -124,8 +125,8 @@ def tflearn_figures(max_batch: int, min_time: float) -> dict:
         sim.ArmODE.forward = orig
         out["gesture"] = {"name": motion.name, "duration_s": float(motion.t[-1]),
                           "rhs_evals": len(evals), "seconds": best_time(gesture, min_time)}
-        try:                                  # the compiled simulator (tflearn.simkernel)
-            from tflearn import simkernel
+        try:                                  # the compiled simulator (tflearn.simulation.simkernel)
+            from tflearn.simulation import simkernel
         except ImportError:                   # a revision from before it
             simkernel = None
         if simkernel is not None:
@@ -152,7 +153,7 @@ def pinocchio_figures(max_batch: int, min_time: float) -> dict:
     import pinocchio as pin
     from validate_physics import q_pin, to_pin
 
-    from tflearn.body import arm
+    from tflearn.physics.body import arm
 
     body = arm()
     model = to_pin(body)

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tflearn import plots  # noqa: E402
-from tflearn.data import load_motions, torsos  # noqa: E402
+from tflearn.data.loading import load_motions, torsos  # noqa: E402
 from tflearn.evaluate import run_config, weights_for  # noqa: E402
 from tflearn.fit import stability  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402

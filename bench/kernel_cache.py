@@ -18,9 +18,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 PROBE = """
 import hashlib, torch
-from tflearn import dynamics, gestures
-from tflearn.fields import FieldProgram
-from tflearn.simulate import SimOptions, simulate
+from tflearn.physics import dynamics
+from tflearn.data import gestures
+from tflearn.model.fields import FieldProgram
+from tflearn.simulation.simulate import SimOptions, simulate
 (m, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
 g = torch.Generator().manual_seed(0)
 q, v, tau = (torch.randn(1000, 7, generator=g, dtype=torch.float64) for _ in range(3))

@@ -1,7 +1,7 @@
 """Many motions learned end to end: N random supported programs
-(:func:`tflearn.gestures.random_gestures`, each stepped alone by the compiled simulator at
+(:func:`tflearn.data.gestures.random_gestures`, each stepped alone by the compiled simulator at
 rtol = atol = 1e-12 and sampled at the lowest of 100·2ᵏ Hz that resolves it,
-:func:`tflearn.gestures.generate_resolved` — the data condition of the supported box —,
+:func:`tflearn.data.gestures.generate_resolved` — the data condition of the supported box —,
 written as NAME.npz), then the main job's
 configuration on them, ``train configs/gestures.yaml data=DIR``, in a fresh process: the
 wall time of making them and of training, each stage's share (from the progress bars),
@@ -38,8 +38,8 @@ def make(n: int, seed: int, folder: Path, library: int = 0) -> dict:
     sampling rate, the samples in all and the number of generating fields G."""
     import torch
 
-    from tflearn import gestures
-    from tflearn.motion import save
+    from tflearn.data import gestures
+    from tflearn.motions.motion import save
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     rates, samples = {}, 0

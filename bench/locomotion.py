@@ -20,11 +20,13 @@ from pathlib import Path
 
 import torch
 
-from tflearn import config, modal, plots
-from tflearn import locomotion as lo
-from tflearn import modal_motion as mm
-from tflearn import modes as md
-from tflearn.modal_config import ModesConfig
+from tflearn import config
+from tflearn.modes import analysis as md
+from tflearn.modes import command as modal
+from tflearn.modes import locomotion as lo
+from tflearn.modes import motion as mm
+from tflearn.modes.config import ModesConfig
+from tflearn.plots import figures as plots
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -34,10 +34,12 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tflearn import bvh, config, mocap, parallel, train  # noqa: E402
-from tflearn import motion as motion_mod  # noqa: E402
-from tflearn import retarget as rt  # noqa: E402
-from tflearn.body import from_config  # noqa: E402
+from tflearn import config, parallel, train  # noqa: E402
+from tflearn.mocap import bvh  # noqa: E402
+from tflearn.mocap import clips as mocap  # noqa: E402
+from tflearn.mocap import retarget as rt  # noqa: E402
+from tflearn.motions import motion as motion_mod  # noqa: E402
+from tflearn.physics.body import from_config  # noqa: E402
 
 #: The moving arm of each clip (the others: "right"); left arms are mirrored.
 ARMS = {"dataset-1_respond_normal_001": "left", "dataset-1_punch_normal_001": "left",

@@ -34,8 +34,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 from mocap_basis import arguments, prepare_windows  # noqa: E402
 
 from tflearn import dynamics  # noqa: E402
-from tflearn import motion as motion_mod  # noqa: E402
-from tflearn.configspace import difference  # noqa: E402
+from tflearn.motions import motion as motion_mod  # noqa: E402
+from tflearn.physics.configspace import difference  # noqa: E402
 
 SHIFT = 0.2
 DENSE = 16       # the DMP is imitated and replayed at 16× the window's rate
@@ -73,11 +73,11 @@ def dmp_row(body, m, n_weights: int) -> dict:
 
 
 def tflearn_row(run: Path, name: str, m) -> dict:
-    from tflearn.data import torsos
+    from tflearn.data.loading import torsos
     from tflearn.evaluate import run_config
-    from tflearn.fields import FieldProgram
     from tflearn.io import basis as basis_io
-    from tflearn.simulate import SimOptions, SimulationFailed, simulate
+    from tflearn.model.fields import FieldProgram
+    from tflearn.simulation.simulate import SimOptions, SimulationFailed, simulate
     lb = basis_io.load(run / "basis.json")
     cfg = run_config(run)[0]
     base = torsos(cfg.data, [m], cfg.torso)                     # the run's torso, if it moves

@@ -18,7 +18,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tflearn.data import load_motions, torsos  # noqa: E402
+from tflearn.data.loading import load_motions, torsos  # noqa: E402
 from tflearn.evaluate import run_config, weights_for  # noqa: E402
 from tflearn.experiments.common import sheets  # noqa: E402
 from tflearn.fit.targets import prepare, simulate_targets  # noqa: E402

@@ -28,12 +28,12 @@ sys.path.insert(0, str(ROOT / "bench"))
 from mocap_basis import arguments, prepare_windows  # noqa: E402
 
 from tflearn import config, train  # noqa: E402
-from tflearn import motion as motion_mod  # noqa: E402
-from tflearn.data import torsos  # noqa: E402
+from tflearn.data.loading import torsos  # noqa: E402
 from tflearn.evaluate import synthesize  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402
 from tflearn.io.basis import LearnedBasis  # noqa: E402
 from tflearn.metrics import score  # noqa: E402
+from tflearn.motions import motion as motion_mod  # noqa: E402
 
 #: Issue 11's bar for held-out clips: joint RMSE (rad), hand tip (m).
 HELD_OUT = (0.08, 0.05)

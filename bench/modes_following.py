@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tflearn import config, modal
-from tflearn import modal_motion as mm
-from tflearn.configspace import difference
-from tflearn.modal_config import ModesConfig
-from tflearn.simulate import SimOptions
+from tflearn import config
+from tflearn.modes import command as modal
+from tflearn.modes import motion as mm
+from tflearn.modes.config import ModesConfig
+from tflearn.physics.configspace import difference
+from tflearn.simulation.simulate import SimOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -13,12 +13,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tflearn import body as tb
-from tflearn import config, gestures, modal
-from tflearn import modal_motion as mm
-from tflearn import modes as md
-from tflearn.modal_config import ModesConfig
-from tflearn.simulate import SimOptions
+from tflearn import config
+from tflearn.data import gestures
+from tflearn.modes import analysis as md
+from tflearn.modes import command as modal
+from tflearn.modes import motion as mm
+from tflearn.modes.config import ModesConfig
+from tflearn.physics import body as tb
+from tflearn.simulation.simulate import SimOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ("arm", "linear_creature", "loop_creature", "human")   # human: needs the mocap data
@@ -63,7 +65,7 @@ def free_vibration() -> str:
 
 def dominant_joint(body, u: np.ndarray) -> str:
     """The joint (shoulder, elbow, wrist for the arm) with the largest share of shape u."""
-    from tflearn.plots import JOINT_NAMES
+    from tflearn.plots.figures import JOINT_NAMES
     names = [JOINT_NAMES.get(n, n) for n in md.joint_names(body)]
     sizes = [np.linalg.norm(u[body.slice(i)]) for i, link in enumerate(body.links) if link.dof]
     return names[int(np.argmax(sizes))]

@@ -5,7 +5,7 @@
 Cases:
 
 * ``gestures``: the five gestures of the thesis' library under their generating basis
-  (:func:`tflearn.gestures.library_model`), every step and pulse weight multiplied by
+  (:func:`tflearn.data.gestures.library_model`), every step and pulse weight multiplied by
   1 + 0.3u, u ~ U[−1, 1] (seeded): the exact answer is known (the path loss can reach 0);
 * ``--basis B --motion F``: a motion file (.npz) played through the frozen basis of a
   run (e.g. a held-out reach of ``tflearn experiment reaches``), its weights first by
@@ -29,9 +29,9 @@ import torch
 
 
 def gestures_case(seed: int = 0):
-    from tflearn import gestures
-    from tflearn.body import arm
+    from tflearn.data import gestures
     from tflearn.fit.targets import prepare
+    from tflearn.physics.body import arm
     body = arm()
     pairs = gestures.generate(body)
     basis, truth, _ = gestures.library_model(body=body)
@@ -44,11 +44,11 @@ def gestures_case(seed: int = 0):
 
 
 def file_case(basis_path: str, motion_path: str):
-    from tflearn.fields import MotionWeights
     from tflearn.fit.targets import prepare, submovement_windows
     from tflearn.fit.torque import solve_weights
     from tflearn.io import basis as basis_io
-    from tflearn.motion import load
+    from tflearn.model.fields import MotionWeights
+    from tflearn.motions.motion import load
     lb = basis_io.load(basis_path)
     tg = prepare(lb.body, [load(motion_path, body=lb.body)])
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
@@ -58,13 +58,13 @@ def file_case(basis_path: str, motion_path: str):
 
 
 def measure(body, basis, weights, tg, method: str, phases: bool, adam_steps: int) -> dict:
-    from tflearn import simulate as sim_mod
-    from tflearn.fields import model_from_state, model_state
     from tflearn.fit.path import path_loss, path_match
     from tflearn.fit.shooting import ShootingOptions, shooting_match
     from tflearn.fit.targets import simulate_targets
     from tflearn.metrics import score
-    from tflearn.simulate import SimOptions
+    from tflearn.model.fields import model_from_state, model_state
+    from tflearn.simulation import simulate as sim_mod
+    from tflearn.simulation.simulate import SimOptions
     basis, weights = model_from_state(model_state(basis, weights))       # a fresh copy
     for p in basis.parameters():
         p.requires_grad_(False)

@@ -4,7 +4,7 @@ backpropagating through the solver (direct) or by the adjoint method, per solver
 
 The motions are the five gestures of the thesis' library repeated (copy c of gesture g
 has its step and pulse weights scaled by 1 + 0.01 c, so that no two are the same), the
-model is the library's generating one (:func:`tflearn.gestures.library_model`), and the
+model is the library's generating one (:func:`tflearn.data.gestures.library_model`), and the
 loss is :func:`tflearn.fit.path.path_loss` over :func:`tflearn.fit.targets.simulate_targets`
 (one batched ``odeint``), as in the pipeline's path stage. Each case runs in its own
 process so that its peak memory (max RSS) is its own; a case that needs more than
@@ -29,11 +29,11 @@ import torch
 def problem(n: int) -> tuple:
     """The gesture library repeated to n motions, weights scaled 1% per copy, with the
     library's generating fields: (body, basis, weights, targets)."""
-    from tflearn import gestures
-    from tflearn.body import arm
-    from tflearn.fields import MotionWeights
+    from tflearn.data import gestures
     from tflearn.fit.targets import prepare
-    from tflearn.motion import Motion
+    from tflearn.model.fields import MotionWeights
+    from tflearn.motions.motion import Motion
+    from tflearn.physics.body import arm
 
     body = arm()
     pairs = gestures.generate(body)
@@ -50,7 +50,7 @@ def problem(n: int) -> tuple:
 def one_case(n: int, method: str, adjoint: bool) -> dict:
     from tflearn.fit.path import path_loss
     from tflearn.fit.targets import simulate_targets
-    from tflearn.simulate import SimOptions
+    from tflearn.simulation.simulate import SimOptions
 
     torch.set_num_threads(1)
     body, basis, weights, tg = problem(n)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import torch
 
-from tflearn import recovery
 from tflearn.config import PerturbConfig, load, merge, validate
+from tflearn.control import recovery
 
 SETTINGS = [(0.25, 0.0), (1.0, 0.0), (4.0, 0.0), (1.0, 5.0)]     # (scale s, bilinear c rad⁻¹)
 

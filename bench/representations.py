@@ -61,7 +61,7 @@ def datasets(body) -> dict:
 def activations(u: torch.Tensor, pulses: int) -> torch.Tensor:
     """The activation family at motion phases u = t/T (...) → (...×(2 + P)): ψ(u), φ(u)
     and P pulses φ((u − s_p)/h) on windows of width h = 2/(P + 1) starting at s_p = p h/2."""
-    from tflearn.fields import pulse_profile, step_profile
+    from tflearn.model.fields import pulse_profile, step_profile
     h = 2.0 / (pulses + 1)
     cols = [step_profile(u), pulse_profile(u)] + [pulse_profile((u - p * h / 2) / h) for p in range(pulses)]
     return torch.stack(cols, -1)
@@ -177,8 +177,8 @@ def start(body, tg, prof, zeta: float) -> tuple:
     from scipy.optimize import nnls
 
     from tflearn.config import Layout
-    from tflearn.fields import FieldBasis
     from tflearn.fit.layout import spanning_basis
+    from tflearn.model.fields import FieldBasis
     lay = Layout()                                     # the layout method's defaults
     basis = spanning_basis(body, tg, FieldBasis.empty(body.nv, "diag"), lay.radius, lay.stiffness,
                            lay.shape)
@@ -246,8 +246,8 @@ def growth(body, program, tg) -> dict:
 def simulate(body, program, tg) -> dict:
     """Every motion simulated from its initial state under ``program``."""
     from tflearn.metrics import path_errors
-    from tflearn.simulate import SimOptions
-    from tflearn.simulate import simulate as sim
+    from tflearn.simulation.simulate import SimOptions
+    from tflearn.simulation.simulate import simulate as sim
     out = {}
     with torch.no_grad():
         traj = sim(body, program, tg.q0, tg.qd0, tg.grid,
@@ -292,8 +292,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    from tflearn.body import arm
     from tflearn.fit.targets import prepare
+    from tflearn.physics.body import arm
     body = arm()
     sets = datasets(body)
     doc = {"commit": revision.head(), "args": {k: str(v) for k, v in vars(args).items()}, "rows": []}

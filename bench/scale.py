@@ -2,7 +2,7 @@
 step (NNLS weights for every motion + one Levenberg–Marquardt step on the shared fields)
 and of scoring every motion by one batched simulation — its batch stepped together
 (``SimOptions.batch`` ``shared``, torchdiffeq) and each motion on its own steps
-(``each``) — for N random supported programs (:func:`tflearn.gestures.random_gestures`,
+(``each``) — for N random supported programs (:func:`tflearn.data.gestures.random_gestures`,
 made by one batch of per-motion steps at rtol = atol = 1e-10 and sampled at 100 Hz), with
 the fitted exponent of each (cost ∝ N^p by least squares on log–log).
 
@@ -25,16 +25,16 @@ from pathlib import Path
 import revision
 import torch
 
-from tflearn.simulate import SimOptions, SimulationFailed
+from tflearn.simulation.simulate import SimOptions, SimulationFailed
 
 
 def measure(n: int, seed: int, batches: list) -> dict:
-    from tflearn import gestures
-    from tflearn.body import arm
-    from tflearn.fields import MotionWeights
+    from tflearn.data import gestures
     from tflearn.fit import torque
     from tflearn.fit.targets import prepare
     from tflearn.metrics import score
+    from tflearn.model.fields import MotionWeights
+    from tflearn.physics.body import arm
 
     body = arm()
     programs = gestures.random_gestures(n, seed=seed)

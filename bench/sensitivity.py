@@ -1,6 +1,6 @@
 """How much a random program's path amplifies an error in its fields: each program of
 ``random_gestures(N, seed)`` named on the command line is generated at the rate that
-resolves it (:func:`tflearn.gestures.generate_resolved`), then simulated from rest under
+resolves it (:func:`tflearn.data.gestures.generate_resolved`), then simulated from rest under
 its own program with every centre moved by δ in a random direction (``--draws`` per δ,
 the worst kept), rtol 1e-9; printed per program and δ: the worst joint RMSE (rad) and
 hand-tip error (cm) against the unmoved motion (docs/model.md, "Programs whose motion
@@ -15,12 +15,12 @@ import sys
 
 import torch
 
-from tflearn import gestures
-from tflearn.body import arm
-from tflearn.fields import FieldBasis, MotionWeights
+from tflearn.data import gestures
 from tflearn.fit.targets import prepare
 from tflearn.metrics import score
-from tflearn.simulate import SimOptions
+from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.physics.body import arm
+from tflearn.simulation.simulate import SimOptions
 
 
 def worst(body, program, tg, delta: float, draws: int, gen: torch.Generator) -> tuple:

@@ -1,6 +1,6 @@
-"""How well :func:`tflearn.motion.torque_resolution` estimates the error of spline torques.
+"""How well :func:`tflearn.motions.motion.torque_resolution` estimates the error of spline torques.
 
-Draws random programs within :data:`tflearn.gestures.SUPPORTED`, simulates them and
+Draws random programs within :data:`tflearn.data.gestures.SUPPORTED`, simulates them and
 samples them at ``--rate``; for each motion compares the estimate (from the samples
 alone) with the true relative RMS error of the spline torques (the generating program's
 torques along the path against the inverse-dynamics torques, the fit's own measure,
@@ -18,10 +18,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tflearn import gestures
-from tflearn import motion as motion_mod
-from tflearn.body import arm
+from tflearn.data import gestures
 from tflearn.fit import targets, torque
+from tflearn.motions import motion as motion_mod
+from tflearn.physics.body import arm
 
 
 def main(argv=None) -> int:

@@ -1,9 +1,9 @@
 """The learning bar on unseen torque-field programs, over several seeds, with the thesis'
 SLSQP baseline on the same motions.
 
-For each seed, three random programs within :data:`tflearn.gestures.SUPPORTED` are
+For each seed, three random programs within :data:`tflearn.data.gestures.SUPPORTED` are
 simulated from rest and each sampled at the lowest of 100·2ᵏ Hz that resolves it
-(:func:`tflearn.gestures.generate_resolved`). Then
+(:func:`tflearn.data.gestures.generate_resolved`). Then
 
 * ``pipeline`` — ``train`` with the default config (no initial guess, M found);
 * ``slsqp``    — ``train ... solver.method=slsqp model.fields=G`` with G the number of
@@ -32,8 +32,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tflearn import config, gestures, train  # noqa: E402
-from tflearn import motion as motion_mod  # noqa: E402
+from tflearn import config, train  # noqa: E402
+from tflearn.data import gestures  # noqa: E402
+from tflearn.motions import motion as motion_mod  # noqa: E402
 
 
 def run_seed(seed: int, work: Path, slsqp_iter: int, stiffness: str = "scalar",

@@ -11,8 +11,9 @@ import numpy as np
 import pinocchio as pin
 import torch
 
-from tflearn import body as tb
-from tflearn import dynamics, simulate
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics
+from tflearn.simulation import simulate
 
 torch.set_num_threads(1)
 

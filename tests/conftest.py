@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import body as tb
+from tflearn.physics import body as tb
 
 DT = torch.float64
 

@@ -15,12 +15,12 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tflearn import body as tb
-from tflearn import dynamics as D
-from tflearn.fields import FieldBasis, FieldProgram, MotionWeights
 from tflearn.io import basis as bio
 from tflearn.io.basis import BasisFileError
-from tflearn.simulate import simulate
+from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics as D
+from tflearn.simulation.simulate import simulate
 
 from conftest import full_symmetric, make_tree, max_rel_err, q_to_pin, random_coords, to_pin
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import body as tb
-from tflearn import dynamics
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics
 
 DT = torch.float64
 

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from tflearn import bvh
 from tflearn.errors import InputError
+from tflearn.mocap import bvh
 
 
 def _elementary(axis: str, deg: float) -> np.ndarray:

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tflearn import cli, gestures
+from tflearn import cli
+from tflearn.data import gestures
 from tflearn.io import basis as bio
 
 from test_learning import small_run
@@ -74,7 +75,7 @@ def test_gestures_and_simulate(tmp_path, capsys):
 def test_simulate_errors(tmp_path, capsys):
     import torch
 
-    from tflearn.body import arm
+    from tflearn.physics.body import arm
     basis, weights, _ = gestures.library_model([gestures.GESTURES["tuck"]])
     z = torch.zeros(1, 7, dtype=torch.float64)
     bio.save(bio.LearnedBasis(arm(), basis, weights, z, z, torch.tensor([100.0], dtype=torch.float64)),
@@ -296,8 +297,10 @@ def test_bvh_import_and_export(mocap, tmp_path, capsys):
     motions of the body in body.yaml with a report, the bad one skipped with a warning
     naming it; ``tflearn bvh export`` of an imported motion, alone and in the clip's
     skeleton, reads back to the same coordinates (1e-6 rad)."""
-    from tflearn import bvh, config, motion, retarget
-    from tflearn.body import from_config
+    from tflearn import config
+    from tflearn.mocap import bvh, retarget
+    from tflearn.motions import motion
+    from tflearn.physics.body import from_config
     clips = [mocap / "dataset-2_raise-up-right-hand_normal_001.bvh", mocap / "dataset-1_guide_normal_001.bvh"]
     bad = tmp_path / "bad.bvh"
     bad.write_text(clips[0].read_text()[:5000])

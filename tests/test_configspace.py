@@ -10,8 +10,8 @@ import roma
 import torch
 from torch.autograd import gradcheck
 
-from tflearn import configspace as cs
-from tflearn import dynamics as D
+from tflearn.physics import configspace as cs
+from tflearn.physics import dynamics as D
 
 from conftest import DT, free_tree, make_tree, random_states
 

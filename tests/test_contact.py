@@ -1,4 +1,4 @@
-"""Ground contact (tflearn.contact): resting depth of the spring law, the sliding
+"""Ground contact (tflearn.physics.contact): resting depth of the spring law, the sliding
 distance of regularised Coulomb friction, and contact torques against Pinocchio."""
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import pinocchio as pin
 import pytest
 import torch
 
-from tflearn import body as tb
-from tflearn import contact as C
-from tflearn import dynamics as D
-from tflearn.simulate import SimOptions, simulate, zero_program
+from tflearn.physics import body as tb
+from tflearn.physics import contact as C
+from tflearn.physics import dynamics as D
+from tflearn.simulation.simulate import SimOptions, simulate, zero_program
 
 from conftest import DT, GRAVITY, q_to_pin, to_pin, v_to_pin
 

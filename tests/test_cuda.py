@@ -11,15 +11,16 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import body as tb
-from tflearn import config, gestures, train
-from tflearn import dynamics as D
-from tflearn.fields import MotionWeights
+from tflearn import config, train
+from tflearn.data import gestures
 from tflearn.fit.path import path_loss
 from tflearn.fit.targets import prepare, simulate_targets
 from tflearn.io import basis as bio
-from tflearn.simulate import SimOptions, simulate, zero_program
-from tflearn.torso import BaseMotion, Bases
+from tflearn.model.fields import MotionWeights
+from tflearn.motions.torso import BaseMotion, Bases
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics as D
+from tflearn.simulation.simulate import SimOptions, simulate, zero_program
 
 from conftest import DT
 from test_learning import SMALL_GESTURES, small_config, write_motions

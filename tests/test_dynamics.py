@@ -1,4 +1,4 @@
-"""tflearn.dynamics against Pinocchio, plus identities, batching and gradients."""
+"""tflearn.physics.dynamics against Pinocchio, plus identities, batching and gradients."""
 from __future__ import annotations
 
 import math
@@ -9,9 +9,9 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
-from tflearn import body as tb
-from tflearn import dynamics as D
-from tflearn.configspace import integrate, rotvec_to_rotmat
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics as D
+from tflearn.physics.configspace import integrate, rotvec_to_rotmat
 
 from conftest import (
     ARM_OFFSETS,

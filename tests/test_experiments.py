@@ -13,11 +13,12 @@ from typing import get_args
 import pytest
 import torch
 
-from tflearn import cli, experiments, gestures
+from tflearn import cli, experiments
 from tflearn.config import ConfigError
+from tflearn.data import gestures
 from tflearn.experiments import common
 from tflearn.experiments.config import ExperimentConfig
-from tflearn.fields import model_from_state
+from tflearn.model.fields import model_from_state
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "experiments"
@@ -236,10 +237,10 @@ def test_reach_class_is_straight_and_spread():
     (between its turns and its distances); its goal line reads as the others."""
     import math
 
-    from tflearn import dynamics
-    from tflearn.body import arm
     from tflearn.experiments import filtering, reaches
     from tflearn.experiments.reporting import goal_line
+    from tflearn.physics import dynamics
+    from tflearn.physics.body import arm
     body = arm()
     train, held = reaches.reach_class(body)
     assert len(train) == 8 and held.name == "held_out_reach"
@@ -347,7 +348,7 @@ def test_config_names_the_gesture_library_and_needs_no_torch():
     import subprocess
     import sys
 
-    from tflearn import gestures
+    from tflearn.data import gestures
     from tflearn.experiments import config as exp_config
     assert exp_config.GESTURES == tuple(gestures.GESTURES)
     code = ("import sys; from tflearn.experiments import load_config; "

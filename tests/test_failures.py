@@ -9,13 +9,14 @@ import math
 import pytest
 import torch
 
-from tflearn import gestures, metrics
-from tflearn import simulate as S
-from tflearn.fields import FieldProgram
+from tflearn import metrics
+from tflearn.data import gestures
 from tflearn.fit import path as path_fit
 from tflearn.fit import stability, targets, torque
 from tflearn.fit.torque import DivergenceWarning
-from tflearn.motion import Motion
+from tflearn.model.fields import FieldProgram
+from tflearn.motions.motion import Motion
+from tflearn.simulation import simulate as S
 
 DT = torch.float64
 OPTS = S.SimOptions(rtol=1e-7, atol=1e-9, max_evals=20000)

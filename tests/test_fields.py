@@ -1,4 +1,4 @@
-"""tflearn.fields: time profiles, stiffness parametrisations, field basis, weights, programs."""
+"""tflearn.model.fields: time profiles, stiffness parametrisations, field basis, weights, programs."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import torch
 from torch.autograd import gradcheck
 from torch.func import functional_call
 
-from tflearn import fields as F
+from tflearn.model import fields as F
 
 from conftest import DT
 
@@ -288,7 +288,7 @@ def test_random_programs_with_diagonal_stiffness():
     SUPPORTED["k"]; the option changes only the stiffness draws, and the scalar programs
     stay those the documented bar was measured on (seed 2024); library_model turns them
     into a diag basis with K = diag(k), and a wrong-length entry is refused."""
-    from tflearn import gestures
+    from tflearn.data import gestures
     lo, hi = gestures.SUPPORTED["k"]
     diag = gestures.random_gestures(6, seed=3, stiffness="diag")
     assert [p.name for p in diag] == [f"random3d_{i}" for i in range(6)]
@@ -316,7 +316,7 @@ def test_random_programs_over_a_shared_library(stiffness):
     of one set of G fields drawn within SUPPORTED, each program with its own weights and
     duration; 40 programs use every one of the G = 5 and both sizes; library = 0 keeps
     the programs of own fields, and a negative library is refused."""
-    from tflearn import gestures
+    from tflearn.data import gestures
     programs = gestures.random_gestures(40, seed=4, stiffness=stiffness, library=5)
     tag = "dL5" if stiffness == "diag" else "L5"
     assert [p.name for p in programs] == [f"random4{tag}_{i}" for i in range(40)]
@@ -338,7 +338,7 @@ def test_own_fields_program_gives_the_library_programs_torques(stiffness):
     """gestures.own_fields_program evaluates each motion's own fields only; its torques are
     the whole library program's, bit for bit, at a scalar time, sample times and a time
     per member."""
-    from tflearn import gestures
+    from tflearn.data import gestures
     programs = gestures.random_gestures(5, seed=11, stiffness=stiffness)
     basis, weights, spans = gestures.library_model(programs)
     assert basis.M == sum(hi - lo for lo, hi in spans) > max(hi - lo for lo, hi in spans)

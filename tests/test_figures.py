@@ -1,5 +1,5 @@
-"""Figures (tflearn.plots: fields, profiles, weights, learning curves) and animations
-(tflearn.render, ``tflearn render``)."""
+"""Figures (tflearn.plots.figures: fields, profiles, weights, learning curves) and animations
+(tflearn.plots.render, ``tflearn render``)."""
 from __future__ import annotations
 
 import math
@@ -11,12 +11,15 @@ from matplotlib.patches import Rectangle
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from tflearn import body as tb
-from tflearn import cli, config, gestures, plots, render
-from tflearn import motion as motion_mod
+from tflearn import cli, config
+from tflearn.data import gestures
 from tflearn.errors import InputError
-from tflearn.fields import FieldBasis, pulse_profile, step_profile
 from tflearn.io import basis as bio
+from tflearn.model.fields import FieldBasis, pulse_profile, step_profile
+from tflearn.motions import motion as motion_mod
+from tflearn.physics import body as tb
+from tflearn.plots import figures as plots
+from tflearn.plots import render
 
 DT = torch.float64
 

@@ -7,9 +7,9 @@ import pinocchio as pin
 import pytest
 import torch
 
-from tflearn import dynamics as D
-from tflearn.configspace import difference, integrate, pack, unpack
-from tflearn.simulate import SimOptions, simulate, zero_program
+from tflearn.physics import dynamics as D
+from tflearn.physics.configspace import difference, integrate, pack, unpack
+from tflearn.simulation.simulate import SimOptions, simulate, zero_program
 
 from conftest import (
     DT,

@@ -17,12 +17,14 @@ import torch
 from torch.autograd import gradcheck
 from torch.func import functional_call
 
-from tflearn import config, dynamics, gestures
-from tflearn.body import chain
-from tflearn.fields import FieldBasis, FieldProgram, MotionWeights, model_from_state, model_state
+from tflearn import config
+from tflearn.data import gestures
 from tflearn.fit import search, targets, torque
 from tflearn.io import basis as bio
-from tflearn.simulate import SimOptions, simulate
+from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights, model_from_state, model_state
+from tflearn.physics import dynamics
+from tflearn.physics.body import chain
+from tflearn.simulation.simulate import SimOptions, simulate
 
 DT = torch.float64
 
@@ -157,7 +159,7 @@ def damped_come_here():
         tr = simulate(lb.body, FieldProgram(basis, lb.weights), lb.q0, lb.qd0, m.t,
                       SimOptions(method="dopri8", rtol=1e-10, atol=1e-10,
                                  solver_options={"step_t": m.t[1:]}))
-    from tflearn.motion import Motion
+    from tflearn.motions.motion import Motion
     motion = Motion("damped", m.t, tr.q[0], tr.v[0])
     return lb, basis, motion, targets.prepare(lb.body, [motion])
 

@@ -1,5 +1,5 @@
-"""tflearn.kernels: the compiled articulated-body algorithm and RNEA against the torch recursions
-of tflearn.dynamics (which tests/test_dynamics.py and tests/test_free_joint.py hold to
+"""tflearn.physics.kernels: the compiled articulated-body algorithm and RNEA against the torch recursions
+of tflearn.physics.dynamics (which tests/test_dynamics.py and tests/test_free_joint.py hold to
 Pinocchio), on every test body, with and without gravity, a moving base and free joints;
 when each path is taken; and a blown-up state coming out non-finite."""
 from __future__ import annotations
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import dynamics as D
-from tflearn.configspace import joint_rotations
+from tflearn.physics import dynamics as D
+from tflearn.physics.configspace import joint_rotations
 
 from conftest import BODY_NAMES, DT, GRAVITY, free_tree, make_body, random_coords, random_states
 
@@ -106,7 +106,7 @@ def test_a_blown_up_state_gives_non_finite_accelerations(rng):
 
 def test_a_singular_joint_inertia_gives_non_finite_accelerations(rng):
     """A massless leaf behind a ball joint (D = 0): NaN from the kernel, not an exception."""
-    from tflearn import kernels
+    from tflearn.physics import kernels
     body = make_body("arm")
     tables = list(D._kernel_tables(body))
     tables[7] = tables[7].copy()
@@ -140,8 +140,8 @@ def test_compiled_rotations_from_rotation_vectors_equal_torchs(rng):
     vectors the two differ by up to 6.5 ε, on diagonal entries beyond π, where
     1 − 2(y² + z²) cancels (measured since the kernels dropped fast-math reassociation;
     this sample had stayed within 2 ε before)."""
-    from tflearn import kernels
-    from tflearn.configspace import rotvec_to_rotmat
+    from tflearn.physics import kernels
+    from tflearn.physics.configspace import rotvec_to_rotmat
     switch = 2 * kernels._SINC_SERIES
     angles = np.concatenate([[0.0, 1e-12, 1e-8, 1e-4, 0.999 * switch, switch, 1.001 * switch,
                               0.5, np.pi - 1e-7, np.pi, np.pi + 1e-9, 5.0],
@@ -161,7 +161,7 @@ def test_compiled_state_reading_equals_torchs(name, rng):
     """configspace.unpack and position_rate, compiled (no gradient) and in torch: the same
     rotations, principal coordinates (special angles included: π, near π, near 0),
     quaternions and rates; the quaternions' sign and norm as stored."""
-    from tflearn.configspace import pack, position_rate, unpack
+    from tflearn.physics.configspace import pack, position_rate, unpack
     body = free_tree(int(name[-1]), GRAVITY) if name.startswith("free") else make_body(name)
     q = torch.as_tensor((random_states if name.startswith("free") else random_coords)(body, rng, 12),
                         dtype=DT)
@@ -182,7 +182,7 @@ def test_compiled_state_reading_equals_torchs(name, rng):
 
 def test_compiled_functions_are_cached_under_a_digest_of_their_sources():
     """numba re-compiles a cached function only when its own file changes: the simulator
-    (tflearn.simkernel) inlines kernels.py's functions and flags, so both are cached in
+    (tflearn.simulation.simkernel) inlines kernels.py's functions and flags, so both are cached in
     one folder named by a digest of both files — a change to either compiles both afresh
     — and numba's own setting is left as it was for other code."""
     import hashlib
@@ -190,11 +190,12 @@ def test_compiled_functions_are_cached_under_a_digest_of_their_sources():
 
     import numba
 
-    from tflearn import kernels, simkernel
-    here = os.path.dirname(kernels.__file__)
+    from tflearn.physics import kernels
+    from tflearn.simulation import simkernel
+    here = os.path.dirname(os.path.dirname(kernels.__file__))
     digest = hashlib.sha256(b"".join(open(os.path.join(here, n), "rb").read()
                                      for n in kernels.CACHE_SOURCES)).hexdigest()[:16]
-    assert set(kernels.CACHE_SOURCES) == {"kernels.py", "simkernel.py"}
+    assert set(kernels.CACHE_SOURCES) == {"physics/kernels.py", "simulation/simkernel.py"}
     folder = kernels.cache_folder()
     assert folder.endswith(f"numba-{digest}")
     compiled = [f for module in (kernels, simkernel) for f in vars(module).values() if hasattr(f, "_cache")]

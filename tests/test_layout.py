@@ -7,15 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import bvh, gestures
-from tflearn import motion as motion_mod
-from tflearn import retarget as rt
 from tflearn.config import ConfigError, load
-from tflearn.fields import FieldBasis, MotionWeights
+from tflearn.data import gestures
 from tflearn.fit import layout, search, targets, torque
 from tflearn.fit.nnls import nnls_lstsq
 from tflearn.metrics import score
-from tflearn.simulate import SimOptions
+from tflearn.mocap import bvh
+from tflearn.mocap import retarget as rt
+from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.motions import motion as motion_mod
+from tflearn.simulation.simulate import SimOptions
 
 from conftest import DT, full_symmetric, q_to_pin, to_pin
 
@@ -224,8 +225,8 @@ def test_layout_carries_a_recorded_window(mocap):
 def _spline_run(tmp_path, *overrides):
     """The config of a three-keyframe come-here spline that the pipeline cannot reproduce
     with one field of its own (``solver.each.max_fields=1``, one Adam step)."""
-    from tflearn.body import arm
-    from tflearn.keyframes import keyframe_motion
+    from tflearn.data.keyframes import keyframe_motion
+    from tflearn.physics.body import arm
     body = arm()
     (m, _), = gestures.generate(body, gestures=[gestures.GESTURES["come_here"]])
     T = len(m.t)

@@ -16,14 +16,16 @@ import torch
 from torch.autograd import gradcheck
 from torch.func import functional_call
 
-from tflearn import config, data, gestures, metrics, train
-from tflearn import motion as motion_mod
-from tflearn import simulate as sim_mod
-from tflearn.fields import FieldBasis, MotionWeights, model_from_state, model_state
+from tflearn import config, metrics, train
+from tflearn.data import gestures
+from tflearn.data import loading as data
 from tflearn.fit import path as path_fit
 from tflearn.fit import targets, torque
 from tflearn.io import basis as bio
-from tflearn.simulate import SimOptions
+from tflearn.model.fields import FieldBasis, MotionWeights, model_from_state, model_state
+from tflearn.motions import motion as motion_mod
+from tflearn.simulation import simulate as sim_mod
+from tflearn.simulation.simulate import SimOptions
 
 from conftest import to_pin
 
@@ -305,7 +307,7 @@ def test_em_trust_region_keeps_a_weak_field_alive():
     and ends in the one-field minimum (measured cost 0.138); with max_step = 0.5 no step
     moves a parameter by more than 0.5 and EM recovers the gesture (measured 5e-8)."""
     from tflearn.experiments import common as C
-    from tflearn.fields import ETA_MAX
+    from tflearn.model.fields import ETA_MAX
     body, g = gestures.arm(), gestures.GESTURES["backwards_reach"]
     (m, _), = gestures.generate(body, gestures=[g])
     tg = targets.prepare(body, [m])
@@ -1096,9 +1098,9 @@ def test_pool_keeps_each_motions_learned_timing(come_here):
     the spline's error with its learned timing (relative torque cost 5.7e-11), and far
     worse when pooling resets the timing to the default phases (measured 4.1e-3)."""
     m, lb, _ = come_here
-    from tflearn.fields import FieldProgram
     from tflearn.fit import search
-    from tflearn.simulate import simulate
+    from tflearn.model.fields import FieldProgram
+    from tflearn.simulation.simulate import simulate
 
     late = lb.weights.select_motions([0])
     with torch.no_grad():

@@ -1,4 +1,4 @@
-"""Mode-driven locomotion (tflearn.locomotion) on a small floating chain: internal torques
+"""Mode-driven locomotion (tflearn.modes.locomotion) on a small floating chain: internal torques
 cannot move the centre of mass (free fall is a parabola whatever the PD does), the
 controller leaves the base unactuated, a body at rest on the ground stays put."""
 from __future__ import annotations
@@ -9,12 +9,12 @@ from dataclasses import replace
 import pytest
 import torch
 
-from tflearn import body as tb
-from tflearn import dynamics as D
-from tflearn import locomotion as lo
-from tflearn import modal_motion as mm
-from tflearn import modes as md
-from tflearn.simulate import SimOptions
+from tflearn.modes import analysis as md
+from tflearn.modes import locomotion as lo
+from tflearn.modes import motion as mm
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics as D
+from tflearn.simulation.simulate import SimOptions
 
 from conftest import DT
 

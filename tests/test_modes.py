@@ -1,4 +1,4 @@
-"""Modal analysis (tflearn.modes), mode-driven motion (tflearn.modal_motion) and the
+"""Modal analysis (tflearn.modes.analysis), mode-driven motion (tflearn.modes.motion) and the
 ``tflearn modes`` command."""
 from __future__ import annotations
 
@@ -10,13 +10,15 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import body as tb
-from tflearn import cli, config, dynamics, modal
-from tflearn import modal_motion as mm
-from tflearn import modes as md
-from tflearn.configspace import difference, rotvec_to_rotmat
-from tflearn.modal_config import ModesConfig
-from tflearn.motion import load as load_motion
+from tflearn import cli, config
+from tflearn.modes import analysis as md
+from tflearn.modes import command as modal
+from tflearn.modes import motion as mm
+from tflearn.modes.config import ModesConfig
+from tflearn.motions.motion import load as load_motion
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics
+from tflearn.physics.configspace import difference, rotvec_to_rotmat
 
 ROOT = Path(__file__).resolve().parents[1]
 ARM_POSE = np.array([0.3, -0.2, 0.5, -1.0, 0.2, 0.1, -0.3])
@@ -181,7 +183,7 @@ def test_free_vibration_at_the_computed_frequency(chart):
     f = res.frequencies[i]
     q_start = mm.retract(res, torch.as_tensor(1e-4 * res.joint_shapes[:, i]))
     t = torch.linspace(0.0, 3.3 / f, 200, dtype=torch.float64)
-    from tflearn.simulate import SimOptions
+    from tflearn.simulation.simulate import SimOptions
     fol = mm.follow(res, [], t, q_start=q_start, options=SimOptions(rtol=1e-7, atol=1e-11))
     c = mm.modal_coordinate(res, fol.trajectory.q, i)
     measured = mm.measured_frequency(t.numpy(), c)
@@ -282,8 +284,8 @@ def test_human_from_a_bvh_hierarchy(mocap):
     sum to the total with Winter's per-segment fractions (a thigh 10%, a hand 0.6%, the
     trunk 49.7% over its bones); inertias positive definite; on a floating base six
     rigid modes, then elastic ones."""
-    from tflearn import bvh
-    from tflearn import skeleton as sk
+    from tflearn.mocap import bvh
+    from tflearn.mocap import skeleton as sk
     skel = bvh.read(mocap / "cmu_141_16_wave-hello.bvh")
     body = sk.body_from_skeleton(skel, 70.0)
     assert body.nv == 90 and [link.name for link in body.links] == list(skel.joints)
@@ -305,7 +307,7 @@ def test_modes_command_writes_bvh(mocap, tmp_path):
     back, its joint rotations are the motion's (to 1e-9) and its root stays put."""
     from scipy.spatial.transform import Rotation
 
-    from tflearn import bvh
+    from tflearn.mocap import bvh
     clip = mocap / "dataset-1_bye_normal_001.bvh"
     out = tmp_path / "human"
     cfg = tmp_path / "bandai.yaml"

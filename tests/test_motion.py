@@ -1,7 +1,7 @@
-"""Tests for tflearn.motion: files, SO(3) helpers, splines and inverse-dynamics torques.
+"""Tests for tflearn.motions.motion: files, SO(3) helpers, splines and inverse-dynamics torques.
 
 The torque bar: simulate the arm under a known torque program, sample at 100 Hz, recover
-the torques from the samples alone with :func:`tflearn.motion.torques` and compare with the
+the torques from the samples alone with :func:`tflearn.motions.motion.torques` and compare with the
 program evaluated on the samples, away from the ends: relative RMS error ≤ 1 %.
 """
 from __future__ import annotations
@@ -18,12 +18,12 @@ import roma
 import torch
 from hypothesis import HealthCheck, given, settings
 
-from tflearn import configspace as C
-from tflearn import dynamics
-from tflearn import motion as M
-from tflearn.body import arm, chain
-from tflearn.fields import FieldBasis, FieldProgram, MotionWeights
-from tflearn.simulate import SimOptions, simulate
+from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights
+from tflearn.motions import motion as M
+from tflearn.physics import configspace as C
+from tflearn.physics import dynamics
+from tflearn.physics.body import arm, chain
+from tflearn.simulation.simulate import SimOptions, simulate
 
 F64 = torch.float64
 ARRAYS = M.ARRAYS
@@ -731,7 +731,7 @@ def test_torque_resolution_is_fourth_order_and_near_the_true_error():
     acceleration error: measured slope 4.6 from 100 to 200 Hz, 4.2 from 200 to 400 Hz)
     and, once resolved, is near the true error of the spline torques (measured ratio
     1.16 at 200 Hz, 1.03 at 400 Hz)."""
-    from tflearn import gestures
+    from tflearn.data import gestures
     come_here = [gestures.GESTURES["come_here"]]
     (m100, _), = gestures.generate(gestures=come_here, rate=100.0)
     (m200, lb), = gestures.generate(gestures=come_here, rate=200.0)
@@ -746,7 +746,7 @@ def test_torque_resolution_flags_an_unresolved_motion():
     the estimate, 1.6%, flags it; at 200 Hz it is resolved (0.04%)."""
     import dataclasses
 
-    from tflearn import gestures
+    from tflearn.data import gestures
     program = [dataclasses.replace(gestures.random_gestures(3, seed=2024)[1], duration=1.5)]
     (m100, lb), = gestures.generate(gestures=program, rate=100.0)
     eps = M.torque_resolution(None, m100)

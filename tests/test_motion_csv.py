@@ -10,9 +10,9 @@ import torch
 from scipy.spatial.transform import Rotation
 
 import tflearn
-from tflearn import motion as motion_mod
-from tflearn.body import chain
-from tflearn.motion import MotionFileError
+from tflearn.motions import motion as motion_mod
+from tflearn.motions.motion import MotionFileError
+from tflearn.physics.body import chain
 
 HEADER = "t, shoulder_x, shoulder_y, shoulder_z, elbow, wrist_x, wrist_y, wrist_z"
 

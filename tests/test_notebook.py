@@ -70,7 +70,7 @@ def test_notebook_executes(run_dir, monkeypatch):
     tables, a figure per field plus the weights, trajectories, hand paths and edited
     hand paths; its re-simulation of the first motion matches metrics.json, the
     edited program (a × 1.5) moves the end posture, and its table of the fields' modes
-    has the frequencies of tflearn.modes.field_modes on basis.json."""
+    has the frequencies of tflearn.modes.analysis.field_modes on basis.json."""
     run = run_dir["out"]
     lb = json.loads((run / "basis.json").read_text())
     ref = json.loads((run / "metrics.json").read_text())
@@ -98,8 +98,8 @@ def test_notebook_executes(run_dir, monkeypatch):
 
     modes = [t for t in out["markdown"] if t.startswith("| modes of field |")]
     assert len(modes) == 1
-    from tflearn import modes as md
-    from tflearn.body import from_dict
+    from tflearn.modes import analysis as md
+    from tflearn.physics.body import from_dict
     want = md.field_modes(from_dict(lb["body"]), [f["eta"] for f in lb["fields"]],
                           [f["K"] for f in lb["fields"]])
     for line, fm in zip(modes[0].splitlines()[2:], want, strict=True):

@@ -1,17 +1,17 @@
-"""tflearn.ode: Dormand–Prince with a step size per batch member, on problems with closed
-forms, against torchdiffeq's dopri5, and through :func:`tflearn.simulate.simulate`."""
+"""tflearn.simulation.ode: Dormand–Prince with a step size per batch member, on problems with closed
+forms, against torchdiffeq's dopri5, and through :func:`tflearn.simulation.simulate.simulate`."""
 import math
 
 import pytest
 import torch
 from torchdiffeq import odeint
 
-from tflearn import gestures
-from tflearn.body import arm
-from tflearn.configspace import pack
-from tflearn.fields import FieldProgram
-from tflearn.ode import odeint_each
-from tflearn.simulate import ArmODE, SimOptions, SimulationFailed, simulate
+from tflearn.data import gestures
+from tflearn.model.fields import FieldProgram
+from tflearn.physics.body import arm
+from tflearn.physics.configspace import pack
+from tflearn.simulation.ode import odeint_each
+from tflearn.simulation.simulate import ArmODE, SimOptions, SimulationFailed, simulate
 
 T = torch.linspace(0, 2, 41, dtype=torch.float64)
 

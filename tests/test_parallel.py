@@ -20,12 +20,12 @@ import torch.multiprocessing as mp
 
 import tflearn
 from tflearn import parallel, train
-from tflearn.fields import FieldBasis, MotionWeights, model_state
 from tflearn.fit import path as path_fit
 from tflearn.fit import torque
 from tflearn.fit.targets import prepare
-from tflearn.motion import Motion
-from tflearn.simulate import SimOptions
+from tflearn.model.fields import FieldBasis, MotionWeights, model_state
+from tflearn.motions.motion import Motion
+from tflearn.simulation.simulate import SimOptions
 
 from test_learning import SMALL_OVERRIDES, assert_same_basis, small_config, small_run
 

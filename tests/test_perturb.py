@@ -1,4 +1,4 @@
-"""Controllers (tflearn.controllers), perturbations and their measures (tflearn.perturb).
+"""Controllers (tflearn.control.controllers), perturbations and their measures (tflearn.control.pushes).
 
 Small problems: a 1.2 s come-here gesture (one field, exact torques from its generating
 program), batched wherever the controllers allow it."""
@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import body as tb
-from tflearn import controllers as C
-from tflearn import dynamics, gestures
-from tflearn import perturb as P
-from tflearn.fields import FieldProgram
-from tflearn.simulate import SimOptions, simulate
+from tflearn.control import controllers as C
+from tflearn.control import pushes as P
+from tflearn.data import gestures
+from tflearn.model.fields import FieldProgram
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics
+from tflearn.simulation.simulate import SimOptions, simulate
 
 DT = torch.float64
 OPT = SimOptions(rtol=1e-6, atol=1e-8)
@@ -80,7 +81,7 @@ def test_zero_force_ff_and_ff_pd_reproduce_the_target(gesture, responses):
 def test_spline_feedforward_is_the_learners_torque(gesture):
     """The default τ_ff is motion.torques (the spline's inverse dynamics) at any time, and
     within 1e-3 relative of the generating program's exact torque mid-motion."""
-    from tflearn.motion import torques
+    from tflearn.motions.motion import torques
     body, motion, _, exact = gesture
     spline = C.Target(body, motion)
     t = motion.t[40:50]
@@ -232,7 +233,7 @@ def test_perturb_a_folder_of_imported_motions(tmp_path, capsys):
     import json
 
     from tflearn import cli
-    from tflearn.motion import save
+    from tflearn.motions.motion import save
     g = gestures.GESTURES["come_here"]
     (m, _), = gestures.generate(gestures=[gestures.Gesture("clip", g.eta, g.k, g.a, g.b, duration=0.8)])
     save(m, tmp_path / "clip.npz")

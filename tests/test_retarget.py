@@ -10,8 +10,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from tflearn import bvh
-from tflearn import retarget as rt
+from tflearn.mocap import bvh
+from tflearn.mocap import retarget as rt
 
 POSE = """HIERARCHY
 ROOT Hips
@@ -113,8 +113,8 @@ def test_missing_joint_and_folder(tmp_path):
     assert len(msgs) == 2 and str(bad) in msgs[0] and "c_truncated.bvh: line" in msgs[1]
     with pytest.raises(bvh.BVHError, match="b_noarm.bvh: no built-in arm map"):
         rt.read_clips([tmp_path], "right", strict=True)
-    from tflearn import mocap
     from tflearn.errors import InputError
+    from tflearn.mocap import clips as mocap
     with pytest.raises(InputError, match="out: no clips to import"):
         mocap.import_frames([], tmp_path / "out")
 
@@ -186,7 +186,7 @@ def test_mocap_config_loads():
     from pathlib import Path
 
     from tflearn import config
-    from tflearn.body import from_config
+    from tflearn.physics.body import from_config
     cfg = config.load(Path(__file__).resolve().parents[1] / "configs" / "mocap.yaml")
     body = from_config(cfg.body)
     assert [link.length for link in body.links] == pytest.approx([0.247045, 0.220879, 0.152216])
@@ -220,9 +220,10 @@ def test_train_data_names_bvh(mocap, tmp_path):
     coordinates equal to 1e-12, times from 0, clip times 0.5–1.24 s), and the torso's
     frames cover it; a window longer than every clip, a config mixing clips and motions,
     and a replaced body are reported."""
-    from tflearn import config, motion, train
-    from tflearn import mocap as mocap_mod
+    from tflearn import config, train
     from tflearn.errors import InputError
+    from tflearn.mocap import clips as mocap_mod
+    from tflearn.motions import motion
     clip = mocap / "dataset-2_wave-right-hand_normal_001.bvh"
     base = [f"data={clip}", f"out={tmp_path / 'run'}", "bvh.rate=50"]
     run = train.Run(config.load(None, base + ["bvh.window=[0.5,1.25]"]))
@@ -255,9 +256,10 @@ def test_split_into_pieces(mocap, tmp_path):
     printed as one clip line. 0.75 s, not a whole number of samples at 50 Hz, is rounded
     to 38 sample intervals, the pieces still sharing their boundaries. A split ≤ 0 is
     refused."""
-    from tflearn import config, motion
-    from tflearn import mocap as mocap_mod
+    from tflearn import config
     from tflearn.errors import InputError
+    from tflearn.mocap import clips as mocap_mod
+    from tflearn.motions import motion
     clip = mocap / "dataset-2_wave-right-hand_normal_001.bvh"
     name = clip.stem
     whole = mocap_mod.import_clips([clip], tmp_path / "whole", mocap_mod.ImportOptions(rate=50))

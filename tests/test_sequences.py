@@ -1,5 +1,5 @@
 """Activation sequences: P sub-movement windows per motion, a pulse weight c_jik ≥ 0 of
-every field on each (tflearn.fields.MotionWeights).
+every field on each (tflearn.model.fields.MotionWeights).
 
 The activation against its formula, non-negative and C¹; P = 0 is the thesis' model
 exactly; a motion driven by one field switched on twice is fitted by its own windows to
@@ -15,8 +15,10 @@ import math
 import pytest
 import torch
 
-from tflearn import gestures
-from tflearn.fields import (
+from tflearn.data import gestures
+from tflearn.fit import search, targets, torque
+from tflearn.io import basis as bio
+from tflearn.model.fields import (
     FieldBasis,
     FieldProgram,
     MotionWeights,
@@ -25,10 +27,8 @@ from tflearn.fields import (
     pulse_profile,
     step_profile,
 )
-from tflearn.fit import search, targets, torque
-from tflearn.io import basis as bio
-from tflearn.motion import Motion
-from tflearn.simulate import SimOptions, simulate
+from tflearn.motions.motion import Motion
+from tflearn.simulation.simulate import SimOptions, simulate
 
 DT = torch.float64
 

@@ -15,15 +15,16 @@ import math
 import pytest
 import torch
 
-from tflearn import dynamics, evaluate, train
-from tflearn.body import chain
-from tflearn.fields import FieldBasis, FieldProgram, MotionWeights, model_from_state, model_state
+from tflearn import evaluate, train
 from tflearn.fit import path as path_fit
 from tflearn.fit import shooting, targets
 from tflearn.io import basis as bio
 from tflearn.metrics import score
-from tflearn.motion import Motion
-from tflearn.simulate import SimOptions, simulate
+from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights, model_from_state, model_state
+from tflearn.motions.motion import Motion
+from tflearn.physics import dynamics
+from tflearn.physics.body import chain
+from tflearn.simulation.simulate import SimOptions, simulate
 
 from test_learning import small_config, small_data
 
@@ -442,7 +443,7 @@ def test_reduce_checks_trials_together_with_the_decisions_of_one_at_a_time(small
 def test_synthesis_reports_a_stopped_shooting():
     """Held-out synthesis whose multiple shooting cannot simulate the motion (an
     evaluation budget of 3) warns, naming the motion and why, and keeps the NNLS weights."""
-    from tflearn import gestures
+    from tflearn.data import gestures
     from tflearn.fit.torque import DivergenceWarning
     (m, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
     tg = targets.prepare(lb.body, [m])
@@ -455,7 +456,7 @@ def test_synthesis_reports_a_stopped_shooting():
 def _tuck_and_come_here():
     """(the LearnedBasis of come_here's and tuck's generating fields and programs, their
     motions)."""
-    from tflearn import gestures
+    from tflearn.data import gestures
     from tflearn.io.basis import LearnedBasis
     programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
     pairs = gestures.generate(gestures=programs)

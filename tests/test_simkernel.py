@@ -1,6 +1,6 @@
-"""tflearn.simkernel: the compiled simulator (field program, dynamics and per-member
-Dormand–Prince in one loop) against the torch path it replaces (tflearn.ode.odeint_each
-driving tflearn.simulate.ArmODE, which tests/test_ode.py holds to closed forms and
+"""tflearn.simulation.simkernel: the compiled simulator (field program, dynamics and per-member
+Dormand–Prince in one loop) against the torch path it replaces (tflearn.simulation.ode.odeint_each
+driving tflearn.simulation.simulate.ArmODE, which tests/test_ode.py holds to closed forms and
 torchdiffeq): the same paths, step counts, evaluation counts and failures, on every test
 body, for every kind of program it takes; and when each path is taken."""
 from __future__ import annotations
@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from tflearn import gestures, simkernel
-from tflearn.body import arm
-from tflearn.configspace import pack
-from tflearn.fields import FieldBasis, FieldProgram, MotionWeights
-from tflearn.simulate import SimOptions, simulate
+from tflearn.data import gestures
+from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights
+from tflearn.physics.body import arm
+from tflearn.physics.configspace import pack
+from tflearn.simulation import simkernel
+from tflearn.simulation.simulate import SimOptions, simulate
 
 from conftest import BODY_NAMES, DT, GRAVITY, free_tree, make_body, random_states
 
@@ -86,11 +87,11 @@ def test_free_joints_and_a_batch_of_copies(where, rng, monkeypatch):
 
 
 def _turning_bases(rng, n, T=41, span=1.0):
-    """n random moving bases (tflearn.torso.Bases): each turning about its own axis at a
+    """n random moving bases (tflearn.motions.torso.Bases): each turning about its own axis at a
     varying rate and its origin swinging, sampled T times over ``span`` s."""
     import pinocchio as pin
 
-    from tflearn.torso import BaseMotion, Bases
+    from tflearn.motions.torso import BaseMotion, Bases
     t = torch.linspace(0, span, T, dtype=DT).numpy()
     motions = []
     for _ in range(n):
@@ -102,7 +103,7 @@ def _turning_bases(rng, n, T=41, span=1.0):
 
 @pytest.mark.parametrize("name", ["arm_offsets", "tree"])
 def test_a_moving_base_per_member(name, rng, monkeypatch):
-    """Each member on its own moving base (tflearn.torso.Bases, members taken in another
+    """Each member on its own moving base (tflearn.motions.torso.Bases, members taken in another
     order and shifted in time, under gravity): the compiled loop's base polynomials and
     terms equal the torch path's (Bases.terms)."""
     body = make_body(name, GRAVITY).with_(damping=0.05)

@@ -1,4 +1,4 @@
-"""tflearn.simulate: conservation laws, the work–energy identity, quaternion state and
+"""tflearn.simulation.simulate: conservation laws, the work–energy identity, quaternion state and
 gradients.
 
 Accuracy note. torchdiffeq's ``dopri8`` returns the states at the requested times from a
@@ -18,11 +18,11 @@ from torch.autograd import gradcheck
 from torch.func import functional_call
 from torchdiffeq import odeint
 
-from tflearn import body as tb
-from tflearn import configspace as C
-from tflearn import dynamics as D
-from tflearn import fields as F
-from tflearn import simulate as S
+from tflearn.model import fields as F
+from tflearn.physics import body as tb
+from tflearn.physics import configspace as C
+from tflearn.physics import dynamics as D
+from tflearn.simulation import simulate as S
 
 from conftest import ARM_OFFSETS, DT, GRAVITY, wrap_angle
 

@@ -4,11 +4,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tflearn import body as tb
-from tflearn import gestures
-from tflearn.fields import FieldBasis, MotionWeights
+from tflearn.data import gestures
 from tflearn.fit import slsqp, torque
 from tflearn.fit.targets import prepare
+from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.physics import body as tb
 
 DT = torch.float64
 

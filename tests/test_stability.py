@@ -3,13 +3,13 @@ import math
 
 import torch
 
-from tflearn import body as tb
-from tflearn import dynamics
-from tflearn.fields import FieldBasis, MotionWeights
 from tflearn.fit.stability import growth, jacobians, program_growth, program_jacobians
 from tflearn.fit.targets import prepare
-from tflearn.motion import Motion
-from tflearn.torso import BaseMotion, Bases
+from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.motions.motion import Motion
+from tflearn.motions.torso import BaseMotion, Bases
+from tflearn.physics import body as tb
+from tflearn.physics import dynamics
 
 F64 = torch.float64
 
@@ -175,8 +175,8 @@ def test_each_motion_is_linearised_on_the_fields_it_uses(monkeypatch):
     holds its own field alone (:func:`own_fields`), in one chunk or one motion per chunk,
     and the rates are those of the whole basis (errors damped in the first, pushed apart
     in the second)."""
-    from tflearn import fields
     from tflearn.fit import stability, targets
+    from tflearn.model import fields
     body = tb.chain(2, "hinge", damping=0.02)
     eta = torch.tensor([[0.2, -0.4], [-0.3, 0.5], [1.5, 1.5]], dtype=F64)
     k = torch.tensor([5.0, 12.0, 3.0], dtype=F64)[:, None, None]

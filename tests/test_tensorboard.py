@@ -13,8 +13,10 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.hparams import plugin_data_pb2
 
-from tflearn import gestures, render, train
+from tflearn import train
+from tflearn.data import gestures
 from tflearn.log import RunLog, summary_table
+from tflearn.plots import render
 
 from test_learning import small_config, write_motions
 

@@ -8,7 +8,7 @@ import pinocchio as pin
 import pytest
 import torch
 
-from tflearn import dynamics as D
+from tflearn.physics import dynamics as D
 
 from conftest import DT, GRAVITY, make_body, q_to_pin, random_coords, to_pin
 
@@ -65,7 +65,7 @@ def test_resting_base_is_the_default(rng):
 
 
 def _sim(body, program, base=None, T=0.3):
-    from tflearn.simulate import SimOptions, simulate
+    from tflearn.simulation.simulate import SimOptions, simulate
     t = torch.linspace(0, T, 9, dtype=DT)
     q0 = torch.tensor([0.3, -0.2, 0.1, -0.8, 0.2, 0.1, -0.3], dtype=DT)
     return simulate(body, program, q0, torch.zeros(7, dtype=DT), t,
@@ -74,10 +74,10 @@ def _sim(body, program, base=None, T=0.3):
 
 def test_base_motion_derivatives():
     """The spline of a base turning about a fixed axis at ω(t) = ω0 + α t and moving on
-    x(t) = ½ a t², as tflearn.torso.Bases (members at shifted times, one past the end,
+    x(t) = ½ a t², as tflearn.motions.torso.Bases (members at shifted times, one past the end,
     clamped there), gives each member gravity Rᵀg, ω, ω̇ and the acceleration in the base
     frame at its time."""
-    from tflearn.torso import BaseMotion, Bases
+    from tflearn.motions.torso import BaseMotion, Bases
     axis = np.array([1.0, 2.0, -2.0]) / 3.0
     t = np.linspace(0, 1, 201)
     ang = 0.5 * t + 0.5 * 1.5 * t ** 2
@@ -98,9 +98,9 @@ def test_simulation_on_a_moving_base():
     """Equivalence principle: a base accelerating at a (no gravity) moves the arm as a
     fixed base under gravity −a; a base held turned by R under gravity g as a fixed one
     under Rᵀ g. And gravity fed forward holds the arm still under gravity."""
-    from tflearn.body import arm
-    from tflearn.simulate import zero_program
-    from tflearn.torso import BaseMotion, gravity_feedforward
+    from tflearn.motions.torso import BaseMotion, gravity_feedforward
+    from tflearn.physics.body import arm
+    from tflearn.simulation.simulate import zero_program
     t = np.linspace(0, 0.5, 51)
     a = np.array([1.0, -2.0, 4.0])
     free = _sim(arm(), zero_program, BaseMotion(t, np.broadcast_to(np.eye(3), (51, 3, 3)),
@@ -119,12 +119,12 @@ def test_simulation_on_a_moving_base():
 
 
 def test_bases_of_a_batch():
-    """Simulating a batch on one tflearn.torso.BaseMotion equals the same batch on
+    """Simulating a batch on one tflearn.motions.torso.BaseMotion equals the same batch on
     Bases, one per member, batch each and shared alike; a wrong number of bases is
     refused."""
-    from tflearn.body import arm
-    from tflearn.simulate import SimOptions, simulate, zero_program
-    from tflearn.torso import BaseMotion, Bases
+    from tflearn.motions.torso import BaseMotion, Bases
+    from tflearn.physics.body import arm
+    from tflearn.simulation.simulate import SimOptions, simulate, zero_program
     t = np.linspace(0, 0.5, 51)
     axis = np.array([1.0, 2.0, -2.0]) / 3.0
     one = BaseMotion(t, np.array([pin.exp3((0.5 * s + 2 * s ** 2) * axis) for s in t]),
@@ -147,12 +147,12 @@ def _on_a_torso(rate=200.0, duration=1.2):
     """come_here's program simulated on a torso that turns and sways (gravity on, so the
     base also turns gravity in the arm's frame): (body, basis, weights, motion, its torso
     BaseMotion, the torso's samples t, R, x)."""
-    from tflearn import gestures
-    from tflearn.body import arm
-    from tflearn.fields import FieldProgram
-    from tflearn.motion import Motion
-    from tflearn.simulate import SimOptions, simulate
-    from tflearn.torso import BaseMotion
+    from tflearn.data import gestures
+    from tflearn.model.fields import FieldProgram
+    from tflearn.motions.motion import Motion
+    from tflearn.motions.torso import BaseMotion
+    from tflearn.physics.body import arm
+    from tflearn.simulation.simulate import SimOptions, simulate
     body = arm(gravity=list(GRAVITY))
     basis, weights, _ = gestures.library_model([gestures.GESTURES["come_here"]], body=body)
     ts = np.linspace(0, duration + 0.2, 141)
@@ -162,7 +162,7 @@ def _on_a_torso(rate=200.0, duration=1.2):
     base = BaseMotion(ts, R, x)
     t = torch.arange(0, round(duration * rate) + 1, dtype=DT) / rate
     q0 = torch.zeros(1, body.nv, dtype=DT)
-    from tflearn.torso import Bases, gravity_feedforward
+    from tflearn.motions.torso import Bases, gravity_feedforward
     with torch.no_grad():
         fed = gravity_feedforward(body, FieldProgram(basis, weights), Bases.of([base]))
         tr = simulate(body, fed, q0, q0, t,
@@ -177,11 +177,11 @@ def test_targets_and_scores_on_each_motions_torso():
     simulates it back onto its path; on a fixed base the same weights miss it. A
     multiple-shooting residual at those weights (segments started on the path, each on
     its own stretch of the torso) is zero."""
-    from tflearn.fields import FieldProgram
     from tflearn.fit import shooting, targets
     from tflearn.metrics import score
-    from tflearn.simulate import SimOptions
-    from tflearn.torso import Bases
+    from tflearn.model.fields import FieldProgram
+    from tflearn.motions.torso import Bases
+    from tflearn.simulation.simulate import SimOptions
     body, basis, weights, m, base, _ = _on_a_torso()
     moving = targets.prepare(body, [m], base=Bases.of([base]))
     fixed = targets.prepare(body, [m])
@@ -218,11 +218,12 @@ def test_training_on_each_motions_torso(tmp_path):
     (one it lacks is named); ``torso: fixed`` keeps the fixed
     base; a motion without a torso file, or with one that does not cover its times, is
     refused, naming the file."""
-    from tflearn import recovery, train
-    from tflearn.data import named_motions, torsos
+    from tflearn import train
+    from tflearn.control import recovery
+    from tflearn.data.loading import named_motions, torsos
     from tflearn.errors import InputError
     from tflearn.evaluate import evaluate_run, simulate_basis_motion
-    from tflearn.motion import MotionFileError, load, save
+    from tflearn.motions.motion import MotionFileError, load, save
 
     from test_learning import small_config
     *_, m, _, (ts, R, x) = _on_a_torso()

@@ -10,7 +10,7 @@ The public API (imported lazily, so that ``import tflearn.config`` stays light):
 * the model — :class:`FieldBasis` (shared fields), :class:`MotionWeights` (per-motion
   weights), :class:`FieldProgram` (their torque program);
 * simulation — :class:`SimOptions`, :class:`Trajectory`, :class:`SimulationFailed`
-  (the integrator itself is :func:`tflearn.simulate.simulate`);
+  (the integrator itself is :func:`tflearn.simulation.simulate.simulate`);
 * scores — :func:`score`, :class:`Scores`;
 * learning — :class:`Config`, :func:`load_config`, :func:`learn` (``train CONFIG``);
 * trained bases — :class:`LearnedBasis`, :func:`load_basis`, :func:`save_basis`,
@@ -22,13 +22,14 @@ import importlib
 __version__ = "0.1.0"
 
 _API = {
-    "Body": "body", "Link": "body", "arm": "body", "chain": "body",
-    "body_from_config": ("body", "from_config"),
-    "Motion": "motion", "load_motion": ("motion", "load"), "save_motion": ("motion", "save"),
-    "load_motions": "data", "read_csv": "motion", "from_euler": "motion",
-    "FieldBasis": "fields", "MotionWeights": "fields", "FieldProgram": "fields",
-    "SimOptions": "simulate", "Trajectory": "simulate",
-    "SimulationFailed": "simulate",
+    "Body": "physics.body", "Link": "physics.body", "arm": "physics.body", "chain": "physics.body",
+    "body_from_config": ("physics.body", "from_config"),
+    "Motion": "motions.motion", "load_motion": ("motions.motion", "load"),
+    "save_motion": ("motions.motion", "save"),
+    "load_motions": "data.loading", "read_csv": "motions.motion", "from_euler": "motions.motion",
+    "FieldBasis": "model.fields", "MotionWeights": "model.fields", "FieldProgram": "model.fields",
+    "SimOptions": "simulation.simulate", "Trajectory": "simulation.simulate",
+    "SimulationFailed": "simulation.simulate",
     "score": "metrics", "Scores": "metrics",
     "Config": "config", "load_config": ("config", "load"), "learn": ("train", "run"),
     "LearnedBasis": "io.basis", "load_basis": ("io.basis", "load"), "save_basis": ("io.basis", "save"),

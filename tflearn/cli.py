@@ -67,7 +67,7 @@ def _motion_lines(motions: dict) -> list:
 
 
 def _gestures(args) -> int:
-    from . import gestures
+    from .data import gestures
     if not args.out.exists():
         print(f"created {args.out}")
     written = gestures.write(args.out, rate=args.rate, plots=not args.no_plots)
@@ -130,7 +130,7 @@ def _positive_int(text: str) -> int:
 def _render(args) -> int:
     import torch
 
-    from . import render
+    from .plots import render
     torch.set_num_threads(args.threads)
     run, _ = _model_paths(args.model)
     if args.out is not None:
@@ -175,7 +175,7 @@ def _perturb(args) -> int:
     cfg = _perturb_config(args)
     import torch
 
-    from . import recovery
+    from .control import recovery
     torch.set_num_threads(args.threads)
     doc = recovery.run(cfg)
     print("\n".join(recovery.summary_lines(doc)))
@@ -205,12 +205,12 @@ def _report(args) -> int:
 
 def _modes(args) -> int:
     from . import config
-    from .modal_config import ModesConfig
+    from .modes.config import ModesConfig
     cfg = config.load(args.config, args.overrides, schema=ModesConfig)
     import torch
 
-    from . import modal
-    from .modes import ModalError
+    from .modes import command as modal
+    from .modes.analysis import ModalError
     torch.set_num_threads(args.threads)
     try:
         result = modal.run(cfg, out=args.out)
@@ -227,11 +227,11 @@ def _modes(args) -> int:
 
 
 def _bvh_import(args) -> int:
-    from . import mocap
+    from .mocap import clips as mocap
     amap = None
     if args.map is not None:
         from .config import read
-        from .retarget import map_from_dict
+        from .mocap.retarget import map_from_dict
         amap = map_from_dict(read(args.map), str(args.map))
     opts = mocap.ImportOptions(side=args.arm, mirror=args.mirror, rate=args.rate, fps=args.fps,
                                gravity=args.gravity, strict=args.strict, amap=amap,
@@ -248,12 +248,12 @@ def _bvh_import(args) -> int:
 def _bvh_export(args) -> int:
     import numpy as np
 
-    from . import mocap
-    from . import motion as motion_mod
     from .errors import InputError
+    from .mocap import clips as mocap
+    from .motions import motion as motion_mod
     if args.source.suffix == ".npz":
-        from .body import arm
         from .config import read_body
+        from .physics.body import arm
         body = read_body(args.body) if args.body else arm()
         m = motion_mod.load(args.source, body)
         t, q = m.t.numpy(), m.q.numpy()

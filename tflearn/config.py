@@ -4,7 +4,7 @@ A config is a :class:`Config` (pydantic models, frozen, strict: no key outside t
 schema, no value of another type). It is built from the defaults below ← a YAML file ←
 ``key=value`` overrides with dotted keys (``solver.em.steps=200``; values parsed as YAML
 scalars: ``1e-3``, ``true``, ``[1, 2]``). ``body`` is a mapping read by
-:func:`tflearn.body.from_config` and is replaced whole, never merged. Every failure is a
+:func:`tflearn.physics.body.from_config` and is replaced whole, never merged. Every failure is a
 :class:`ConfigError` naming the file or override, the key and the problem: an unknown key
 with the closest known ones, a bad value with what it must be.
 """
@@ -92,8 +92,8 @@ class PathSection(Section):                     # simulation options and path ma
     motions: Literal["all", "unreproduced"] = "all"
 
     def options(self):
-        """These settings as :class:`tflearn.simulate.SimOptions`."""
-        from .simulate import SimOptions
+        """These settings as :class:`tflearn.simulation.simulate.SimOptions`."""
+        from .simulation.simulate import SimOptions
         return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
                           max_evals=self.max_evals, adjoint=self.adjoint, batch=self.batch)
 
@@ -246,8 +246,8 @@ class LogSection(Section):
 
 
 def _body_builds(body: dict) -> dict:
-    """A body section must build a body (:func:`tflearn.body.from_config`)."""
-    from .body import from_config
+    """A body section must build a body (:func:`tflearn.physics.body.from_config`)."""
+    from .physics.body import from_config
     try:
         from_config(body)
     except (ValueError, TypeError) as err:
@@ -277,7 +277,7 @@ DeviceName = Annotated[str, AfterValidator(_device_named)]
 
 
 class BvhSection(Section):
-    # when data names BVH clips: imported into OUT/imported (tflearn.mocap.import_config)
+    # when data names BVH clips: imported into OUT/imported (tflearn.mocap.clips.import_config)
     arm: Literal["right", "left"] = "right"      # the performer's arm
     mirror: bool = False                         # reflect it onto the other side
     rate: float = Field(120.0, gt=0, allow_inf_nan=False)   # samples per second after import
@@ -300,7 +300,7 @@ class Config(Section):
 
     # "gestures" (the built-in library), a folder of .npz motions, a list of .npz files,
     # or BVH clips (.bvh files, or a folder of them): imported with the bvh section's
-    # options, the body then the performer's (tflearn.mocap.import_config)
+    # options, the body then the performer's (tflearn.mocap.clips.import_config)
     data: Union[str, list[str]] = "gestures"
     bvh: BvhSection = BvhSection()
     strict: bool = False                         # stop at the first bad motion file
@@ -325,7 +325,7 @@ class Config(Section):
 
 # ----------------------------------------------------------------------------- perturb
 
-CONTROLLER_NAMES = ("fields", "ff+pd", "ff", "pd-high")     # tflearn.controllers.CONTROLLERS
+CONTROLLER_NAMES = ("fields", "ff+pd", "ff", "pd-high")     # tflearn.control.controllers.CONTROLLERS
 
 
 class PushSection(Section):
@@ -349,7 +349,7 @@ class SweepSection(Section):
 
 class GainsSection(Section):
     """ff+pd: K = scale·K₀ + bilinear·|τ_ff|, B = √scale·B₀; pd-high: high_gain·K₀,
-    √high_gain·B₀ (K₀, B₀ per joint: tflearn.controllers.HUMAN_ARM_GAINS)."""
+    √high_gain·B₀ (K₀, B₀ per joint: tflearn.control.controllers.HUMAN_ARM_GAINS)."""
 
     scale: float = Field(1.0, gt=0)
     bilinear: float = Field(0.0, ge=0)
@@ -358,7 +358,7 @@ class GainsSection(Section):
 
 class SimulationSection(Section):
     """How a command simulates; a simulation needing more than ``max_evals``
-    right-hand-side evaluations fails (:class:`tflearn.simulate.SimulationFailed`)."""
+    right-hand-side evaluations fails (:class:`tflearn.simulation.simulate.SimulationFailed`)."""
 
     method: Literal[SOLVERS] = "dopri5"
     rtol: float = Field(1e-6, gt=0)
@@ -371,8 +371,8 @@ class SimulationSection(Section):
     motions: Literal["all", "unreproduced"] = "all"
 
     def options(self):
-        """These settings as :class:`tflearn.simulate.SimOptions`."""
-        from .simulate import SimOptions
+        """These settings as :class:`tflearn.simulation.simulate.SimOptions`."""
+        from .simulation.simulate import SimOptions
         return SimOptions(method=self.method, rtol=self.rtol, atol=self.atol,
                           max_evals=self.max_evals, batch=self.batch)
 
@@ -516,9 +516,9 @@ def read(path) -> dict:
 
 
 def read_body(path):
-    """The :class:`~tflearn.body.Body` of a YAML file's ``body:`` section (a config, or the
+    """The :class:`~tflearn.physics.body.Body` of a YAML file's ``body:`` section (a config, or the
     body.yaml that ``tflearn bvh import`` writes); errors name the file."""
-    from .body import from_config
+    from .physics.body import from_config
     doc = read(path)
     if not isinstance(doc.get("body"), dict):
         raise ConfigError(f"{path}: no 'body:' section")

@@ -11,8 +11,7 @@ import torch
 
 from . import config as config_mod
 from .config import Config
-from .data import check_resolution, load_motions, named_motions, torsos
-from .fields import FieldProgram, MotionWeights
+from .data.loading import check_resolution, load_motions, named_motions, torsos
 from .fit import stability
 from .fit.shooting import ShootingOptions, shooting_match
 from .fit.targets import Targets, prepare, submovement_windows
@@ -20,9 +19,10 @@ from .fit.torque import DivergenceWarning, solve_weights, torque_costs
 from .io import basis as basis_io
 from .io.files import write_text
 from .metrics import UNITS, pooled_rmse, score, summarize
-from .motion import Motion
-from .motion import save as save_motion
-from .simulate import SimOptions, simulate
+from .model.fields import FieldProgram, MotionWeights
+from .motions.motion import Motion
+from .motions.motion import save as save_motion
+from .simulation.simulate import SimOptions, simulate
 
 
 def run_config(run) -> tuple:

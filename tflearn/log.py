@@ -218,7 +218,7 @@ class RunLog:
             self.scalar("0_overview/worst_tip_cm", 100 * max(scores.tip), step)
             self.scalar("0_overview/torque_cost", sum(t * t for t in scores.torque), step)
         if figures:
-            from . import plots
+            from .plots import figures as plots
             for j in scores.worst(self.figures):
                 name, k = tg.names[j], int(tg.mask[j].sum())
                 fig = plots.motion_sheet(self.body, tg.t[j, :k],

@@ -2,10 +2,10 @@
 that metrics.json and evaluation.json hold.
 
 For motion j simulated from its own initial state under its own torque program, the
-error of a sample is e = q_sim ⊖ q_target (:func:`tflearn.configspace.difference`); the
+error of a sample is e = q_sim ⊖ q_target (:func:`tflearn.physics.configspace.difference`); the
 scores are the joint-angle RMSE sqrt(mean_{t,k} e²) (rad), the largest hand-tip distance
 (m) and the relative RMS torque error sqrt(C_j) (:mod:`tflearn.fit.torque`). A motion
-whose simulation fails (:class:`~tflearn.simulate.SimulationFailed`) scores rmse = tip =
+whose simulation fails (:class:`~tflearn.simulation.simulate.SimulationFailed`) scores rmse = tip =
 ∞ with its reason in ``failure``; the others are still scored, each on its own grid
 (with ``SimOptions.batch`` ``each`` straight from the one batched simulation, which then
 also lets :func:`score_models` score several models in one batch, exactly as alone).
@@ -22,14 +22,15 @@ from typing import Optional, Sequence
 
 import torch
 
-from . import dynamics, parallel
-from .body import Body
-from .configspace import difference
-from .fields import FieldBasis, FieldProgram, MotionWeights, stack_rows
+from . import parallel
 from .fit.stability import Growth
 from .fit.targets import Targets, on_samples, simulate_targets
 from .fit.torque import relative_rms_torque_error
-from .simulate import SimOptions, SimulationFailed, simulate
+from .model.fields import FieldBasis, FieldProgram, MotionWeights, stack_rows
+from .physics import dynamics
+from .physics.body import Body
+from .physics.configspace import difference
+from .simulation.simulate import SimOptions, SimulationFailed, simulate
 
 
 @dataclass

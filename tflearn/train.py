@@ -74,13 +74,10 @@ from typing import Optional
 import torch
 
 from . import config as config_mod
-from . import mocap, parallel
-from . import simulate as sim_mod
-from .body import from_config
+from . import parallel
 from .config import Config, ConfigError
-from .data import check_resolution, load_motions, torsos
+from .data.loading import check_resolution, load_motions, torsos
 from .errors import InputError
-from .fields import FieldBasis, MotionWeights, model_from_state, model_state
 from .fit import layout, search, shooting, slsqp, stability, torque
 from .fit import path as path_fit
 from .fit.targets import Targets, inertia_weights, prepare, submovement_windows
@@ -88,6 +85,10 @@ from .io import basis as basis_io
 from .io.files import replacing, write_text
 from .log import RunLog
 from .metrics import Scores, score, score_models, summarize
+from .mocap import clips as mocap
+from .model.fields import FieldBasis, MotionWeights, model_from_state, model_state
+from .physics.body import from_config
+from .simulation import simulate as sim_mod
 
 CHECKPOINT_FORMAT = "tflearn-checkpoint/5"
 SEQUENCES = {"pipeline": ("each", "pool", "reduce", "path", "rescue", "done"),
@@ -107,7 +108,7 @@ class CheckpointError(InputError):
 class RunState:
     """Everything a run needs to resume: where it is (stage, cursor within the stage),
     the random generator, the per-motion fits of ``each``, the current model
-    (:func:`~tflearn.fields.model_state`), the reference scores and torque costs of
+    (:func:`~tflearn.model.fields.model_state`), the reference scores and torque costs of
     ``reduce`` and its elimination order, path matching's optimizer and best point, the history
     reported in metrics.json, and the compute time and simulations spent so far."""
 
@@ -1028,7 +1029,7 @@ class Run:
 def write_figures(body, tg: Targets, scores: Scores, out: Path, count: Optional[int] = None) -> None:
     """OUT/figures/NAME.png: the target and simulated paths of the ``count`` motions
     furthest from their paths (None: every motion)."""
-    from . import plots
+    from .plots import figures as plots
     fig_dir = out / "figures"
     fig_dir.mkdir(exist_ok=True)
     for j in scores.worst(count):

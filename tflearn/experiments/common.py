@@ -7,10 +7,10 @@ group of gestures, each multiplied by an independent factor 1 + (r − 1)u, u ~ 
 
 Success means the simulated path has joint RMSE ≤ ``success.rmse`` and hand-tip error
 ≤ ``success.tip`` (:meth:`tflearn.metrics.Scores.succeeded`). Costs (experiment 5) are
-the methods' wall times and numbers of simulations (:data:`tflearn.simulate.calls`),
+the methods' wall times and numbers of simulations (:data:`tflearn.simulation.simulate.calls`),
 as ratios to SLSQP measured in the same run. A case's rows are cached in OUT/cases/
 (written atomically), so an interrupted experiment resumes; rows hold their model as
-:func:`tflearn.fields.model_state` in JSON.
+:func:`tflearn.model.fields.model_state` in JSON.
 """
 from __future__ import annotations
 
@@ -23,12 +23,9 @@ from pathlib import Path
 import torch
 import yaml
 
-from .. import gestures as gestures_mod
-from .. import plots, train
-from .. import simulate as sim_mod
-from ..body import Body, arm
+from .. import train
+from ..data import gestures as gestures_mod
 from ..evaluate import weights_for
-from ..fields import FieldBasis, MotionWeights, model_from_state, model_state, state_to_json
 from ..fit import path as path_fit
 from ..fit import torque
 from ..fit.slsqp import fit_slsqp
@@ -36,8 +33,12 @@ from ..fit.targets import Targets, prepare
 from ..io import basis as basis_io
 from ..io.files import write_text
 from ..metrics import score
-from ..motion import save as save_motion
-from ..render import render
+from ..model.fields import FieldBasis, MotionWeights, model_from_state, model_state, state_to_json
+from ..motions.motion import save as save_motion
+from ..physics.body import Body, arm
+from ..plots import figures as plots
+from ..plots.render import render
+from ..simulation import simulate as sim_mod
 from .config import ExperimentConfig
 
 F64 = torch.float64
@@ -64,7 +65,7 @@ def text(section: str) -> dict:
 
 def generating(gestures: list) -> dict:
     """The generating parameters of a group of gestures sharing one basis:
-    {"eta": M×n, "k": M, "a": N×M, "b": N×M} (:func:`tflearn.gestures.library_model`)."""
+    {"eta": M×n, "k": M, "a": N×M, "b": N×M} (:func:`tflearn.data.gestures.library_model`)."""
     basis, weights, _ = gestures_mod.library_model(gestures)
     with torch.no_grad():
         return {"eta": basis.eta.clone(), "k": basis.K()[:, 0, 0].clone(),
@@ -109,7 +110,7 @@ def check(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
 
 
 def model_json(basis: FieldBasis, weights: MotionWeights) -> dict:
-    """A model as a row holds it: :func:`~tflearn.fields.model_state` as JSON lists."""
+    """A model as a row holds it: :func:`~tflearn.model.fields.model_state` as JSON lists."""
     return state_to_json(model_state(basis, weights))
 
 
@@ -392,7 +393,7 @@ def sheets(body: Body, tg: Targets, sims: dict, fig_dir: Path) -> list:
 
 
 def animations(run_dir: Path, names: list, fig_dir: Path) -> list:
-    """A GIF per motion of a pipeline run: target and reproduced arm (:mod:`tflearn.render`)."""
+    """A GIF per motion of a pipeline run: target and reproduced arm (:mod:`tflearn.plots.render`)."""
     return [render(run_dir, name, out=fig_dir / f"{name}.gif", fps=10, tensorboard=False,
                    log=lambda line: None) for name in names]
 

@@ -27,7 +27,7 @@ from ..config import (
 from ..config import SimulationSection as BaseSimulation
 
 NAMES = ("basin", "shared", "keyframes", "filtering", "reaches")
-#: The gesture library's names (``tflearn.gestures.GESTURES``, checked by a test), here so
+#: The gesture library's names (``tflearn.data.gestures.GESTURES``, checked by a test), here so
 #: that a config is validated without importing torch.
 GESTURES = ("come_here", "stiff_elbow_lift", "tuck", "planar_line", "backwards_reach")
 METHODS = ("slsqp", "local", "pipeline", "layout")

@@ -14,13 +14,14 @@ from pathlib import Path
 
 import torch
 
-from .. import dynamics, plots
-from .. import simulate as sim_mod
-from ..body import Body, arm
+from ..data.keyframes import keyframe_motion, straight_reach
 from ..evaluate import synthesize
 from ..fit.targets import prepare
 from ..io import basis as basis_io
-from ..keyframes import keyframe_motion, straight_reach
+from ..physics import dynamics
+from ..physics.body import Body, arm
+from ..plots import figures as plots
+from ..simulation import simulate as sim_mod
 from . import common
 from .config import ExperimentConfig
 

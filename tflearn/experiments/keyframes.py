@@ -1,7 +1,7 @@
 """Experiment 3 (thesis §4.3, figure 4-9): motions not made by torque fields.
 
 For each gesture a three-keyframe eased spline through its postures at the start, the
-middle and the end, and a straight-line reach of the hand (:mod:`tflearn.keyframes`);
+middle and the end, and a straight-line reach of the hand (:mod:`tflearn.data.keyframes`);
 each is learned by the ``pipeline`` (its own basis, M found), and all of them together
 by the ``layout`` (one basis of fields spanning joint space around them, no search;
 :mod:`tflearn.fit.layout`). The baseline is the
@@ -15,12 +15,12 @@ from pathlib import Path
 
 import torch
 
-from .. import dynamics
-from .. import gestures as gestures_mod
-from ..body import Body, arm
+from ..data import gestures as gestures_mod
+from ..data.keyframes import keyframe_motion, straight_reach
 from ..fit import torque
 from ..fit.targets import prepare
-from ..keyframes import keyframe_motion, straight_reach
+from ..physics import dynamics
+from ..physics.body import Body, arm
 from . import common
 from .config import ExperimentConfig
 

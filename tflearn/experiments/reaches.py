@@ -19,13 +19,13 @@ from pathlib import Path
 
 import torch
 
-from .. import dynamics
-from .. import simulate as sim_mod
-from ..body import Body, arm
+from ..data.keyframes import straight_reach
 from ..evaluate import synthesize
 from ..fit.targets import prepare
 from ..io import basis as basis_io
-from ..keyframes import straight_reach
+from ..physics import dynamics
+from ..physics.body import Body, arm
+from ..simulation import simulate as sim_mod
 from . import common
 from .config import ExperimentConfig
 from .filtering import draw, filtered_table, straightness

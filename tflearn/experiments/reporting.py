@@ -9,9 +9,9 @@ import json
 import shutil
 from pathlib import Path
 
-from .. import plots
-from ..body import arm
 from ..io.files import write_text
+from ..physics.body import arm
+from ..plots import figures as plots
 from . import common
 
 

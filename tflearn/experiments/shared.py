@@ -8,8 +8,8 @@ for the learning curves.
 """
 from __future__ import annotations
 
-from .. import plots
 from ..io import basis as basis_io
+from ..plots import figures as plots
 from . import common
 from .config import ExperimentConfig
 

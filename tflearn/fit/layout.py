@@ -42,8 +42,8 @@ import warnings
 
 import torch
 
-from ..body import Body
-from ..fields import FieldBasis
+from ..model.fields import FieldBasis
+from ..physics.body import Body
 from .targets import Targets, mean_inertia
 
 

@@ -2,7 +2,7 @@
 
 All N motions are simulated together (:func:`~.targets.simulate_targets`) from their own
 initial states under their own torque programs. With e_t = q_sim ⊖ q_target
-(:func:`tflearn.configspace.difference`), the path loss of motion j is
+(:func:`tflearn.physics.configspace.difference`), the path loss of motion j is
 
     L_j = Σ_t w_t (‖e_t‖² + β ‖v_sim,t − v_target,t‖²) / λ_j
 
@@ -21,10 +21,10 @@ from typing import Callable, Optional
 import torch
 
 from .. import parallel
-from ..body import Body
-from ..configspace import difference
-from ..fields import FieldBasis, MotionWeights, model_from_state, model_state
-from ..simulate import SimOptions, SimulationFailed
+from ..model.fields import FieldBasis, MotionWeights, model_from_state, model_state
+from ..physics.body import Body
+from ..physics.configspace import difference
+from ..simulation.simulate import SimOptions, SimulationFailed
 from .targets import Targets, simulate_targets
 from .torque import DivergenceWarning
 
@@ -49,7 +49,7 @@ def _params(basis, weights, fields: bool, phases: bool) -> list:
 class PathStep:
     """What one :func:`path_step` leaves: the loss at the parameters it was given (∞ when
     rejected as non-finite), the next learning rate, the best point so far
-    ({"loss", "model": :func:`~tflearn.fields.model_state`}, None if there is none), the
+    ({"loss", "model": :func:`~tflearn.model.fields.model_state`}, None if there is none), the
     optimizer's state and, for a rejected step, why (``failure``)."""
 
     loss: float

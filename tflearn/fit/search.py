@@ -27,7 +27,7 @@ import warnings
 
 import torch
 
-from ..fields import FieldBasis, MotionWeights, step_profile
+from ..model.fields import FieldBasis, MotionWeights, step_profile
 from .nnls import nnls
 from .targets import Targets
 from .torque import DivergenceWarning, by_chunks, design, normal_equations
@@ -206,7 +206,7 @@ def best_pairs(tg: Targets, template: FieldBasis, candidates: int, stiffnesses,
     """Multi-start for two fields at once: the ``top`` best single candidates (each with
     its best stiffness) are combined in pairs, every pair's weights solved by NNLS, and the
     ``keep`` best pairs returned as (basis, weights), bases like the empty ``template``
-    (:meth:`~tflearn.fields.FieldBasis.like`). A second field added to a one-field fit
+    (:meth:`~tflearn.model.fields.FieldBasis.like`). A second field added to a one-field fit
     starts from that fit's compromise; a pair found together need not. ``windows``: the
     motions' sub-movement windows (onsets, durations: N×P each), or None."""
     from .torque import solve_weights

@@ -4,14 +4,14 @@ With the basis fixed, motion j's path depends on its own parameters θ_j only (i
 weights a, b, c and, optionally, its activation timing), so the problem splits into one
 small least-squares problem per motion. A motion fitted alone may free its fields too
 (``ShootingOptions.fields``: θ then also holds every field's centre and free stiffness
-parameters, :meth:`~tflearn.fields.FieldBasis.free_vector`): the fields of a motion whose
+parameters, :meth:`~tflearn.model.fields.FieldBasis.free_vector`): the fields of a motion whose
 path amplifies small field errors several hundredfold are placed by its path, not by
 torque matching on spline torques (docs/model.md, "Programs whose motion is chaotic").
 
 **Segments.** Motion j is cut every K_j = max(1, round(h·rate_j)) samples; segment s
 starts at the target's own state (q, v) at its first sample k_s and is simulated to
 sample k_s + K_j under the motion's program at the motion's own time t_{k_s} + τ
-(:class:`~tflearn.fields.FieldProgram`'s ``start``). Its residuals at every sample but
+(:class:`~tflearn.model.fields.FieldProgram`'s ``start``). Its residuals at every sample but
 its first are
 
     r = √(w_t / λ_j) · [e_t ;  √β (v_sim,t − v_target,t) ;  √γ (p(q_sim,t) − p(q_target,t))],
@@ -40,7 +40,7 @@ step is projected onto the bounds and kept if it lowers the motion's cost (μ ÷
 
 **Jacobian.** Forward differences of D + 1 copies of every segment (D = len(θ_j)),
 simulated in one batch: the copies of a segment share every step of the adaptive solver
-(one group of :func:`tflearn.simulate.simulate`, each segment on its own steps; with a
+(one group of :func:`tflearn.simulation.simulate.simulate`, each segment on its own steps; with a
 solver other than dopri5 the whole batch shares them), so their differences are those
 of one discrete map — no step-size noise — and agree with backpropagation through
 ``odeint`` (tests/test_shooting.py). One simulation per Jacobian, whatever the number
@@ -68,12 +68,12 @@ from typing import Callable, Optional
 
 import torch
 
-from ..body import Body
-from ..configspace import difference
-from ..dynamics import tip_position
-from ..fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
-from ..simulate import SimOptions, SimulationFailed, simulate
-from ..torso import Bases
+from ..model.fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
+from ..motions.torso import Bases
+from ..physics.body import Body
+from ..physics.configspace import difference
+from ..physics.dynamics import tip_position
+from ..simulation.simulate import SimOptions, SimulationFailed, simulate
 from .targets import Targets, union_grid
 
 WEIGHTS = ("a_raw", "b_raw", "c_raw")
@@ -334,7 +334,7 @@ def _lm_step(JtJ, Jtr, mu, theta, lower):
 
 
 def keys_of(options: ShootingOptions) -> tuple:
-    """The :class:`~tflearn.fields.MotionWeights` arrays that ``options`` fits."""
+    """The :class:`~tflearn.model.fields.MotionWeights` arrays that ``options`` fits."""
     return WEIGHTS + (TIMING if options.phases else ())
 
 

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from scipy.optimize import minimize
 
-from ..fields import FieldBasis, MotionWeights
+from ..model.fields import FieldBasis, MotionWeights
 from .targets import Targets
 
 
@@ -92,7 +92,7 @@ def fit_slsqp(basis: FieldBasis, weights: MotionWeights, tg: Targets, max_iter: 
     stops after ``max_iter`` iterations or when the cost changes by less than ``ftol``
     (scipy's stopping rule); ``eps`` is the forward-difference step. The bounds are the
     thesis' (k ≥ ``k_min``, a, b ≥ 0); ``k_max`` and ``eta_max`` add k ≤ k_max and
-    |η| ≤ eta_max (e.g. :data:`tflearn.fields.K_RANGE`, ``ETA_MAX``), off by default.
+    |η| ≤ eta_max (e.g. :data:`tflearn.model.fields.K_RANGE`, ``ETA_MAX``), off by default.
 
     The result is returned as a new (basis, weights) pair: FieldBasis(η, diag(k),
     kind=``kind``) — by default ``basis``' kind, except that a ``scalar`` basis gives a

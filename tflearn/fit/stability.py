@@ -2,7 +2,7 @@
 
 A torque program that matches a motion's torques on its path may still be unstable off
 it: a small error then grows until the simulation leaves the path. Linearising the
-closed loop ẏ = f(t, y) (the simulator's state y, :mod:`tflearn.simulate`: quaternions,
+closed loop ẏ = f(t, y) (the simulator's state y, :mod:`tflearn.simulation.simulate`: quaternions,
 hinge angles, velocities; the program's fields, field damping, joint damping and a
 moving base included) about the target path y*(t),
 
@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import torch
 
-from ..body import Body
-from ..configspace import n_position, pack, state_tangent_basis
-from ..fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
-from ..simulate import ArmODE
+from ..model.fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
+from ..physics.body import Body
+from ..physics.configspace import n_position, pack, state_tangent_basis
+from ..simulation.simulate import ArmODE
 from .nnls import packed
 from .targets import Targets, chunks
 
@@ -88,7 +88,7 @@ def growth(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
 
 
 def own_fields(basis: FieldBasis, weights: MotionWeights) -> tuple:
-    """(each motion's fields (:class:`~tflearn.fields.MotionFields`, N×W), its weights on
+    """(each motion's fields (:class:`~tflearn.model.fields.MotionFields`, N×W), its weights on
     them): the fields it has a weight on, in order, padded to the most any motion has (W)
     with weights of 0. Its torques are those of the whole basis, whose other fields'
     torques are multiplied by 0, at O(W) cost, not O(M)."""

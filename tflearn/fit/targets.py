@@ -6,12 +6,12 @@ from typing import Optional
 
 import torch
 
-from .. import dynamics
-from .. import motion as motion_mod
-from ..body import Body
-from ..fields import FieldBasis, FieldProgram, MotionWeights
-from ..simulate import SimOptions, simulate
-from ..torso import Bases
+from ..model.fields import FieldBasis, FieldProgram, MotionWeights
+from ..motions import motion as motion_mod
+from ..motions.torso import Bases
+from ..physics import dynamics
+from ..physics.body import Body
+from ..simulation.simulate import SimOptions, simulate
 
 
 @dataclass
@@ -27,7 +27,7 @@ class Targets:
     coord_weight (N×n) or None: each coordinate's weight ω in the torque costs,
     Σ_t w Σ_k ω_k (τ_k − F_k)² (None: ω = 1, the thesis' cost; :func:`inertia_weights`
     measures torque errors by the accelerations they cause); base: each motion's moving
-    base (:class:`tflearn.torso.Bases`, N members, motion time t at its base's
+    base (:class:`tflearn.motions.torso.Bases`, N members, motion time t at its base's
     start + t), which its torques include and its simulations ride on, or None (fixed)."""
 
     names: list
@@ -52,7 +52,7 @@ class Targets:
 
     @property
     def rate(self) -> torch.Tensor:
-        """Samples per second of each motion (N), as :attr:`tflearn.motion.Motion.rate`."""
+        """Samples per second of each motion (N), as :attr:`tflearn.motions.motion.Motion.rate`."""
         return (self.mask.sum(-1) - 1) / self.duration
 
     def torque_scale(self) -> torch.Tensor:
@@ -135,7 +135,7 @@ def simulate_targets(body: Body, basis: FieldBasis, weights: MotionWeights, tg: 
     ``motions``: the indices into ``weights`` of the motions ``tg`` holds (a
     :meth:`Targets.select` of them; default: ``weights``' motions are ``tg``'s), so that
     gradients reach the whole ``weights``.
-    Raises :class:`~tflearn.simulate.SimulationFailed` when the batch cannot go on."""
+    Raises :class:`~tflearn.simulation.simulate.SimulationFailed` when the batch cannot go on."""
     tr = simulate(body, FieldProgram(basis, weights, index=motions), tg.q0, tg.qd0, tg.grid, options,
                   base=tg.base)
     return on_samples(tg, tr.q), on_samples(tg, tr.v)
@@ -148,7 +148,7 @@ def on_samples(tg: Targets, x: torch.Tensor) -> torch.Tensor:
 
 def submovement_windows(tg: Targets, P: int, spread: float = 0.25):
     """P sub-movement windows per motion from its joint speed s(t) = ‖v(t)‖ (onsets,
-    durations: N×P each, for :class:`~tflearn.fields.MotionWeights`): the motion is cut at
+    durations: N×P each, for :class:`~tflearn.model.fields.MotionWeights`): the motion is cut at
     the P − 1 slowest interior local minima of s (a sub-movement ends where the limb
     nearly stops; minima within 5% of either end are ignored), the longest pieces halved
     while minima are missing, and window k spans its piece [t_k, t_{k+1}] widened by
@@ -183,13 +183,13 @@ def _trapezoid(t: torch.Tensor) -> torch.Tensor:
 
 def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform",
             base: Optional[Bases] = None) -> Targets:
-    """Inverse-dynamics torques and padded tensors for a list of :class:`~tflearn.motion.Motion`.
+    """Inverse-dynamics torques and padded tensors for a list of :class:`~tflearn.motions.motion.Motion`.
 
     ``trim`` samples at each end of a motion are left out of torque costs: a spline's
     second derivative is weakest at its ends, and a fast motion sampled at 100 Hz can
     give end torques far from the true ones. ``weight``: the torque costs' coordinate
     weights, ``uniform`` (the thesis' cost) or ``inertia`` (:func:`inertia_weights`).
-    ``base``: the motions' moving bases (:class:`tflearn.torso.Bases`, one per motion,
+    ``base``: the motions' moving bases (:class:`tflearn.motions.torso.Bases`, one per motion,
     each at its motion's first sample at t = 0, as :attr:`Targets.base`): the torques
     are those on them."""
     if not motions:

@@ -6,8 +6,8 @@ is linear in the motion's weights x_j = (a_j, b_j, c_j) ∈ R^{M(2+P)}:
     F_j(t) = Φ_j(t) x_j,
     Φ_j(t) = [ψ_ji(t) χ_i | φ_ji(t) χ_i | φ_jk(t) χ_i (window k of field i)]   (n×M(2+P))
 
-(χ_i = χ_i(ν_j(t), v_j(t)) with the basis' field damping, :class:`~tflearn.fields.FieldBasis`;
-the window columns field by field, P sub-movement windows, :class:`~tflearn.fields.MotionWeights`).
+(χ_i = χ_i(ν_j(t), v_j(t)) with the basis' field damping, :class:`~tflearn.model.fields.FieldBasis`;
+the window columns field by field, P sub-movement windows, :class:`~tflearn.model.fields.MotionWeights`).
 
 The cost of a motion is relative to its torque energy S_j = Σ_t w_t ‖T_j(t)‖²:
 
@@ -31,7 +31,7 @@ from typing import Callable, Optional
 import torch
 
 from .. import parallel
-from ..fields import FieldBasis, MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
+from ..model.fields import FieldBasis, MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
 from .nnls import nnls, packed, take, warn_unconverged
 from .targets import Targets, chunks
 

@@ -15,20 +15,20 @@ fields)::
                   "pulse_onset": [M], "pulse_duration": [M],
                   "window_onset": [P], "window_duration": [P], "c": M×P}, ...]}
 
-The body is the whole kinematic tree of :mod:`tflearn.body` (links in topological order,
+The body is the whole kinematic tree of :mod:`tflearn.physics.body` (links in topological order,
 parent −1 the base, joint "ball" / "hinge" / "fixed", offset the zero orientation as a
 rotation vector, inertia about the centre of mass in the link frame, length and radius
 null unless the link is a cylinder). Files of the earlier formats still load, with
 ζ = 0 and P = 0: ``tflearn-basis/2`` is ``/3`` without ``field_damping`` and the
 motions' windows; a ``tflearn-basis/1``
 body ``{"lengths": [3], "masses": [3], "radii": [3], "gravity": [3], "damping": c,
-"offsets"?: 3×3}`` is the arm of :func:`tflearn.body.arm`.
+"offsets"?: 3×3}`` is the arm of :func:`tflearn.physics.body.arm`.
 
 It defines, for each motion, the torque program
     τ(t) = Σ_i (a_i ψ((t − s_i)/d_i) + b_i φ((t − p_i)/e_i) + Σ_k c_ik φ((t − o_k)/l_k))
            χ_i(ν(t), v(t)) − c v,
     χ_i(ν, v) = −K_i (ν − η_i + ζ v) exp(−½ (ν − η_i)ᵀ K_i (ν − η_i)),
-with ψ, φ as in :mod:`tflearn.fields`, started from (q0, qd0) at t = 0.
+with ψ, φ as in :mod:`tflearn.model.fields`, started from (q0, qd0) at t = 0.
 
 Loading checks every number (finite; a, b, c, ζ ≥ 0; durations and rates > 0), every size
 against the body's nv and M, that each K is symmetric positive definite and that motion
@@ -43,10 +43,10 @@ from typing import Optional
 
 import torch
 
-from ..body import Body, arm, json_kind, json_numbers
-from ..body import from_dict as body_from_dict
 from ..errors import InputError
-from ..fields import FieldBasis, MotionWeights
+from ..model.fields import FieldBasis, MotionWeights
+from ..physics.body import Body, arm, json_kind, json_numbers
+from ..physics.body import from_dict as body_from_dict
 from .files import write_text
 
 FORMAT = "tflearn-basis/3"

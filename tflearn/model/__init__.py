@@ -1,0 +1,1 @@
+"""The model: shared torque fields, per-motion weights and their torque program (fields)."""

@@ -1,0 +1,1 @@
+"""Figures (figures) and animations (render)."""
