@@ -36,7 +36,6 @@ def run(script: str, *args: str) -> None:
 def dynamics_section(d: dict) -> list:
     tf, pin = d["tflearn"], d["pinocchio"]
     ref = d.get("reference", {}).get("tflearn")
-    rev = d.get("reference", {}).get("rev")
     m = d["machine"]
     lines = [
         "## Dynamics throughput", "",
@@ -51,7 +50,7 @@ def dynamics_section(d: dict) -> list:
         "forward pass only).", "",
         "| batch | RNEA | ratio | Pinocchio C++ | forward dynamics (ABA) | ratio | Pinocchio C++ | "
         "mass matrix | ratio | RNEA with gradient | forward with gradient |"
-        + (f" RNEA at {rev} | forward at {rev} | mass matrix at {rev} |" if ref else ""),
+        + (" RNEA, reference | forward, reference | mass matrix, reference |" if ref else ""),
         "|---" * (11 + (3 if ref else 0)) + "|"]
     grad = tf.get("grad", {"rnea": {}, "forward": {}})
     py = pin["python"]
@@ -88,7 +87,7 @@ def latency_section(d: dict) -> list:
                  (f"the same gesture, batch `each`: compiled ({c['rhs_evals']} right-hand sides)",
                   c["seconds"], ref and ref["gesture"]["seconds"], "≤ 0.1 s")]
     lines = ["## Small-batch latency", "",
-             "| what | now | " + (f"at {d['reference']['rev']} | speed-up |" if ref else "") + " goal |",
+             "| what | now | " + ("reference | speed-up |" if ref else "") + " goal |",
              "|---|---|" + ("---|---|" if ref else "") + "---|"]
     for what, now, before, goal in rows:
         cells = [what, f"{now * 1e3:.3f} ms" if now >= 1e-4 else f"{now * 1e6:.1f} µs"]
@@ -122,10 +121,9 @@ def main_job_section(d: dict) -> list:
                     ["run", "wall time", "speed-up", "M", "gestures reproduced", "worst RMSE (rad)",
                      "worst tip (cm)", "basis.json vs reference (max abs difference, keys both hold)",
                      "basis.json vs the current run"])
-    names = {"reference": f"at {d['ref']}", "current": f"at {d['commit']}",
-             "launcher": f"at {d['commit']}, `{d.get('launcher')}`"}
+    names = {"reference": "reference", "current": "now", "launcher": f"now, `{d.get('launcher')}`"}
     for key, r in d["runs"].items():
-        name = names.get(key) or f"at {d['commit']}, `{key.removeprefix('variant ')}`"
+        name = names.get(key) or f"now, `{key.removeprefix('variant ')}`"
         lines.append(f"| {name} | {r['wall_s']:.1f} s | {r.get('speedup', 1.0):.2f}× | {r['M']} | "
                      f"{r['reproduced']}/{r['motions']} | {r['worst_rmse_rad']:.4f} | "
                      f"{100 * r['worst_tip_m']:.2f} | "
@@ -167,8 +165,7 @@ def scale_section(d: dict) -> list:
                     "motion and one Levenberg–Marquardt step on the shared fields) and one batched "
                     "scoring simulation of all N motions, its batch stepped together (*shared*, "
                     "torchdiffeq's dopri5) and each motion on its own steps (*each*, "
-                    "`tflearn.simulation.ode`), at the pipeline's default tolerances"
-                    + (f"; at commit {d['commit']}." if d.get("commit") else "."),
+                    "`tflearn.simulation.ode`), at the pipeline's default tolerances.",
                     ["motions N", "samples", "making the motions", "EM step", "scoring, shared",
                      "scoring, each", "peak memory"])
     for r in d["rows"]:
@@ -195,7 +192,6 @@ def learn_many_section(d: dict) -> list:
                     "then `train configs/gestures.yaml data=DIR` in a fresh process"
                     + (f" ({', '.join(map(str, sorted(procs)))} processes, torchrun)" if procs != {1} else "")
                     + "; each stage's time from its progress bar"
-                    + (f"; at commit {d['commit']}" if d.get("commit") else "")
                     + (f", overrides {' '.join(d['overrides'])}." if d.get("overrides") else "."),
                     ["motions N", "G", "samples", "making them", "training", "each motion alone",
                      "pool and merge", "reduce", "path matching", "M", "reproduced", "worst RMSE (rad)",
@@ -246,12 +242,12 @@ def main(argv=None) -> int:
         run(f"{name}.py", *benches[name], "--out", str(DATA / f"{name}.json"))
     dyn = json.loads((DATA / "dynamics.json").read_text())
     lines = ["# Benchmarks", "",
-             "Measured by `python bench/benchmarks.py --ref " + args.ref + "` (raw results in "
-             "[benchmarks/](benchmarks/)); every ratio is against a reference measured in the same "
-             "invocation on the same machine — absolute times vary between machines and with load, "
-             f"ratios much less. Dynamics and latency measured at commit {dyn.get('commit', '?')}, "
-             f"the other tables at the commits they name; reference revision {args.ref} (before "
-             "the performance work).", ""]
+             "Measured by `python bench/benchmarks.py --ref REV`, REV the revision before the "
+             "performance work (raw results in [benchmarks/](benchmarks/)); every ratio is against "
+             "that reference measured in the same invocation on the same machine — absolute times "
+             "vary between machines and with load, ratios much less. Each table is the latest "
+             "measurement; the revisions they were measured at, and every earlier measurement, are "
+             "in [history.md](history.md#speed-and-scale).", ""]
     lines += dynamics_section(dyn) + latency_section(dyn)
     for name, section in (("main_job.json", main_job_section), ("path_step.json", path_section),
                           ("scale.json", scale_section), ("learn_many.json", learn_many_section)):

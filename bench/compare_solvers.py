@@ -47,7 +47,8 @@ from tflearn.fit import torque  # noqa: E402
 from tflearn.fit.slsqp import fit_slsqp  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402
 from tflearn.metrics import score  # noqa: E402
-from tflearn.model.fields import FieldBasis, MotionWeights  # noqa: E402
+from tflearn.model.fields import FieldBasis  # noqa: E402
+from tflearn.model.weights import MotionWeights  # noqa: E402
 from tflearn.physics import body as body_mod  # noqa: E402
 from tflearn.simulation.simulate import SimOptions  # noqa: E402
 
@@ -306,7 +307,7 @@ def main(argv=None) -> dict:
     git = _git_head()
     sources = {f: hashlib.sha256((ROOT / f).read_bytes()).hexdigest()[:16]   # as imported
                for f in ("tflearn/fit/torque.py", "tflearn/fit/slsqp.py", "tflearn/fit/nnls.py",
-                         "tflearn/model/fields.py")}
+                         "tflearn/model/fields.py", "tflearn/model/weights.py")}
     t_start = time.perf_counter()
     body = body_mod.arm()
     gs = [gestures_mod.GESTURES[n] for n in args.gestures]

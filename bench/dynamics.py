@@ -86,7 +86,7 @@ def states(nv: int, batch: int, seed: int = 0):
 def tflearn_figures(max_batch: int, min_time: float) -> dict:
     """Seconds per call of tflearn's algorithms, the RHS and a gesture simulation."""
     from tflearn.data import gestures
-    from tflearn.model.fields import FieldProgram
+    from tflearn.model.program import FieldProgram
     from tflearn.physics import dynamics
     from tflearn.physics.body import arm
     from tflearn.physics.configspace import pack

@@ -20,7 +20,7 @@ PROBE = """
 import hashlib, torch
 from tflearn.physics import dynamics
 from tflearn.data import gestures
-from tflearn.model.fields import FieldProgram
+from tflearn.model.program import FieldProgram
 from tflearn.simulation.simulate import SimOptions, simulate
 (m, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
 g = torch.Generator().manual_seed(0)

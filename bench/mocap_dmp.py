@@ -33,8 +33,9 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from mocap_basis import arguments, prepare_windows  # noqa: E402
 
-from tflearn import dynamics  # noqa: E402
 from tflearn.motions import motion as motion_mod  # noqa: E402
+from tflearn.motions import spline  # noqa: E402
+from tflearn.physics import dynamics  # noqa: E402
 from tflearn.physics.configspace import difference  # noqa: E402
 
 SHIFT = 0.2
@@ -52,7 +53,7 @@ def scores(body, q_ref: np.ndarray, q: np.ndarray) -> tuple:
 def dmp_row(body, m, n_weights: int) -> dict:
     from movement_primitives.dmp import DMP
     from movement_primitives.dmp._dmp import DMP_STEP_FUNCTIONS, dmp_open_loop
-    fine = motion_mod.resample(m, DENSE * m.rate)          # on tflearn's quintic spline
+    fine = spline.resample(m, DENSE * m.rate)          # on tflearn's quintic spline
     t, q = fine.t.numpy(), fine.q.numpy()
     dt = float(t[1] - t[0])
     qd = np.gradient(q, dt, axis=0)
@@ -76,7 +77,7 @@ def tflearn_row(run: Path, name: str, m) -> dict:
     from tflearn.data.loading import torsos
     from tflearn.evaluate import run_config
     from tflearn.io import basis as basis_io
-    from tflearn.model.fields import FieldProgram
+    from tflearn.model.program import FieldProgram
     from tflearn.simulation.simulate import SimOptions, SimulationFailed, simulate
     lb = basis_io.load(run / "basis.json")
     cfg = run_config(run)[0]

@@ -47,7 +47,7 @@ def file_case(basis_path: str, motion_path: str):
     from tflearn.fit.targets import prepare, submovement_windows
     from tflearn.fit.torque import solve_weights
     from tflearn.io import basis as basis_io
-    from tflearn.model.fields import MotionWeights
+    from tflearn.model.weights import MotionWeights
     from tflearn.motions.motion import load
     lb = basis_io.load(basis_path)
     tg = prepare(lb.body, [load(motion_path, body=lb.body)])
@@ -62,7 +62,7 @@ def measure(body, basis, weights, tg, method: str, phases: bool, adam_steps: int
     from tflearn.fit.shooting import ShootingOptions, shooting_match
     from tflearn.fit.targets import simulate_targets
     from tflearn.metrics import score
-    from tflearn.model.fields import model_from_state, model_state
+    from tflearn.model.program import model_from_state, model_state
     from tflearn.simulation import simulate as sim_mod
     from tflearn.simulation.simulate import SimOptions
     basis, weights = model_from_state(model_state(basis, weights))       # a fresh copy

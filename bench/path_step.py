@@ -31,7 +31,7 @@ def problem(n: int) -> tuple:
     library's generating fields: (body, basis, weights, targets)."""
     from tflearn.data import gestures
     from tflearn.fit.targets import prepare
-    from tflearn.model.fields import MotionWeights
+    from tflearn.model.weights import MotionWeights
     from tflearn.motions.motion import Motion
     from tflearn.physics.body import arm
 

@@ -33,7 +33,7 @@ def main() -> None:
                                     "gains": {"scale": s, "bilinear": c}, "animation": False,
                                     "tensorboard": False, "out": str(args.out / f"s{s:g}_c{c:g}")}),
                        PerturbConfig)
-        doc = recovery.run(cfg, log=lambda _: None)
+        doc = recovery.run(cfg, progress=False)
         for name, res in doc["motions"].items():
             row = res["ff+pd"]["cases"][0]
             rec = "not recovered" if row["recovery_s"] is None else f"{row['recovery_s']:.2f}"

@@ -61,7 +61,7 @@ def datasets(body) -> dict:
 def activations(u: torch.Tensor, pulses: int) -> torch.Tensor:
     """The activation family at motion phases u = t/T (...) → (...×(2 + P)): ψ(u), φ(u)
     and P pulses φ((u − s_p)/h) on windows of width h = 2/(P + 1) starting at s_p = p h/2."""
-    from tflearn.model.fields import pulse_profile, step_profile
+    from tflearn.model.weights import pulse_profile, step_profile
     h = 2.0 / (pulses + 1)
     cols = [step_profile(u), pulse_profile(u)] + [pulse_profile((u - p * h / 2) / h) for p in range(pulses)]
     return torch.stack(cols, -1)

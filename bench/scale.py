@@ -33,7 +33,7 @@ def measure(n: int, seed: int, batches: list) -> dict:
     from tflearn.fit import torque
     from tflearn.fit.targets import prepare
     from tflearn.metrics import score
-    from tflearn.model.fields import MotionWeights
+    from tflearn.model.weights import MotionWeights
     from tflearn.physics.body import arm
 
     body = arm()

@@ -18,7 +18,8 @@ import torch
 from tflearn.data import gestures
 from tflearn.fit.targets import prepare
 from tflearn.metrics import score
-from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.model.fields import FieldBasis
+from tflearn.model.weights import MotionWeights
 from tflearn.physics.body import arm
 from tflearn.simulation.simulate import SimOptions
 

@@ -1,4 +1,4 @@
-"""How well :func:`tflearn.motions.motion.torque_resolution` estimates the error of spline torques.
+"""How well :func:`tflearn.motions.spline.torque_resolution` estimates the error of spline torques.
 
 Draws random programs within :data:`tflearn.data.gestures.SUPPORTED`, simulates them and
 samples them at ``--rate``; for each motion compares the estimate (from the samples
@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tflearn.data import gestures
 from tflearn.fit import targets, torque
-from tflearn.motions import motion as motion_mod
+from tflearn.motions import spline
 from tflearn.physics.body import arm
 
 
@@ -37,14 +37,14 @@ def main(argv=None) -> int:
     for motion, lb in gestures.generate(body, args.rate, gestures=programs):
         tg = targets.prepare(body, [motion])
         true = float(torque.relative_rms_torque_error(lb.basis, lb.weights, tg)[0])
-        rows.append((true, motion_mod.torque_resolution(body, motion), motion.name))
+        rows.append((true, spline.torque_resolution(body, motion), motion.name))
     print("| motion | true error | estimate | estimate / true |\n|---|---|---|---|")
     for true, est, name in sorted(rows):
         print(f"| {name} | {true:.2e} | {est:.2e} | {est / true:.2f} |")
     ratios = [est / true for true, est, _ in rows]
-    above = sum(est > motion_mod.RESOLVED for _, est, _ in rows)
+    above = sum(est > spline.RESOLVED for _, est, _ in rows)
     print(f"\nestimate / true in [{min(ratios):.2f}, {max(ratios):.2f}]; "
-          f"{above} of {len(rows)} motions above RESOLVED = {motion_mod.RESOLVED:g} at {args.rate:g} Hz")
+          f"{above} of {len(rows)} motions above RESOLVED = {spline.RESOLVED:g} at {args.rate:g} Hz")
     return 0
 
 

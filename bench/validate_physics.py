@@ -1,4 +1,4 @@
-"""Print the physics validation figures quoted in the README and the issue notes.
+"""Print the physics validation figures quoted in docs/model.md ("Validation of the physics").
 
     python bench/validate_physics.py
 

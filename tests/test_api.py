@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import tflearn
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,6 +29,7 @@ def test_config_and_cli_import_without_torch():
     assert out.stdout.strip() == "False"
 
 
+@pytest.mark.slow
 def test_readme_library_example_runs():
     readme = (ROOT / "README.md").read_text()
     block = re.search(r"Library use:\n\n```python\n(.*?)```", readme, re.S)

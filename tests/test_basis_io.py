@@ -17,7 +17,9 @@ from hypothesis import strategies as st
 
 from tflearn.io import basis as bio
 from tflearn.io.basis import BasisFileError
-from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram
+from tflearn.model.weights import MotionWeights
 from tflearn.physics import body as tb
 from tflearn.physics import dynamics as D
 from tflearn.simulation.simulate import simulate

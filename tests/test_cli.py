@@ -122,6 +122,7 @@ def test_train_missing_config_file(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_evaluate_run(run_dir, capsys):
     """``tflearn evaluate RUN`` re-simulates the run's basis.json on its data: the same
     figures as metrics.json (measured equal to ~1e-9)."""
@@ -145,6 +146,7 @@ def test_evaluate_run(run_dir, capsys):
     assert printed.strip().splitlines()[-1] == f"wrote {run / 'evaluation.json'}"
 
 
+@pytest.mark.slow
 def test_evaluate_overall_rmse_matches_metrics(run_dir, tmp_path):
     from tflearn import evaluate
     ev = evaluate.evaluate_run(run_dir["out"], out=tmp_path / "ev.json")
@@ -152,6 +154,7 @@ def test_evaluate_overall_rmse_matches_metrics(run_dir, tmp_path):
     assert abs(ev["overall"]["rmse"] - ref["overall"]["rmse"]) <= 1e-9
 
 
+@pytest.mark.slow
 def test_evaluate_new_motion(run_dir, tmp_path, capsys):
     """``--data DIR2`` with one of the run's motions and a new one — a renamed copy of
     the run's other motion, so the frozen basis can represent it: the known motion keeps
@@ -235,6 +238,7 @@ def test_train_data_errors(tmp_path, capsys):
         assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_train_refuses_a_corrupt_checkpoint(run_dir, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
@@ -281,6 +285,7 @@ def test_version_and_help_without_torch():
     assert out.stdout.strip().splitlines()[-1] == "False"
 
 
+@pytest.mark.slow
 def test_simulate_takes_a_run_folder(run_dir, tmp_path, capsys):
     """Every command that uses a model takes a run folder or its basis.json; a missing
     output folder is created and said so."""

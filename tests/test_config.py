@@ -238,3 +238,83 @@ def test_any_value_at_any_key_is_validated(key, value):
         assert parts[0] in str(err)
     else:
         assert isinstance(cfg, config.Config)
+
+
+# the settings for many motions of one shared basis (docs/config.md, configs/many.yaml)
+MANY = ["solver.each.reuse=8", "solver.reduce.refit=false", "solver.path.motions=unreproduced",
+        "solver.path.steps=0", "solver.shooting.broyden=true", "solver.pool.sharing=own",
+        "solver.pool.min_gain=1e-7", "solver.reduce.reach=1e-6", "solver.reduce.chunk=2",
+        "solver.shooting.used=true", "solver.each.reuse_tol=1e-4"]
+
+
+def _schema(path: Path):
+    """The schema a shipped config is read with: perturb batches, mode analyses, the rest
+    train configs (experiments have their own loader)."""
+    from tflearn.modes.config import ModesConfig
+    if path.parent.name == "modes":
+        return ModesConfig
+    return config.PerturbConfig if path.stem.startswith("perturb") else config.Config
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "configs").glob("*.yaml"))
+                         + sorted((ROOT / "configs" / "modes").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_config_loads(path):
+    """Every config in configs/ (and configs/modes/) validates with its schema, and every
+    top-level one says in a header comment what it is for."""
+    schema = _schema(path)
+    cfg = config.load(path, (), schema)
+    assert isinstance(cfg, schema)
+    if path.parent.name == "configs":
+        assert path.read_text().startswith("# "), f"{path.name} has no header comment"
+
+
+def test_many_is_the_main_job_with_the_settings_for_many_motions():
+    """configs/many.yaml is configs/gestures.yaml with the settings for many motions and
+    nothing else changed but the data and the output folder."""
+    many = config.load(ROOT / "configs" / "many.yaml")
+    assert many == config.load(ROOT / "configs" / "gestures.yaml", MANY + ["data=motions", "out=runs/many"])
+    s = many.solver
+    assert (s.each.reuse, s.each.reuse_tol) == (8, 1e-4)
+    assert (s.reduce.refit, s.reduce.reach, s.reduce.chunk) == (False, 1e-6, 2)
+    assert (s.path.motions, s.path.steps, s.pool.sharing, s.pool.min_gain) == ("unreproduced", 0, "own", 1e-7)
+    assert s.shooting.broyden and s.shooting.used
+    assert config.load(ROOT / "configs" / "many.yaml", ["data=elsewhere"]).data == "elsewhere"
+
+
+def test_mocap_config_is_for_recorded_motion():
+    """configs/mocap.yaml: the spanning layout on the performer's moving torso, its header
+    saying it is for recorded (or keyframed) motion."""
+    path = ROOT / "configs" / "mocap.yaml"
+    cfg = config.load(path)
+    assert cfg.solver.method == "layout" and cfg.torso == "moving" and cfg.model.windows == 16
+    assert "recorded" in path.read_text().split("\ndata:")[0]
+
+
+def _leaves(schema, prefix=""):
+    """(dotted key, field) of every leaf of a config schema (nested sections recursed)."""
+    for name, field in schema.model_fields.items():
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, config.Section):
+            yield from _leaves(ann, f"{prefix}{name}.")
+        else:
+            yield prefix + name, field
+
+
+@pytest.mark.parametrize("schema", [config.Config, config.PerturbConfig], ids=lambda s: s.__name__)
+def test_config_reference_lists_every_key_with_its_default(schema):
+    """docs/config.md has a row `key` | `default` | meaning for every key of the training
+    config (before its perturbation section) and of the perturbation config (in it), the
+    default as tflearn.config has it."""
+    import re
+
+    import yaml
+    train, _, perturb = (ROOT / "docs" / "config.md").read_text().partition("\n## Perturbation batches")
+    text = perturb.partition("\n## ")[0] if schema is config.PerturbConfig else train
+    rows = dict(re.findall(r"^\| `([^`]+)` \| (`[^`]*`|\(required\)) \|", text, re.M))
+    for key, field in _leaves(schema):
+        assert key in rows, f"docs/config.md has no row for {key}"
+        if field.is_required():
+            assert rows[key] == "(required)", key
+        else:
+            documented = yaml.load(rows[key].strip("`"), Loader=config._Loader)
+            assert documented == field.default, (key, rows[key], field.default)

@@ -16,7 +16,7 @@ from tflearn.data import gestures
 from tflearn.fit.path import path_loss
 from tflearn.fit.targets import prepare, simulate_targets
 from tflearn.io import basis as bio
-from tflearn.model.fields import MotionWeights
+from tflearn.model.weights import MotionWeights
 from tflearn.motions.torso import BaseMotion, Bases
 from tflearn.physics import body as tb
 from tflearn.physics import dynamics as D
@@ -101,7 +101,8 @@ def test_a_device_this_machine_lacks_is_refused_when_the_run_starts(tmp_path):
     refuses to start without one; a name torch does not know is refused at once."""
     cfg = config.load(None, ["device=cuda:99", f"out={tmp_path}"])
     with pytest.raises(config.ConfigError, match="'cuda:99'"):
-        train.Run(cfg)
+        train.run(cfg)
+    assert not (tmp_path / "checkpoint.pt").exists()
     with pytest.raises(config.ConfigError, match="device.*cpu, cuda or cuda:K.*'tpu'"):
         config.load(None, ["device=tpu"])
     assert config.load(None, []).device == "cpu"

@@ -18,7 +18,7 @@ from tflearn.config import ConfigError
 from tflearn.data import gestures
 from tflearn.experiments import common
 from tflearn.experiments.config import ExperimentConfig
-from tflearn.model.fields import model_from_state
+from tflearn.model.program import model_from_state
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs" / "experiments"
@@ -125,6 +125,7 @@ def test_r90_is_the_last_r_of_the_leading_run_above_90_percent():
 
 # -------------------------------------------------------------------- the quick versions
 
+@pytest.mark.slow
 def test_basin_quick(tmp_path):
     """come_here at r = 3.0, where the thesis' SLSQP stopped with no motion: tflearn's
     local solver (EM) and its pipeline reproduce it."""
@@ -159,6 +160,7 @@ def test_local_solver_starts_wide():
     assert wide["cost"] < 1e-9 and ok(wide)
 
 
+@pytest.mark.slow
 def test_shared_quick(tmp_path):
     """Four shared fields for come-here, tuck and backwards reach from r = 1.4: every
     motion reproduced by the local solver."""
@@ -171,6 +173,7 @@ def test_shared_quick(tmp_path):
     assert max(row["rmse"]) <= 0.03 and max(row["tip"]) <= 0.02
 
 
+@pytest.mark.slow
 def test_keyframes_quick(tmp_path):
     """A three-keyframe spline resembling the come-here (not made by fields): the
     pipeline's own basis, damped fields with two sub-movement windows, reproduces it
@@ -189,6 +192,7 @@ def test_keyframes_quick(tmp_path):
     assert layout["M"] == 8 and layout["success"] == [True] and layout["rmse"][0] <= 0.03
 
 
+@pytest.mark.slow
 def test_filtering_quick(tmp_path):
     """Crude motions played through a basis learned on come_here and the stiff-elbow
     lift: the basis reproduces its own gestures (the success criterion), the crude
@@ -204,6 +208,7 @@ def test_filtering_quick(tmp_path):
     assert {"straight_reach.png", "straight_reach_hand.png"} <= set(res["figures"])
 
 
+@pytest.mark.slow
 def test_reaches_quick_layout(tmp_path):
     """Experiment 5's quick size by the spanning layout: eight fields laid out around
     the two training reaches (no search) reproduce both within the bar (measured: 0.0073
@@ -231,6 +236,7 @@ def test_filtered_table_marks_a_path_not_simulated():
     assert lines[3] == "| ok | 0.0100 | 0.2 | 0.1% | 1.2% |"
 
 
+@pytest.mark.slow
 def test_reach_class_is_straight_and_spread():
     """The reach class of experiment 5: eight straight-line reaches from rest (hand paths
     straight to the IK's 1 mm) to distinct targets, and a held-out one inside the class
@@ -294,6 +300,7 @@ def test_reaches_layout_config():
                        overrides=["methods=[pipeline]"]).methods == ["pipeline"]
 
 
+@pytest.mark.slow
 def test_report_from_quick_results(tmp_path):
     """``tflearn report`` writes every experiment's section, its figures and the model figures."""
     runs = tmp_path / "runs"
@@ -308,6 +315,19 @@ def test_report_from_quick_results(tmp_path):
     assert text.count("Not run yet") == len(experiments.EXPERIMENTS) - 1
     for ref in ("results/fields.png", "results/profiles.png", "results/basin/success_vs_r.png"):
         assert f"]({ref})" in text and (out.parent / ref).exists()
+    assert "[history.md](history.md#results)" in text and not COMMIT.search(text)
+
+
+# a commit hash: 7 to 40 hex digits with a letter and a digit (docs/history.md alone keeps them)
+COMMIT = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+
+
+def test_report_words_are_current():
+    """The report's words (text.yaml) state current figures: no commit hashes, the
+    history of re-measurements linked instead."""
+    words = (ROOT / "tflearn" / "experiments" / "text.yaml").read_text()
+    assert not COMMIT.search(words), COMMIT.search(words)
+    assert "history.md" in common.text("report")["intro"]
 
 
 def test_goal_lines_read_as_goal_measured_verdict():

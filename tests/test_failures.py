@@ -14,7 +14,7 @@ from tflearn.data import gestures
 from tflearn.fit import path as path_fit
 from tflearn.fit import stability, targets, torque
 from tflearn.fit.torque import DivergenceWarning
-from tflearn.model.fields import FieldProgram
+from tflearn.model.program import FieldProgram
 from tflearn.motions.motion import Motion
 from tflearn.simulation import simulate as S
 
@@ -93,7 +93,7 @@ def test_select_simulates_on_its_own_grid(pair):
     assert torch.equal(one.grid[one.index[0]], one.t[0])
 
 
-@pytest.mark.parametrize("batch", ["shared", "each"])
+@pytest.mark.parametrize("batch", [pytest.param("shared", marks=pytest.mark.slow), "each"])
 def test_one_failing_motion_leaves_the_others_scored(pair, batch):
     """tuck's weights ×10⁴ make its simulation run past the budget (5000 right-hand
     sides; come_here needs about 1600); come_here is still scored, exactly as it scores
@@ -119,6 +119,7 @@ def test_one_failing_motion_leaves_the_others_scored(pair, batch):
     assert math.isfinite(summary["motions"]["tuck"]["growth_rate"])
 
 
+@pytest.mark.slow
 def test_until_failure_stops_simulating_at_the_first_failed_motion(pair):
     """``score(..., until_failure=True)``, for a judge that refuses any failure: the batch
     fails, tuck (first, weights ×10⁴) fails alone, and come_here after it is not
@@ -161,6 +162,7 @@ def test_path_step_rejects_a_diverged_point_naming_the_motion(pair):
     assert torch.isfinite(w.a_raw).all()
 
 
+@pytest.mark.slow
 def test_path_step_on_some_motions_leaves_the_others_untouched(pair):
     """``motions=[1], fields=False`` (the path stage's ``solver.path.motions:
     unreproduced``): the loss and the step are motion 1's alone, as if it were the only

@@ -1,4 +1,5 @@
-"""tflearn.model.fields: time profiles, stiffness parametrisations, field basis, weights, programs."""
+"""tflearn.model (fields, weights, program): time profiles, stiffness parametrisations, field
+basis, weights, programs."""
 from __future__ import annotations
 
 import math
@@ -8,7 +9,9 @@ import torch
 from torch.autograd import gradcheck
 from torch.func import functional_call
 
-from tflearn.model import fields as F
+from tflearn.model.fields import ETA_MAX, K_KINDS, K_RANGE, FieldBasis, Stiffness
+from tflearn.model.program import FieldProgram
+from tflearn.model.weights import MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
 
 from conftest import DT
 
@@ -31,8 +34,8 @@ def phi_ref(u):
 
 def test_profile_values():
     u = _t([0.0, 0.5, 1.0, -1.0, 2.0, 0.25, 0.75])
-    psi = F.step_profile(u)
-    phi = F.pulse_profile(u)
+    psi = step_profile(u)
+    phi = pulse_profile(u)
     expect_psi = _t([0.0, 0.5, 1.0, 0.0, 1.0, 0.25 - 1 / (2 * math.pi), 0.75 + 1 / (2 * math.pi)])
     expect_phi = _t([0.0, 1.0, 0.0, 0.0, 0.0, 0.5, 0.5])
     assert psi.dtype == DT and phi.dtype == DT
@@ -44,8 +47,8 @@ def test_profiles_are_c1():
     """Derivatives vanish at the joins 0 and 1 (from both sides), and match the closed
     forms ψ' = 1 − cos 2πu, φ' = π sin 2πu inside."""
     u = _t([0.0, 1.0, -1e-6, 1e-6, 1 - 1e-6, 1 + 1e-6, -0.5, 1.5, 0.3, 0.8]).requires_grad_(True)
-    (dpsi,) = torch.autograd.grad(F.step_profile(u).sum(), u)
-    (dphi,) = torch.autograd.grad(F.pulse_profile(u).sum(), u)
+    (dpsi,) = torch.autograd.grad(step_profile(u).sum(), u)
+    (dphi,) = torch.autograd.grad(pulse_profile(u).sum(), u)
     assert float(dpsi[:8].abs().max()) <= 1e-10   # 1 − cos(2π·1e-6) ≈ 2e-11
     assert float(dphi[:8].abs().max()) <= 1e-4    # π sin(2π·1e-6) ≈ 2e-5
     assert float(dphi[:2].abs().max()) <= 1e-15
@@ -53,13 +56,13 @@ def test_profiles_are_c1():
     assert torch.allclose(dpsi[8:], 1 - torch.cos(2 * math.pi * inner), rtol=0, atol=1e-14)
     assert torch.allclose(dphi[8:], math.pi * torch.sin(2 * math.pi * inner), rtol=0, atol=1e-14)
     # step_slope / pulse_slope (EM's closed-form Jacobian) are these derivatives everywhere
-    assert torch.allclose(F.step_slope(u.detach()), dpsi, rtol=0, atol=1e-15)
-    assert torch.allclose(F.pulse_slope(u.detach()), dphi, rtol=0, atol=1e-15)
+    assert torch.allclose(step_slope(u.detach()), dpsi, rtol=0, atol=1e-15)
+    assert torch.allclose(pulse_slope(u.detach()), dphi, rtol=0, atol=1e-15)
     # Values are continuous across the joins too.
     eps = _t([-1e-9, 1e-9])
-    assert float(F.step_profile(eps).abs().max()) <= 1e-9
-    assert float((F.step_profile(1 + eps) - 1).abs().max()) <= 1e-9
-    assert float(F.pulse_profile(eps).abs().max()) <= 1e-9
+    assert float(step_profile(eps).abs().max()) <= 1e-9
+    assert float((step_profile(1 + eps) - 1).abs().max()) <= 1e-9
+    assert float(pulse_profile(eps).abs().max()) <= 1e-9
 
 
 # ---------------------------------------------------------------------- stiffness
@@ -86,10 +89,10 @@ def _given_K(kind, gen, M=3, n=7):
     return _spd(gen, M, n)
 
 
-@pytest.mark.parametrize("kind", F.K_KINDS)
+@pytest.mark.parametrize("kind", K_KINDS)
 def test_stiffness_reproduces_K_and_stays_pd(kind, gen):
     K = _given_K(kind, gen)
-    st = F.Stiffness(K, kind=kind, blocks=[3, 1, 3] if kind == "block" else None)
+    st = Stiffness(K, kind=kind, blocks=[3, 1, 3] if kind == "block" else None)
     out = st().detach()
     assert out.shape == (3, 7, 7) and out.dtype == DT
     assert float((out - K).abs().max()) <= 1e-12 * float(K.abs().max())
@@ -108,7 +111,7 @@ def test_stiffness_block_projects_off_block_entries(gen):
     """A full K given to a block stiffness is read on its block pattern (the blocks'
     Cholesky factors), so the result is the block-diagonal part of K."""
     K = _spd(gen, 2, 7)
-    st = F.Stiffness(K, kind="block", blocks=[3, 1, 3])
+    st = Stiffness(K, kind="block", blocks=[3, 1, 3])
     mask = torch.block_diag(torch.ones(3, 3), torch.ones(1, 1), torch.ones(3, 3)).bool()
     expect = torch.where(mask, K, torch.zeros_like(K))
     assert float((st().detach() - expect).abs().max()) <= 1e-12 * float(K.abs().max())
@@ -116,9 +119,9 @@ def test_stiffness_block_projects_off_block_entries(gen):
 
 def test_stiffness_rejects_bad_input():
     with pytest.raises(ValueError):
-        F.Stiffness(torch.eye(3, dtype=DT)[None], kind="cholesky")
+        Stiffness(torch.eye(3, dtype=DT)[None], kind="cholesky")
     with pytest.raises(ValueError):
-        F.Stiffness(torch.eye(3, dtype=DT)[None], kind="block", blocks=[1, 1])
+        Stiffness(torch.eye(3, dtype=DT)[None], kind="block", blocks=[1, 1])
 
 
 # ---------------------------------------------------------------------- basis
@@ -126,10 +129,10 @@ def test_stiffness_rejects_bad_input():
 def _basis(gen, M=3, n=7, kind="block"):
     eta = 0.5 * torch.randn(M, n, dtype=DT, generator=gen)
     K = _given_K(kind, gen, M, n)
-    return F.FieldBasis(eta, 0.5 * K, kind=kind, blocks=[3, 1, 3] if kind == "block" else None)
+    return FieldBasis(eta, 0.5 * K, kind=kind, blocks=[3, 1, 3] if kind == "block" else None)
 
 
-@pytest.mark.parametrize("kind", F.K_KINDS)
+@pytest.mark.parametrize("kind", K_KINDS)
 def test_basis_is_gradient_of_gaussian(kind, gen):
     """χ_i = ∇ exp(−½ dᵀK_i d) by autograd, for every kind (scalar and diag take K d
     elementwise, the others as a matrix product)."""
@@ -161,13 +164,13 @@ def test_basis_gradcheck(gen):
 def test_modules_are_float64_and_convert_with_to(gen):
     eta = torch.randn(2, 7, generator=gen).float()
     K = torch.eye(7).expand(2, 7, 7).float()
-    basis = F.FieldBasis(eta, K, kind="diag")
+    basis = FieldBasis(eta, K, kind="diag")
     assert basis.eta.dtype == torch.float64
     assert basis(torch.zeros(7, dtype=torch.float64)).dtype == torch.float64
-    w = F.MotionWeights(torch.tensor([[3.0, 0.0]]), torch.tensor([[0.0, 1.0]]), torch.tensor([3.0]))
+    w = MotionWeights(torch.tensor([[3.0, 0.0]]), torch.tensor([[0.0, 1.0]]), torch.tensor([3.0]))
     assert w.a.dtype == torch.float64
-    assert torch.allclose(F.FieldProgram(basis, w)(torch.tensor(1.0), torch.zeros(1, 7, dtype=torch.float64)),
-                          F.FieldProgram(basis, w)(1.0, torch.zeros(1, 7, dtype=torch.float64)))
+    assert torch.allclose(FieldProgram(basis, w)(torch.tensor(1.0), torch.zeros(1, 7, dtype=torch.float64)),
+                          FieldProgram(basis, w)(1.0, torch.zeros(1, 7, dtype=torch.float64)))
     b32 = basis.float()
     assert b32(torch.zeros(7)).dtype == torch.float32
 
@@ -177,7 +180,7 @@ def test_modules_are_float64_and_convert_with_to(gen):
 def test_weights_non_negative_and_projection(gen):
     a = _t([[1.0, -0.5, 0.2], [0.0, 2.0, -3.0]])
     b = _t([[-1.0, 0.5, 0.2], [0.3, -2.0, 1.0]])
-    w = F.MotionWeights(a, b, duration=_t([1.0, 2.0]))
+    w = MotionWeights(a, b, duration=_t([1.0, 2.0]))
     assert bool((w.a_raw >= 0).all()) and bool((w.b_raw >= 0).all())  # projected at init
     assert torch.equal(w.a, a.clamp(min=0)) and torch.equal(w.b, b.clamp(min=0))
     with torch.no_grad():
@@ -203,7 +206,7 @@ def _weights(gen, N=2, M=3):
     d = 0.5 + torch.rand(N, M, dtype=DT, generator=gen)
     p = 0.3 * torch.rand(N, M, dtype=DT, generator=gen)
     e = 0.5 + torch.rand(N, M, dtype=DT, generator=gen)
-    w = F.MotionWeights(a, b, duration=_t([1.0, 1.5][:N]), step_onset=s, step_duration=d,
+    w = MotionWeights(a, b, duration=_t([1.0, 1.5][:N]), step_onset=s, step_duration=d,
                         pulse_onset=p, pulse_duration=e)
     return w, (a, b, s, d, p, e)
 
@@ -245,7 +248,7 @@ def test_profiles_over_time_vector(gen):
 def test_program_is_weighted_sum_of_fields(gen):
     basis = _basis(gen, M=3)
     w, _ = _weights(gen, N=2, M=3)
-    program = F.FieldProgram(basis, w)
+    program = FieldProgram(basis, w)
     q = basis.eta.detach()[0] + 0.5 * torch.randn(5, 2, 7, dtype=DT, generator=gen)
     v = torch.randn(5, 2, 7, dtype=DT, generator=gen)
     t = _t(0.4)
@@ -261,26 +264,26 @@ def test_program_is_weighted_sum_of_fields(gen):
     # Fields do not depend on v; the program ignores it.
     assert torch.equal(program(t, q, torch.zeros_like(v)), tau)
     # index= picks motions: row j of the result is motion index[j].
-    single = F.FieldProgram(basis, w, index=[1])
+    single = FieldProgram(basis, w, index=[1])
     assert float((single(t, q[:, 1:2], v[:, 1:2]) - tau[:, 1:2]).abs().max()) <= 1e-15
-    swapped = F.FieldProgram(basis, w, index=[1, 0])
+    swapped = FieldProgram(basis, w, index=[1, 0])
     tau_sw = swapped(t, q.flip(-2), v)
     assert float((tau_sw - tau.flip(-2)).abs().max()) <= 1e-15
     # Motion 0's weights on motion 1's coordinates give something else (index matters).
-    assert float((F.FieldProgram(basis, w, index=[0])(t, q[:, 1:2]) - tau[:, 1:2]).abs().max()) > 1e-3
+    assert float((FieldProgram(basis, w, index=[0])(t, q[:, 1:2]) - tau[:, 1:2]).abs().max()) > 1e-3
 
 
 @pytest.mark.parametrize("kind", ["scalar", "diag", "block", "full"])
 def test_project_bounds_stiffness_and_centres(kind):
     K = torch.stack([1e4 * torch.eye(7, dtype=torch.float64), 1e-5 * torch.eye(7, dtype=torch.float64)])
-    basis = F.FieldBasis(torch.full((2, 7), 50.0, dtype=torch.float64), K, kind=kind, blocks=[3, 1, 3])
+    basis = FieldBasis(torch.full((2, 7), 50.0, dtype=torch.float64), K, kind=kind, blocks=[3, 1, 3])
     basis.project_()
     eig = torch.linalg.eigvalsh(basis.K().detach())
-    lo, hi = F.K_RANGE
+    lo, hi = K_RANGE
     assert eig.min() >= lo * (1 - 1e-12) and eig.max() <= 7 * hi
     assert torch.allclose(torch.diagonal(basis.K().detach(), dim1=-2, dim2=-1)[0],
                           torch.full((7,), hi, dtype=torch.float64))
-    assert float(basis.eta.detach().abs().max()) == pytest.approx(F.ETA_MAX)
+    assert float(basis.eta.detach().abs().max()) == pytest.approx(ETA_MAX)
 
 
 def test_random_programs_with_diagonal_stiffness():
@@ -342,7 +345,7 @@ def test_own_fields_program_gives_the_library_programs_torques(stiffness):
     programs = gestures.random_gestures(5, seed=11, stiffness=stiffness)
     basis, weights, spans = gestures.library_model(programs)
     assert basis.M == sum(hi - lo for lo, hi in spans) > max(hi - lo for lo, hi in spans)
-    whole, own = F.FieldProgram(basis, weights), gestures.own_fields_program(basis, weights, spans)
+    whole, own = FieldProgram(basis, weights), gestures.own_fields_program(basis, weights, spans)
     gen = torch.Generator().manual_seed(0)
     q = torch.randn(4, 5, basis.n, generator=gen, dtype=torch.float64)
     v = torch.randn(4, 5, basis.n, generator=gen, dtype=torch.float64)

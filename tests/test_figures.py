@@ -1,5 +1,5 @@
-"""Figures (tflearn.plots.figures: fields, profiles, weights, learning curves) and animations
-(tflearn.plots.render, ``tflearn render``)."""
+"""Figures (tflearn.plots.figures: motions; tflearn.plots.model: fields, hand forces, profiles,
+weights, learning curves) and animations (tflearn.render, ``tflearn render``)."""
 from __future__ import annotations
 
 import math
@@ -11,15 +11,17 @@ from matplotlib.patches import Rectangle
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from tflearn import cli, config
+from tflearn import cli, config, render
 from tflearn.data import gestures
 from tflearn.errors import InputError
 from tflearn.io import basis as bio
-from tflearn.model.fields import FieldBasis, pulse_profile, step_profile
+from tflearn.model.fields import FieldBasis
+from tflearn.model.weights import pulse_profile, step_profile
 from tflearn.motions import motion as motion_mod
 from tflearn.physics import body as tb
+from tflearn.physics import dynamics
 from tflearn.plots import figures as plots
-from tflearn.plots import render
+from tflearn.plots import model as model_plots
 
 DT = torch.float64
 
@@ -55,20 +57,28 @@ def fd_jacobian(body: tb.Body, q: np.ndarray, h: float = 1e-6) -> np.ndarray:
 POSTURE = np.array([-1.2, 0.3, 0.4, -1.1, -0.5, 0.2, 0.3])
 
 
+def hand_jacobian(body: tb.Body, q) -> torch.Tensor:
+    """The hand tip's Jacobian as hand_force takes it: the linear rows of the tip's
+    point Jacobian."""
+    return dynamics.point_jacobian(body, torch.as_tensor(q, dtype=DT), body.tip_link,
+                                   body.tip_point)[..., :3, :]
+
+
 @pytest.mark.parametrize("offsets", [None, [[0.1, 0.2, -0.3], [0.3, -0.1, 0.2], [-0.2, 0.4, 0.1]]])
 def test_hand_jacobian_matches_finite_differences(offsets):
-    """J is the Jacobian in velocity coordinates (child-frame angular velocities), not
-    ∂p/∂ν: it matches central differences along composed rotations (measured ≤ 1e-9)
-    and differs from ∂p/∂ν at a posture with ball rotations."""
+    """The tip Jacobian behind hand_force (tflearn.physics.dynamics.point_jacobian) is the
+    Jacobian in velocity coordinates (child-frame angular velocities), not ∂p/∂ν: it
+    matches central differences along composed rotations (measured ≤ 1e-9) and differs
+    from ∂p/∂ν at a posture with ball rotations."""
     body = tb.arm(offsets=offsets)
-    J = plots.hand_jacobian(body, torch.tensor(POSTURE, dtype=DT)).numpy()
+    J = hand_jacobian(body, POSTURE).numpy()
     assert J.shape == (3, 7)
     np.testing.assert_allclose(J, fd_jacobian(body, POSTURE), rtol=0, atol=1e-8)
     dp_dq = torch.autograd.functional.jacobian(
-        lambda q: plots.dynamics.tip_position(body, q), torch.tensor(POSTURE, dtype=DT)).numpy()
+        lambda q: dynamics.tip_position(body, q), torch.tensor(POSTURE, dtype=DT)).numpy()
     assert np.abs(dp_dq - J).max() > 1e-2
     # batched: the same matrix for each of a stack of postures
-    Jb = plots.hand_jacobian(body, torch.tensor(np.stack([POSTURE, 0.5 * POSTURE]), dtype=DT))
+    Jb = hand_jacobian(body, np.stack([POSTURE, 0.5 * POSTURE]))
     assert Jb.shape == (2, 3, 7)
     np.testing.assert_allclose(Jb[0].numpy(), J, rtol=0, atol=1e-14)
 
@@ -83,13 +93,13 @@ def test_hand_force_inverts_transpose_jacobian(rng):
     assert np.linalg.matrix_rank(J) == 3
     F0 = rng.normal(size=3)
     tau = J.T @ F0
-    F = plots.hand_force(body, q, torch.tensor(tau, dtype=DT)).numpy()
+    F = model_plots.hand_force(body, q, torch.tensor(tau, dtype=DT)).numpy()
     np.testing.assert_allclose(F, F0, rtol=0, atol=1e-7)
     np.testing.assert_allclose(J.T @ F, tau, rtol=0, atol=1e-7)
-    _, eta, K = plots.gallery_fields()[2]
+    _, eta, K = model_plots.gallery_fields()[2]
     chi = FieldBasis(eta[None], K[None], kind="full")(q)[0].detach()
     assert float(chi.norm()) > 0.1
-    F = plots.hand_force(body, q, chi).numpy()
+    F = model_plots.hand_force(body, q, chi).numpy()
     np.testing.assert_allclose(J @ (J.T @ F - chi.numpy()), 0.0, rtol=0, atol=1e-7)
 
 
@@ -100,8 +110,8 @@ def test_field_figure_draws_the_field_and_its_hand_forces():
     the least-squares hand forces of those torques, projected onto the plane of the hand
     positions (right): their torques satisfy the normal equations J(JᵀF − χ) = 0."""
     body = tb.arm()
-    _, eta, K = plots.gallery_fields()[2]
-    s = plots.field_slice(body, eta, K, dims=(0, 3), n=7)
+    _, eta, K = model_plots.gallery_fields()[2]
+    s = model_plots.field_slice(body, eta, K, dims=(0, 3), n=7)
     assert s["q"].shape == (7, 7, 7) and s["F"].shape == (7, 7, 3)
     # the slice: η's other coordinates, ν_0 along columns and ν_3 along rows
     np.testing.assert_allclose(s["q"][2, 5][[1, 2, 4, 5, 6]], eta.numpy()[[1, 2, 4, 5, 6]])
@@ -113,9 +123,9 @@ def test_field_figure_draws_the_field_and_its_hand_forces():
         J = fd_jacobian(body, s["q"][r, c])
         np.testing.assert_allclose(J @ (J.T @ s["F"][r, c] - s["chi"][r, c]), 0.0, atol=1e-6)
 
-    fig = plots.field_figure(body, eta, K, title="full")
+    fig = model_plots.field_figure(body, eta, K, title="full")
     left, right = fig.axes[:2]
-    full = plots.field_slice(body, eta, K)
+    full = model_plots.field_slice(body, eta, K)
     qv = [c for c in left.collections if type(c).__name__ == "Quiver"][0]
     np.testing.assert_allclose(qv.U, full["chi"][::2, ::2, 0].ravel())
     np.testing.assert_allclose(qv.V, full["chi"][::2, ::2, 3].ravel())
@@ -129,20 +139,20 @@ def test_field_figure_draws_the_field_and_its_hand_forces():
 
 
 def test_fields_gallery():
-    fig = plots.fields_gallery(tb.arm())
-    kinds = [K for _, _, K in plots.gallery_fields()]
+    fig = model_plots.fields_gallery(tb.arm())
+    kinds = [K for _, _, K in model_plots.gallery_fields()]
     off = ~torch.eye(7, dtype=torch.bool)
     assert torch.allclose(kinds[0], kinds[0][0, 0] * torch.eye(7, dtype=DT))
     assert not kinds[1][off].any() and not torch.allclose(kinds[1], kinds[1][0, 0] * torch.eye(7, dtype=DT))
     assert kinds[2][0, 3] != 0 and bool((torch.linalg.eigvalsh(kinds[2]) > 0).all())
     assert len(fig.axes) == 6
     titles = [fig.axes[k].get_title() for k in (0, 2, 4)]
-    assert [t.split("\n")[0] for t in titles] == [label for label, _, _ in plots.gallery_fields()]
+    assert [t.split("\n")[0] for t in titles] == [label for label, _, _ in model_plots.gallery_fields()]
     plots.plt.close(fig)
 
 
 def test_profiles_figure_plots_psi_and_phi():
-    fig = plots.profiles_figure()
+    fig = model_plots.profiles_figure()
     step, pulse = fig.axes[0].get_lines()[:2]
     u = step.get_xdata()
     assert u[0] == pytest.approx(-0.2) and u[-1] == pytest.approx(1.2)
@@ -160,7 +170,7 @@ def test_profiles_figure_plots_psi_and_phi():
 def test_weights_bars_heights(rng):
     N, M = 3, 2
     a, b = rng.uniform(0.1, 3, size=(N, M)), rng.uniform(0.1, 3, size=(N, M))
-    fig = plots.weights_bars(["m0", "m1", "m2"], a, b, title="w")
+    fig = model_plots.weights_bars(["m0", "m1", "m2"], a, b, title="w")
     ax = fig.axes[0]
     bars = [p for p in ax.patches if isinstance(p, Rectangle)]
     assert len(bars) == N * M * 2
@@ -176,7 +186,7 @@ def test_weights_bars_heights(rng):
 
 def test_learning_curves():
     curves = {"em": [1.0, 0.1, 1e-3], "path": [0.5, 0.4, 0.3, 0.2]}
-    fig = plots.learning_curves(curves, title="t")
+    fig = model_plots.learning_curves(curves, title="t")
     ax = fig.axes[0]
     assert ax.get_yscale() == "log" and ax.get_ylabel() == "relative torque cost"
     lines = ax.get_lines()
@@ -313,7 +323,7 @@ def test_hand_paths_and_strip_axes_in_metres(motion_paths):
 
 
 def test_field_figure_axis_names():
-    fig = plots.field_figure(tb.arm(), *plots.gallery_fields()[0][1:], title="f")
+    fig = model_plots.field_figure(tb.arm(), *model_plots.gallery_fields()[0][1:], title="f")
     assert fig.axes[0].get_xlabel() == "shoulder rotation vector x (rad)"
     assert fig.axes[0].get_ylabel() == "elbow angle (rad)"
     plots.plt.close(fig)
@@ -379,6 +389,7 @@ def tiny_run(tmp_path_factory):
     return {"run": run, "programs": programs}
 
 
+@pytest.mark.slow
 def test_render_writes_gif(tiny_run, tmp_path):
     """One frame per 1/fps over [0, λ]; the frames are logged to TensorBoard as images
     (tests/test_tensorboard.py reads them back) and the log line says so."""
@@ -394,6 +405,7 @@ def test_render_writes_gif(tiny_run, tmp_path):
     assert f"render/{g.name}/frames" in messages[0]
 
 
+@pytest.mark.slow
 def test_render_cli(tiny_run, capsys):
     run, g = tiny_run["run"], tiny_run["programs"][1]
     assert cli.main(["render", str(run), "--motion", g.name, "--fps", "20", "--no-tensorboard"]) == 0
@@ -415,6 +427,7 @@ def test_render_cli(tiny_run, capsys):
         cli.main(["render", str(run), "--motion", g.name, "--fps", "0"])
 
 
+@pytest.mark.slow
 def test_gif_frames_are_large_and_evaluation_has_units(tiny_run, tmp_path):
     """write_gif's frames: ≥ GIF_MIN_WIDTH px wide, fonts ≥ 10 pt; evaluation.json
     carries the same units block as metrics.json."""

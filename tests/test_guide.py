@@ -51,6 +51,7 @@ def test_guide_parses():
     assert "docs/guide.md" in (ROOT / "README.md").read_text()
 
 
+@pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::UserWarning")
 def test_guide_runs(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -69,3 +70,19 @@ def test_guide_runs(tmp_path, monkeypatch):
         for name in creates:
             assert (tmp_path / name).is_file(), f"{where} did not create {name}"
     torch.set_num_threads(threads)
+
+
+# a commit hash: 7 to 40 hex digits with a letter and a digit
+COMMIT = re.compile(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*[0-9])[0-9a-f]{7,40}\b")
+
+
+def test_docs_state_current_figures():
+    """The README and docs/ name no commits (each figure is stated as last measured, with
+    its command); docs/history.md alone keeps the revisions and earlier measurements."""
+    pages = [ROOT / "README.md", ROOT / "bench" / "benchmarks_notes.md",
+             *sorted((ROOT / "docs").glob("*.md"))]
+    for page in pages:
+        if page.name != "history.md":
+            hit = COMMIT.search(page.read_text())
+            assert hit is None, f"{page.relative_to(ROOT)} names {hit.group(0)}: move it to docs/history.md"
+    assert COMMIT.search((ROOT / "docs" / "history.md").read_text())

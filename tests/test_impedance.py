@@ -21,7 +21,9 @@ from tflearn import config
 from tflearn.data import gestures
 from tflearn.fit import search, targets, torque
 from tflearn.io import basis as bio
-from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights, model_from_state, model_state
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram, model_from_state, model_state
+from tflearn.model.weights import MotionWeights
 from tflearn.physics import dynamics
 from tflearn.physics.body import chain
 from tflearn.simulation.simulate import SimOptions, simulate
@@ -122,6 +124,7 @@ def _mechanical_energy(body, basis, a, q, v):
     return dynamics.kinetic_energy(body, q, v) - (a * g).sum(-1)
 
 
+@pytest.mark.slow
 def test_field_damping_dissipates_exactly_its_work():
     """E(t) − E(0) equals the damping work W_D = ∫ Σ_i a_i (−ζ g_i vᵀ K_i v) dt (trapezoid
     on 3,001 samples) to 1e-6 of the energy lost, E never rises, and ζ = 0 conserves E to
@@ -164,6 +167,7 @@ def damped_come_here():
     return lb, basis, motion, targets.prepare(lb.body, [motion])
 
 
+@pytest.mark.slow
 def test_torque_fit_recovers_a_damped_field(damped_come_here):
     """With the generating field and ζ the NNLS weights are a = 3 (to 1e-4) at the
     spline's own error (cost ≤ 1e-8); the same field without damping cannot fit it."""
@@ -221,4 +225,5 @@ def test_slsqp_refuses_field_damping(tmp_path):
     cfg = config.load(None, ["solver.method=slsqp", "model.fields=2", "model.field_damping=0.2",
                              f"out={tmp_path}"])
     with pytest.raises(config.ConfigError, match="field_damping"):
-        train.Run(cfg)
+        train.run(cfg)
+    assert not (tmp_path / "checkpoint.pt").exists()

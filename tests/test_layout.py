@@ -14,8 +14,10 @@ from tflearn.fit.nnls import nnls_lstsq
 from tflearn.metrics import score
 from tflearn.mocap import bvh
 from tflearn.mocap import retarget as rt
-from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.model.fields import FieldBasis
+from tflearn.model.weights import MotionWeights
 from tflearn.motions import motion as motion_mod
+from tflearn.motions import spline
 from tflearn.simulation.simulate import SimOptions
 
 from conftest import DT, full_symmetric, q_to_pin, to_pin
@@ -195,7 +197,8 @@ def test_layout_config_refusals(tmp_path):
                            (["solver.method=slsqp", "model.fields=3", "solver.torque_weight=inertia"],
                             "solver.torque_weight=uniform")):
         with pytest.raises(ConfigError, match=message):
-            train.Run(load(None, base + extra))
+            train.run(load(None, base + extra))
+    assert not tmp_path.joinpath("checkpoint.pt").exists()
 
 
 def test_layout_carries_a_recorded_window(mocap):
@@ -209,7 +212,7 @@ def test_layout_carries_a_recorded_window(mocap):
     i = int(np.searchsorted(m.t.numpy(), 0.08))
     k = i + int(round(0.8 / float(m.t[1] - m.t[0])))
     win = motion_mod.Motion("wave", m.t[i:k + 1] - m.t[i], m.q[i:k + 1], None, r.body)
-    win = motion_mod.resample(win, 100.0, r.body)
+    win = spline.resample(win, 100.0, r.body)
     errors = {}
     for weight in ("inertia", "uniform"):
         tg = targets.prepare(r.body, [win], weight=weight)
@@ -240,6 +243,7 @@ def _spline_run(tmp_path, *overrides):
                        *overrides])
 
 
+@pytest.mark.slow
 def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
     """A three-keyframe spline the pipeline cannot reproduce with one field of its own
     is rescued by default: the stage
@@ -250,14 +254,14 @@ def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
     weights solved over all nine fields, 0.0061 rad / 0.83 cm). The run is killed right
     after the round's checkpoint and resumed there: nothing is left, no round follows."""
     from tflearn import train
-    cfg, save = _spline_run(tmp_path), train.Run.save
+    cfg, save = _spline_run(tmp_path), train.RunContext.save
 
     def kill(self, state):
         save(self, state)
         if state.stage == "rescue" and state.cursor == 1:
             raise train.Interrupted("killed after rescue's first round")
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(train.Run, "save", kill)
+        patch.setattr(train.RunContext, "save", kill)
         with pytest.raises(train.Interrupted):
             train.run(cfg)
     metrics = train.run(cfg)
@@ -268,19 +272,21 @@ def test_rescue_lays_out_fields_for_a_motion_the_pipeline_leaves(tmp_path):
     assert row["success"] and row["rmse"] <= 0.03 and row["tip"] <= 0.02
 
 
+@pytest.mark.slow
 def test_a_rescue_round_that_improves_no_motion_changes_nothing(tmp_path, monkeypatch):
     """With no shooting (``solver.rescue.iterations=0``) the spline's program on the
     simplex alone is farther from it than path matching's (measured: 0.0709 rad before):
     the motion keeps its program, the basis its one field, and the rounds stop after the
     first although three are allowed."""
     from tflearn import train
+    from tflearn.train.stages import rescue
     seen = []
-    round_ = train.Run._rescue_round
+    round_ = rescue.rescue_round
 
-    def spy(self, state, tg, basis, weights, scores, ok):
+    def spy(ctx, state, basis, weights, scores, ok):
         seen.append((basis.M, scores.rmse[0], scores.tip[0]))
-        return round_(self, state, tg, basis, weights, scores, ok)
-    monkeypatch.setattr(train.Run, "_rescue_round", spy)
+        return round_(ctx, state, basis, weights, scores, ok)
+    monkeypatch.setattr(rescue, "rescue_round", spy)
     metrics = train.run(_spline_run(tmp_path, "solver.rescue.iterations=0", "solver.rescue.rounds=3"))
     rescue, = metrics["history"]["rescue"]
     assert rescue == {"motions": ["come_here_keys"], "added": 8, "M": 1, "reproduced": [],

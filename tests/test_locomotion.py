@@ -83,3 +83,42 @@ def test_free_body_needs_a_fixed_root():
     links = (replace(body.links[0], joint="ball"),) + body.links[1:]
     with pytest.raises(md.ModalError, match="root"):
         lo.free_body(body.with_(links=links))
+
+
+@pytest.mark.slow
+def test_locomotion_command_writes_the_gait_its_path_and_a_gif(tmp_path, capsys):
+    """``tflearn locomotion CONFIG``: the small creature, driven by modes 6 and 7 at 4 Hz,
+    travels along its own axis and stays in its vertical plane; locomotion.json's travel
+    is the centre of mass's horizontal travel over [settle, duration] of the path written
+    to locomotion.npz, and its speed that travel per second in body lengths (0.4 m)."""
+    import json
+
+    import numpy as np
+    import yaml
+    from PIL import Image
+
+    from tflearn import cli
+    from tflearn.motions.motion import load as load_motion
+    cfg = {"body": small_creature().to_dict(), "stiffness": {"uniform": 1.0}, "floating": True,
+           "motion": {"drives": [{"mode": 6, "amplitude": 0.3, "frequency": 4.0},
+                                 {"mode": 7, "amplitude": 0.3, "frequency": 4.0, "phase": 1.57}]}}
+    (tmp_path / "small.yaml").write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "out"
+    assert cli.main(["locomotion", str(tmp_path / "small.yaml"), "--out", str(out), "--duration", "0.6",
+                     "--settle", "0.2", "--step", "1e-3"]) == 0
+    assert "wrote locomotion.json, locomotion.npz, locomotion.gif" in capsys.readouterr().out
+    doc = json.loads((out / "locomotion.json").read_text())
+    assert doc["creature"] == "small" and doc["evals"] == 4 * 600
+    assert doc["distance_m"] > 5e-3                                 # it moved (measured 1.4 cm)
+    assert abs(abs(doc["direction_xy"][0]) - 1) < 1e-9 and doc["com_lateral_max_m"] < 1e-9
+    assert doc["body_length_m"] == pytest.approx(0.4, rel=1e-12)
+    assert doc["speed_body_lengths_per_s"] == pytest.approx(doc["distance_m"] / 0.4 / 0.4, rel=1e-12)
+    body = lo.free_body(small_creature()).with_(gravity=(0.0, 0.0, -9.81))
+    path = load_motion(out / "locomotion.npz", body)
+    assert path.T == 301 and path.qd is not None
+    com = lo.centre_of_mass(body, path.q).numpy()
+    keep = path.t.numpy() >= 0.2 - 1e-12
+    travel = com[keep][-1, :2] - com[keep][0, :2]
+    assert np.linalg.norm(travel) == pytest.approx(doc["distance_m"], rel=1e-9)
+    with Image.open(out / "locomotion.gif") as gif:                 # 25 frames per second
+        assert gif.n_frames >= 10

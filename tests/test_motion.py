@@ -1,7 +1,8 @@
-"""Tests for tflearn.motions.motion: files, SO(3) helpers, splines and inverse-dynamics torques.
+"""Tests for tflearn.motions.motion and .spline: files, SO(3) helpers, splines and inverse-dynamics
+torques.
 
 The torque bar: simulate the arm under a known torque program, sample at 100 Hz, recover
-the torques from the samples alone with :func:`tflearn.motions.motion.torques` and compare with the
+the torques from the samples alone with :func:`tflearn.motions.spline.torques` and compare with the
 program evaluated on the samples, away from the ends: relative RMS error ≤ 1 %.
 """
 from __future__ import annotations
@@ -18,8 +19,11 @@ import roma
 import torch
 from hypothesis import HealthCheck, given, settings
 
-from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram
+from tflearn.model.weights import MotionWeights
 from tflearn.motions import motion as M
+from tflearn.motions import spline as S
 from tflearn.physics import configspace as C
 from tflearn.physics import dynamics
 from tflearn.physics.body import arm, chain
@@ -120,11 +124,11 @@ def interior(x, n_drop=15):
     return x[n_drop:-n_drop]
 
 
-@pytest.mark.parametrize("method", M.SPLINE_METHODS)
+@pytest.mark.parametrize("method", S.SPLINE_METHODS)
 @pytest.mark.parametrize("name", list(SIM_CASES))
 def test_torques_recovered_from_simulation(name, method):
     s = simulated(name)
-    tau, omega, acc = M.torques(s["body"], s["motion"], method=method)
+    tau, omega, acc = S.torques(s["body"], s["motion"], method=method)
     assert tau.dtype == omega.dtype == acc.dtype == F64
     assert tau.shape == omega.shape == acc.shape == s["q"].shape
     n_drop = len(s["t"]) // 20
@@ -149,7 +153,7 @@ def test_simulated_motions_have_their_designed_features():
     near = simulated("near_zero")
     assert float(interior(near["q"][:, :3]).norm(dim=-1).min()) < 1e-6
     gd = simulated("gravity_damping")
-    plain = M.torques(arm(), M.Motion("gd", gd["t"], gd["q"]))[0]
+    plain = S.torques(arm(), M.Motion("gd", gd["t"], gd["q"]))[0]
     assert rel_rms(interior(plain, 8), interior(gd["true"], 8)) > 0.5   # g and c matter
 
 
@@ -157,20 +161,20 @@ def test_torques_at_other_times():
     s = simulated("come_here")
     half = M.Motion("half", s["t"][::2], s["q"][::2])     # 50 Hz
     t_odd = s["t"][1::2]
-    tau, omega, _ = M.torques(None, half, t_odd)
+    tau, omega, _ = S.torques(None, half, t_odd)
     keep = slice(8, -8)
     assert rel_rms(tau[keep], s["true"][1::2][keep]) < 1e-2
     assert rel_rms(omega[keep], s["v"][1::2][keep]) < 1e-3
     with pytest.raises(ValueError, match="within"):
-        M.torques(None, half, tensor([3.5]))
-    tau0 = M.torques(None, half, 0.0)[0]
+        S.torques(None, half, tensor([3.5]))
+    tau0 = S.torques(None, half, 0.0)[0]
     assert tau0.shape == (1, 7)
 
 
-@pytest.mark.parametrize("method", M.SPLINE_METHODS)
+@pytest.mark.parametrize("method", S.SPLINE_METHODS)
 def test_kinematics_interpolates_the_samples(method):
     s = simulated("over_pi")
-    q, v, a = M.kinematics(None, s["motion"], method=method)
+    q, v, a = S.kinematics(None, s["motion"], method=method)
     assert float(q[:, :3].norm(dim=-1).max()) <= PI + 1e-9      # principal coordinates
     R_spline = dynamics.joint_rotations(s["body"], q)
     R_sample = dynamics.joint_rotations(s["body"], s["q"])
@@ -182,15 +186,15 @@ def test_kinematics_interpolates_the_samples(method):
 
 def test_resample():
     s = simulated("near_zero")
-    r = M.resample(s["motion"], 50.0)
+    r = S.resample(s["motion"], 50.0)
     assert r.name == "near_zero" and r.qd is not None
     torch.testing.assert_close(r.t, s["t"][::2], rtol=0, atol=1e-12)
     torch.testing.assert_close(r.q, s["q"][::2], rtol=0, atol=1e-9)
     assert rel_rms(interior(r.qd, 8), interior(s["v"][::2], 8)) < 1e-3
     assert r.rate == pytest.approx(50.0)
-    torch.testing.assert_close(M.resample(s["motion"], 100.0).q, s["q"], rtol=0, atol=1e-9)
+    torch.testing.assert_close(S.resample(s["motion"], 100.0).q, s["q"], rtol=0, atol=1e-9)
     with pytest.raises(ValueError, match="rate"):
-        M.resample(s["motion"], 0.0)
+        S.resample(s["motion"], 0.0)
 
 
 # ----------------------------------------------------------------------------------------
@@ -206,7 +210,7 @@ def test_hinge_chain_analytic():
     qdd = torch.stack([-0.8 * w[0]**2 * torch.sin(w[0] * t),
                        0.5 * w[1]**2 * torch.cos(w[1] * t)], -1)
     exact = dynamics.rnea(body, q, qd, qdd) + body.damping * qd
-    tau, v, a = M.torques(body, M.Motion("hinges", t, q, body=body))
+    tau, v, a = S.torques(body, M.Motion("hinges", t, q, body=body))
     k = slice(10, -10)
     assert rel_rms(tau[k], exact[k]) < 1e-6
     assert rel_rms(v[k], qd[k]) < 1e-8
@@ -225,7 +229,7 @@ def ball_path(t):
     return v, vd, vdd
 
 
-@pytest.mark.parametrize("method", M.SPLINE_METHODS)
+@pytest.mark.parametrize("method", S.SPLINE_METHODS)
 def test_ball_chain_analytic(method):
     body = chain(2, joint="ball", gravity=(0.0, -3.0, -9.81))
     t = torch.linspace(0.0, 3.0, 301, dtype=F64)
@@ -237,7 +241,7 @@ def test_ball_chain_analytic(method):
     wd = torch.cat([C.body_acceleration(v1, vd1, vdd1), C.body_acceleration(v2, -vd2, vdd2)], -1)
     exact = dynamics.rnea(body, q, w, wd)
     wrapped = torch.cat([C.wrap_rotvec(v1), C.wrap_rotvec(v2)], -1)
-    tau, omega, acc = M.torques(body, M.Motion("balls", t, wrapped, body=body), method=method)
+    tau, omega, acc = S.torques(body, M.Motion("balls", t, wrapped, body=body), method=method)
     k = slice(10, -10)
     assert rel_rms(omega[k], w[k]) < 1e-8
     assert rel_rms(acc[k], wd[k]) < 1e-6
@@ -247,7 +251,7 @@ def test_ball_chain_analytic(method):
 def test_short_motions_use_a_cubic():
     t = tensor([0.0, 0.1, 0.2, 0.3])
     q = t[:, None] * tensor([0.1, 0.2, 0.0, 0.5, 0.0, 0.1, 0.0])
-    tau, v, a = M.torques(None, M.Motion("short", t, q))
+    tau, v, a = S.torques(None, M.Motion("short", t, q))
     assert tau.shape == (4, 7) and bool(torch.isfinite(tau).all())
     torch.testing.assert_close(v[:, 3], torch.full((4,), 0.5, dtype=F64))
 
@@ -347,7 +351,7 @@ def test_quat_body_motion_for_a_non_unit_path():
     p = p_of(t)
     pd = (p_of(t + h) - p_of(t - h)) / (2 * h)
     pdd = (p_of(t + h) - 2 * p + p_of(t - h)) / h**2
-    w, wd = M.quat_body_motion(p, pd, pdd)
+    w, wd = S.quat_body_motion(p, pd, pdd)
     v, vd, vdd = ball_path(t)
     torch.testing.assert_close(w, C.body_velocity(v, vd), rtol=0, atol=1e-7)
     torch.testing.assert_close(wd, C.body_acceleration(v, vd, vdd), rtol=0, atol=1e-5)
@@ -410,11 +414,9 @@ def test_motion_properties():
     assert m.T == 12 and m.nv == 7 and m.body.name == "arm"
     assert m.duration == pytest.approx(0.11)
     assert m.rate == pytest.approx(100.0)
-    torch.testing.assert_close(m.q0, tensor(q[0]))
-    assert m.qd0.shape == (7,)
-    torch.testing.assert_close(m.qd0[3], tensor(4 / 0.11))   # hinge: a straight line
-    qd = np.ones((12, 7))
-    torch.testing.assert_close(M.Motion("lin", t, q, qd).qd0, torch.ones(7, dtype=F64))
+    qd0 = S.kinematics(None, m, m.t[:1])[1][0]          # the spline's initial velocity
+    assert qd0.shape == (7,)
+    torch.testing.assert_close(qd0[3], tensor(4 / 0.11))     # hinge: a straight line
 
 
 @pytest.mark.parametrize("with_qd", [True, False])
@@ -521,7 +523,7 @@ def test_construction_errors_name_the_motion():
     with pytest.raises(ValueError, match="has 2 samples"):
         M.Motion("w", t[:2], q[:2])
     with pytest.raises(ValueError, match="nv = 7, the chain2 body has nv = 2"):
-        M.torques(chain(2), M.Motion("w", t, q))
+        S.torques(chain(2), M.Motion("w", t, q))
 
 
 def write_good(folder, names):
@@ -726,6 +728,7 @@ def _true_torque_error(motion, lb):
     return float(torque.relative_rms_torque_error(lb.basis, lb.weights, tg)[0])
 
 
+@pytest.mark.slow
 def test_torque_resolution_is_fourth_order_and_near_the_true_error():
     """On come_here the estimate falls ~16× per halving of h (the spline's O(h⁴)
     acceleration error: measured slope 4.6 from 100 to 200 Hz, 4.2 from 200 to 400 Hz)
@@ -735,7 +738,7 @@ def test_torque_resolution_is_fourth_order_and_near_the_true_error():
     come_here = [gestures.GESTURES["come_here"]]
     (m100, _), = gestures.generate(gestures=come_here, rate=100.0)
     (m200, lb), = gestures.generate(gestures=come_here, rate=200.0)
-    e100, e200 = M.torque_resolution(None, m100), M.torque_resolution(None, m200)
+    e100, e200 = S.torque_resolution(None, m100), S.torque_resolution(None, m200)
     assert 3.5 <= math.log2(e100 / e200) <= 5.0
     assert 0.5 <= e200 / _true_torque_error(m200, lb) <= 2.0
 
@@ -749,12 +752,12 @@ def test_torque_resolution_flags_an_unresolved_motion():
     from tflearn.data import gestures
     program = [dataclasses.replace(gestures.random_gestures(3, seed=2024)[1], duration=1.5)]
     (m100, lb), = gestures.generate(gestures=program, rate=100.0)
-    eps = M.torque_resolution(None, m100)
-    assert eps > M.RESOLVED
+    eps = S.torque_resolution(None, m100)
+    assert eps > S.RESOLVED
     assert 0.3 <= eps / _true_torque_error(m100, lb) <= 6.0
     (m, _), = gestures.generate_resolved(program)
     assert m.rate == pytest.approx(200.0)
-    assert M.torque_resolution(None, m) <= M.RESOLVED
+    assert S.torque_resolution(None, m) <= S.RESOLVED
     with pytest.raises(ValueError, match="not resolved at 50 Hz: random2024_1"):
         gestures.generate_resolved(program, max_rate=50.0)
 
@@ -762,4 +765,4 @@ def test_torque_resolution_flags_an_unresolved_motion():
 def test_torque_resolution_of_a_short_motion_is_nan():
     t = torch.linspace(0, 1, 20, dtype=torch.float64)
     m = M.Motion("short", t, torch.zeros(20, 7, dtype=torch.float64))
-    assert math.isnan(M.torque_resolution(None, m))
+    assert math.isnan(S.torque_resolution(None, m))

@@ -64,6 +64,7 @@ def _outputs(nb) -> dict:
     return out
 
 
+@pytest.mark.slow
 def test_notebook_executes(run_dir, monkeypatch):
     """The notebook runs without error on a run given by a path relative to the
     repository root (the kernel starts in notebooks/); it shows the fields and weights

@@ -7,7 +7,7 @@ import torch
 from torchdiffeq import odeint
 
 from tflearn.data import gestures
-from tflearn.model.fields import FieldProgram
+from tflearn.model.program import FieldProgram
 from tflearn.physics.body import arm
 from tflearn.physics.configspace import pack
 from tflearn.simulation.ode import odeint_each

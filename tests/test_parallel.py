@@ -21,11 +21,14 @@ import torch.multiprocessing as mp
 import tflearn
 from tflearn import parallel, train
 from tflearn.fit import path as path_fit
-from tflearn.fit import torque
+from tflearn.fit import targets, torque
 from tflearn.fit.targets import prepare
-from tflearn.model.fields import FieldBasis, MotionWeights, model_state
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import model_state
+from tflearn.model.weights import MotionWeights
 from tflearn.motions.motion import Motion
 from tflearn.simulation.simulate import SimOptions
+from tflearn.train.stages import each
 
 from test_learning import SMALL_OVERRIDES, assert_same_basis, small_config, small_run
 
@@ -134,33 +137,34 @@ class _Threads:
 
 @pytest.mark.parametrize("library", [None, "fields"])
 def test_each_deals_the_declined_motions_searches_to_the_ranks_in_turn(monkeypatch, tmp_path, library):
-    """:meth:`train.Run._fits` on two ranks: the motions of a block (10 … 17) are tried on
+    """:func:`each.fits` on two ranks: the motions of a block (10 … 17) are tried on
     the library by one rank each (rank = position mod 2), and the three it declines
     (11, 12, 15) are searched in turn — 11 and 15 by rank 0, 12 by rank 1, where the
     motions' own ranks would give two to rank 1 — each with its seed and told why it was
     declined; both ranks get every fit in motion order. Without a library every motion
     is searched, dealt the same way."""
     world, calls = _Threads(monkeypatch, 2), []
-    run = train.Run(small_config("gestures", tmp_path / "run"))
+    ctx = train.new_context(small_config("gestures", tmp_path / "run"), None)
 
-    def reuse(lib, tg, k):
+    def reuse(ctx, lib, tg, k):
         calls.append(("try", parallel.rank(), k))
-        return (None, f"why {k}") if k in (11, 12, 15) else ({"fit": k, "reused": True}, None)
+        taken = each.MotionFit(k, 0.0, 1, True, reused=True)
+        return (None, f"why {k}") if k in (11, 12, 15) else (taken, None)
 
-    def fit_one(tg, k, seed):
+    def fit_one(ctx, tg, k, seed):
         calls.append(("search", parallel.rank(), k))
-        return {"fit": k, "seed": seed}
-    monkeypatch.setattr(run, "_reuse", reuse)
-    monkeypatch.setattr(run, "_fit_one", fit_one)
+        return each.MotionFit(k, float(seed), 1, False)            # its seed as its cost
+    monkeypatch.setattr(each, "reuse", reuse)
+    monkeypatch.setattr(each, "fit_one", fit_one)
     batch, seeds = list(range(10, 18)), [100 + k for k in range(20)]
-    fits = world.run(lambda: run._fits(library, None, batch, seeds))
+    fits = world.run(lambda: each.fits(ctx, library, None, batch, seeds))
     assert fits[0] == fits[1]
     if library is None:
-        assert fits[0] == [{"fit": k, "seed": 100 + k, "declined": None} for k in batch]
+        assert fits[0] == [each.MotionFit(k, 100.0 + k, 1, False) for k in batch]
         assert sorted(calls) == sorted(("search", i % 2, k) for i, k in enumerate(batch))
         return
-    assert fits[0] == [{"fit": k, "seed": 100 + k, "declined": f"why {k}"} if k in (11, 12, 15)
-                       else {"fit": k, "reused": True} for k in batch]
+    assert fits[0] == [each.MotionFit(k, 100.0 + k, 1, False, declined=f"why {k}") if k in (11, 12, 15)
+                       else each.MotionFit(k, 0.0, 1, True, reused=True) for k in batch]
     assert sorted(c for c in calls if c[0] == "try") == sorted(("try", i % 2, k) for i, k in enumerate(batch))
     assert sorted(c for c in calls if c[0] == "search") == [("search", 0, 11), ("search", 0, 15),
                                                           ("search", 1, 12)]
@@ -194,21 +198,29 @@ def _path_problem():
 
 def _path_steps(distributed: bool) -> dict:
     """Two path-matching steps (the second from the first's Adam state) on
-    :func:`_path_problem`, and 6 EM steps towards its model from centres moved by 0.1."""
+    :func:`_path_problem`, and 6 EM steps towards its model from centres moved by 0.1,
+    the three motions in one chunk ("em": every rank runs EM whole) and in a chunk each
+    ("em_chunks", ``targets.CHUNK_BYTES`` 1: the ranks share the chunks)."""
     body, basis, weights, tg = _path_problem()
     options = SimOptions(method="rk4", solver_options={"step_size": 0.01})
     first = path_fit.path_step(body, basis, weights, tg, 0.01, options=options, distributed=distributed)
     second = path_fit.path_step(body, basis, weights, tg, first.lr, first.best, first.optimizer,
                                 options=options, distributed=distributed)
-    path_model = model_state(basis, weights)
-    _, basis, weights, tg = _path_problem()                   # EM from off the model that made tg.tau
-    x = torch.cat([weights.a, weights.b], -1)
-    tg = dataclasses.replace(tg, tau=(torque.design(basis, weights, tg) @ x[:, None, :, None]).squeeze(-1))
-    with torch.no_grad():
-        basis.eta += 0.1
-    history = torque.em(basis, weights, tg, steps=6, distributed=distributed)
-    return {"loss": [first.loss, second.loss], "model": path_model,
-            "em": history, "em_model": model_state(basis, weights)}
+    out = {"loss": [first.loss, second.loss], "model": model_state(basis, weights)}
+    for key, chunk_bytes in (("em", targets.CHUNK_BYTES), ("em_chunks", 1)):
+        _, basis, weights, tg = _path_problem()               # EM from off the model that made tg.tau
+        x = torch.cat([weights.a, weights.b], -1)
+        tau = (torque.design(basis, weights, tg) @ x[:, None, :, None]).squeeze(-1)
+        tg = dataclasses.replace(tg, tau=tau)
+        with torch.no_grad():
+            basis.eta += 0.1
+        saved, targets.CHUNK_BYTES = targets.CHUNK_BYTES, chunk_bytes
+        try:
+            out[key] = torque.em(basis, weights, tg, steps=6, distributed=distributed)
+        finally:
+            targets.CHUNK_BYTES = saved
+        out[f"{key}_model"] = model_state(basis, weights)
+    return out
 
 
 def _rank_main(rank: int, size: int, port: int, data: str, out: str, steps: str) -> None:
@@ -238,10 +250,14 @@ def _rank_main(rank: int, size: int, port: int, data: str, out: str, steps: str)
         dist.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
     """Two gloo ranks (torch.multiprocessing): two path-matching steps on three motions
-    (two on rank 0, one on rank 1; losses gathered, gradients all-reduced) and EM
-    (weights solved per rank, JᵀJ and Jᵀr all-reduced) end where one process's do;
+    (two on rank 0, one on rank 1; losses gathered, gradients all-reduced) end where one
+    process's do, to rounding (the ranks' gradients are summed in another grouping); EM
+    takes one process's steps to the last bit, in one chunk (run whole by every rank) or
+    in three (shared: each chunk's weights solved and its terms of JᵀJ and Jᵀr formed by
+    one rank, every rank adding them in chunk order);
     then both ranks fit the two motions of the small run in one round of ``each`` and
     stop at its checkpoint, written by rank 0 alone: the fits are those of one process
     stopped after the same two motions (each motion's search has its own seeded
@@ -251,19 +267,22 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
     shared, alone = torch.load(steps, weights_only=True), _path_steps(distributed=False)
     assert alone["loss"][1] < alone["loss"][0]                  # the steps did something
     assert shared["loss"] == pytest.approx(alone["loss"], rel=1e-12)
-    assert len(alone["em"]) == 7 and alone["em"][-1] < 0.9 * alone["em"][0]   # EM moved
-    assert shared["em"] == pytest.approx(alone["em"], rel=1e-10)
-    for model in ("model", "em_model"):
+    for em in ("em", "em_chunks"):
+        assert alone[em][-1] < 0.9 * alone[em][0] and shared[em] == alone[em]      # EM moved; the same steps
         for part in ("basis", "weights"):
-            for key, value in alone[model][part].items():
-                assert torch.allclose(shared[model][part][key], value, rtol=1e-10, atol=1e-12), key
+            for key, value in alone[f"{em}_model"][part].items():
+                assert torch.equal(shared[f"{em}_model"][part][key], value), key
+    for part in ("basis", "weights"):
+        for key, value in alone["model"][part].items():
+            assert torch.allclose(shared["model"][part][key], value, rtol=1e-10, atol=1e-12), key
+    for model in ("model", "em_model", "em_chunks_model"):
         assert not torch.equal(alone[model]["basis"]["eta"], _path_problem()[1].eta.detach())
     assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
     with pytest.raises(train.Interrupted):
         train.run(small_config(run_dir["data"], tmp_path / "one"), stop_after=2)
     state = torch.load(out / "checkpoint.pt", weights_only=True)
     ref = torch.load(tmp_path / "one" / "checkpoint.pt", weights_only=True)
-    assert (state["stage"], state["cursor"], state["step"]) == ("each", 2, 2)
+    assert (state["stage"], state["cursor"], state["iteration"]) == ("each", 2, 2)
     assert torch.load(run_dir["out"] / "checkpoint.pt", weights_only=True)["fits"] == []
     assert len(state["fits"]) == len(ref["fits"]) == 2
     for (eta, K, timing), (eta0, K0, timing0) in zip(state["fits"], ref["fits"]):
@@ -271,6 +290,7 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
         assert timing.keys() == timing0.keys() and all(torch.equal(timing[k], timing0[k]) for k in timing)
 
 
+@pytest.mark.slow
 def test_torchrun_resumes_a_one_process_checkpoint(run_dir, tmp_path):
     """One process fits the first motion and stops at that checkpoint; ``torchrun
     --standalone --nproc-per-node 2 -m tflearn.cli train`` resumes it to the end: the
@@ -296,6 +316,7 @@ def test_torchrun_resumes_a_one_process_checkpoint(run_dir, tmp_path):
         assert abs(metrics["motions"][name]["rmse"] - row["rmse"]) <= 1e-6
 
 
+@pytest.mark.slow
 def test_ranks_leave_the_group_together(tmp_path):
     """Rank 1 leaves the ``group`` body at once with exit status 1 (as ``train`` does when
     a motion is not reproduced), rank 0 only after writing a file 2 s later: torchrun,

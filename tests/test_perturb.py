@@ -13,7 +13,7 @@ import torch
 from tflearn.control import controllers as C
 from tflearn.control import pushes as P
 from tflearn.data import gestures
-from tflearn.model.fields import FieldProgram
+from tflearn.model.program import FieldProgram
 from tflearn.physics import body as tb
 from tflearn.physics import dynamics
 from tflearn.simulation.simulate import SimOptions, simulate
@@ -69,6 +69,7 @@ def responses(gesture):
             for name in C.CONTROLLERS}
 
 
+@pytest.mark.slow
 def test_zero_force_ff_and_ff_pd_reproduce_the_target(gesture, responses):
     """Exact feed-forward torques replay the gesture open loop and with feedback."""
     body, motion, _, _ = gesture
@@ -81,7 +82,7 @@ def test_zero_force_ff_and_ff_pd_reproduce_the_target(gesture, responses):
 def test_spline_feedforward_is_the_learners_torque(gesture):
     """The default τ_ff is motion.torques (the spline's inverse dynamics) at any time, and
     within 1e-3 relative of the generating program's exact torque mid-motion."""
-    from tflearn.motions.motion import torques
+    from tflearn.motions.spline import torques
     body, motion, _, exact = gesture
     spline = C.Target(body, motion)
     t = motion.t[40:50]
@@ -92,6 +93,7 @@ def test_spline_feedforward_is_the_learners_torque(gesture):
     assert float((ours - true).norm() / true.norm()) < 1e-3
 
 
+@pytest.mark.slow
 def test_a_push_separates_the_controllers(gesture, responses):
     """ff ends further from the target than ff+pd and fields; pd-high deviates least but
     with the largest peak torque."""
@@ -106,6 +108,7 @@ def test_a_push_separates_the_controllers(gesture, responses):
     assert m["ff+pd"]["max_hand_dev"] > 0.01            # the push is felt
 
 
+@pytest.mark.slow
 def test_recovery_time_falls_as_gains_rise(gesture):
     """ff+pd at K₀·s, B₀·√s for s = 1, 2, 4 (one batch: each scale unperturbed and pushed)."""
     body, motion, program, exact = gesture
@@ -226,6 +229,7 @@ def test_perturb_command(tmp_path, capsys):
         assert err.startswith("tflearn: ") and word in err and "\n" not in err, err
 
 
+@pytest.mark.slow
 def test_perturb_a_folder_of_imported_motions(tmp_path, capsys):
     """MODEL may be a folder of motions without a basis (NAME.npz and body.yaml, as
     ``tflearn bvh import`` writes clips): the tracking controllers run on the body of

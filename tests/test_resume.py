@@ -25,6 +25,7 @@ def run_dir(tmp_path_factory):
     return small_run(tmp_path_factory)       # the run shared with test_learning.py
 
 
+@pytest.mark.slow
 def test_resume_after_interrupt(run_dir, tmp_path):
     """Interrupted after 1 checkpoint (inside stage "each"), then after 2 more (at the end
     of "pool"), then after 2 more (inside "reduce"), then resumed to the end: basis.json
@@ -78,6 +79,7 @@ def _checkpoint_stage(out: Path):
         return None
 
 
+@pytest.mark.slow
 def test_sigkill_at_several_moments_then_rerun(run_dir, tmp_path):
     """A real ``tflearn train`` process killed with SIGKILL while it fits the first
     motion (no checkpoint yet), right after the first checkpoint, once it reaches the
@@ -117,12 +119,14 @@ def test_sigkill_at_several_moments_then_rerun(run_dir, tmp_path):
     assert not list(out.rglob(".*.tmp*"))
 
 
+@pytest.mark.slow
 def test_checkpoint_is_plain_data(run_dir):
     """The checkpoint loads with ``weights_only=True`` (no pickled objects)."""
     state = torch.load(run_dir["out"] / "checkpoint.pt", weights_only=True)
     assert state["format"] == train.CHECKPOINT_FORMAT and state["stage"] == "done"
 
 
+@pytest.mark.slow
 def test_checkpoint_of_other_config_refused(run_dir):
     out = run_dir["out"]
     before = (out / "checkpoint.pt").read_bytes()
@@ -133,6 +137,7 @@ def test_checkpoint_of_other_config_refused(run_dir):
     assert (out / "checkpoint.pt").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_checkpoint_from_before_a_config_key_resumes(run_dir, tmp_path):
     """A checkpoint written before a config key existed (its config lacks the key) ran as
     the key's default does: it resumes under the default, and is refused, naming the key,
@@ -160,6 +165,7 @@ def test_config_changes_names_dotted_keys():
     assert train.config_changes(old, old) == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("content,problem", [
     ({"format": "tflearn-checkpoint/1", "stage": "each"}, "another tflearn version"),
     ({"stage": "each", "cursor": 0}, "another tflearn version"),
@@ -182,6 +188,7 @@ def test_bad_checkpoints_refused(run_dir, tmp_path, content, problem):
     assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
 
 
+@pytest.mark.slow
 def test_pickled_checkpoint_is_not_loaded(run_dir, tmp_path):
     """A checkpoint that would need pickle (an arbitrary object) is refused, not run."""
     out = tmp_path / "run"

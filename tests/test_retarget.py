@@ -219,33 +219,34 @@ def test_train_data_names_bvh(mocap, tmp_path):
     window [0.5, 1.25] s at 50 Hz is the whole clip's import cut there (38 samples,
     coordinates equal to 1e-12, times from 0, clip times 0.5–1.24 s), and the torso's
     frames cover it; a window longer than every clip, a config mixing clips and motions,
-    and a replaced body are reported."""
+    and a replaced body are reported, by ``train`` before any work."""
     from tflearn import config, train
     from tflearn.errors import InputError
     from tflearn.mocap import clips as mocap_mod
     from tflearn.motions import motion
+    from tflearn.physics.body import from_config
     clip = mocap / "dataset-2_wave-right-hand_normal_001.bvh"
     base = [f"data={clip}", f"out={tmp_path / 'run'}", "bvh.rate=50"]
-    run = train.Run(config.load(None, base + ["bvh.window=[0.5,1.25]"]))
-    folder = tmp_path / "run" / "imported"
-    assert run.cfg.data == str(folder) and run.imported["clips"][0]["window_s"] == pytest.approx([0.5, 1.24])
+    cfg, imported = mocap_mod.import_config(config.load(None, base + ["bvh.window=[0.5,1.25]"]))
+    folder, body = tmp_path / "run" / "imported", from_config(cfg.body)
+    assert cfg.data == str(folder) and imported["clips"][0]["window_s"] == pytest.approx([0.5, 1.24])
     whole = mocap_mod.import_clips([clip], tmp_path / "whole", mocap_mod.ImportOptions(rate=50))
-    assert run.cfg.body == whole["body"] == run.imported["body"]
-    got = motion.load(folder / "dataset-2_wave-right-hand_normal_001.npz", run.body)
-    want = motion.load(tmp_path / "whole" / "dataset-2_wave-right-hand_normal_001.npz", run.body)
+    assert cfg.body == whole["body"] == imported["body"]
+    got = motion.load(folder / "dataset-2_wave-right-hand_normal_001.npz", body)
+    want = motion.load(tmp_path / "whole" / "dataset-2_wave-right-hand_normal_001.npz", body)
     assert got.T == 38 and float(got.t[0]) == 0.0 and abs(float(got.t[-1]) - 0.74) < 1e-12
     assert torch.allclose(got.q, want.q[25:63], atol=1e-12, rtol=0)
     torso = np.load(folder / "torso" / "dataset-2_wave-right-hand_normal_001.npz")
     assert -1 / 30 < torso["t"][0] <= 0.0 and 0.74 <= torso["t"][-1] < 0.74 + 1 / 30
     with pytest.warns(rt.BVHWarning, match="window \\[0.0, 100.0\\] s ends after the clip"):
         with pytest.raises(InputError, match="no clip is as long as the window"):
-            train.Run(config.load(None, base + ["bvh.window=[0,100]"]))
+            train.run(config.load(None, base + ["bvh.window=[0,100]"]))
     with pytest.raises(InputError, match="ends after the clip"):
-        train.Run(config.load(None, base + ["bvh.window=[0,100]", "strict=true"]))
+        train.run(config.load(None, base + ["bvh.window=[0,100]", "strict=true"]))
     with pytest.raises(InputError, match="names BVH clips and motion files together"):
-        train.Run(config.load(None, [f"data=[{clip}, {folder}/x.npz]", f"out={tmp_path}"]))
+        train.run(config.load(None, [f"data=[{clip}, {folder}/x.npz]", f"out={tmp_path}"]))
     with pytest.warns(UserWarning, match="config's body: section is replaced"):
-        train.Run(config.load(None, base + ["body.lengths=[0.3,0.3,0.1]"]))
+        mocap_mod.import_config(config.load(None, base + ["body.lengths=[0.3,0.3,0.1]"]))
 
 
 def test_split_into_pieces(mocap, tmp_path):

@@ -1,5 +1,5 @@
 """Activation sequences: P sub-movement windows per motion, a pulse weight c_jik ≥ 0 of
-every field on each (tflearn.model.fields.MotionWeights).
+every field on each (tflearn.model.weights.MotionWeights).
 
 The activation against its formula, non-negative and C¹; P = 0 is the thesis' model
 exactly; a motion driven by one field switched on twice is fitted by its own windows to
@@ -18,15 +18,9 @@ import torch
 from tflearn.data import gestures
 from tflearn.fit import search, targets, torque
 from tflearn.io import basis as bio
-from tflearn.model.fields import (
-    FieldBasis,
-    FieldProgram,
-    MotionWeights,
-    model_from_state,
-    model_state,
-    pulse_profile,
-    step_profile,
-)
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram, model_from_state, model_state
+from tflearn.model.weights import MotionWeights, pulse_profile, step_profile
 from tflearn.motions.motion import Motion
 from tflearn.simulation.simulate import SimOptions, simulate
 

@@ -15,16 +15,19 @@ import math
 import pytest
 import torch
 
-from tflearn import evaluate, train
+from tflearn import evaluate, synthesis, train
 from tflearn.fit import path as path_fit
 from tflearn.fit import shooting, targets
 from tflearn.io import basis as bio
 from tflearn.metrics import score
-from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights, model_from_state, model_state
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram, model_from_state, model_state
+from tflearn.model.weights import MotionWeights
 from tflearn.motions.motion import Motion
 from tflearn.physics import dynamics
 from tflearn.physics.body import chain
 from tflearn.simulation.simulate import SimOptions, simulate
+from tflearn.train.stages import reduce
 
 from test_learning import small_config, small_data
 
@@ -96,6 +99,7 @@ def test_segments_tile_every_motion(problem):
             assert torch.allclose(seg.t0[rows], tg.t[j, seg.sample[rows, 0]])
 
 
+@pytest.mark.slow
 def test_a_motions_residuals_do_not_depend_on_the_motions_beside_it(problem):
     """Motion 1 (1.0 s) simulated alone and beside the longer motion 0 (1.2 s), at a
     horizon longer than both: residuals and Jacobian of the same shape and, to the
@@ -117,6 +121,7 @@ def test_a_motions_residuals_do_not_depend_on_the_motions_beside_it(problem):
     assert torch.allclose(J_alone, J_both, rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_one_segment_per_motion_is_the_path_loss(problem):
     body, basis, weights, tg = problem
     w = _perturbed(weights)
@@ -130,6 +135,7 @@ def test_one_segment_per_motion_is_the_path_loss(problem):
     assert torch.allclose(cost, loss, rtol=1e-7)
 
 
+@pytest.mark.slow
 def test_tip_weight_adds_the_hand_distance(problem):
     """With γ > 0 and one segment per motion, the cost is the path loss plus
     γ Σ_t (w_t/λ) ‖p(q_sim,t) − p(q_t)‖², p the hand tip (1e-7), and 2 Jᵀr is still the
@@ -154,6 +160,7 @@ def test_tip_weight_adds_the_hand_distance(problem):
     assert torch.allclose(2 * Jtr, grad, rtol=1e-5, atol=1e-5 * float(grad.abs().max()))
 
 
+@pytest.mark.slow
 def test_jacobian_gives_the_backpropagated_gradient(problem):
     """2 Jᵀr from the batched forward differences = ∂(Σ_j L_j)/∂(a, b, c) by
     backpropagation through odeint, single shooting, to 1e-5 relative."""
@@ -168,6 +175,7 @@ def test_jacobian_gives_the_backpropagated_gradient(problem):
     assert torch.allclose(2 * Jtr, grad, rtol=1e-5, atol=1e-5 * float(grad.abs().max()))
 
 
+@pytest.mark.slow
 def test_recovers_the_generating_weights(problem):
     """From weights off by up to 40 %, the fit ends on the generating weights (to 1e-5)
     with a path loss below 1e-9; the bounds a, b, c ≥ 0 hold (the zero weights stay
@@ -252,6 +260,7 @@ def test_broyden_updates_save_jacobians(problem, monkeypatch):
     assert count[True] < count[False]
 
 
+@pytest.mark.slow
 def test_fits_the_timing_too(problem):
     """With ``phases``, window onsets 50 ms late are moved back (to 2 ms) and the path
     loss falls below 1e-9. (A step's weight and its duration trade off over a path this
@@ -273,6 +282,7 @@ def _fields_off(basis, shift=0.05, factor=1.2):
     return basis.like(basis.eta.detach() + shift, factor * basis.K().detach())
 
 
+@pytest.mark.slow
 def test_free_fields_jacobian_gives_the_backpropagated_gradient(problem):
     """With free fields (one motion), 2 Jᵀr = ∂L/∂(a, b, c, η, free stiffness parameters)
     by backpropagation through odeint, single shooting, to 1e-5 relative."""
@@ -297,6 +307,7 @@ def test_free_fields_jacobian_gives_the_backpropagated_gradient(problem):
     assert torch.allclose(2 * Jtr, grad, rtol=1e-5, atol=1e-5 * float(grad.abs().max()))
 
 
+@pytest.mark.slow
 def test_free_fields_recover_the_generating_fields(problem):
     """From centres 0.05 rad off in every coordinate, stiffnesses 20 % off and weights up
     to 40 % off, shooting with the fields free ends on the generating fields and
@@ -381,6 +392,7 @@ def test_back_off_takes_the_first_fraction_that_can_be_simulated():
     assert torch.equal(theta, torch.tensor([[0.15, 0.0, -0.05], [5.0, 5.0, 5.0]], dtype=DT))
 
 
+@pytest.mark.slow
 def test_path_stage_starts_with_multiple_shooting(small_motions, tmp_path, monkeypatch):
     """With a bar no fit meets (1e-6 rad, 1 µm), the path stage takes every motion
     (one field per motion, no Adam steps): multiple shooting gets the model that
@@ -388,12 +400,12 @@ def test_path_stage_starts_with_multiple_shooting(small_motions, tmp_path, monke
     0.00085 → 0.00063 in one iteration per horizon); history.shooting records the loss
     that basis.json's weights give."""
     seen = {}
-    shoot = train.Run._shoot
+    shoot = train.RunContext.shoot
 
-    def spy(self, basis, weights, tg, motions, state, opts=None):
-        seen.update(model=model_state(basis, weights), motions=list(motions), tg=tg)
-        return shoot(self, basis, weights, tg, motions, state, opts)
-    monkeypatch.setattr(train.Run, "_shoot", spy)
+    def spy(self, state, basis, weights, motions, options=None):
+        seen.update(model=model_state(basis, weights), motions=list(motions), tg=self.tg)
+        return shoot(self, state, basis, weights, motions, options)
+    monkeypatch.setattr(train.RunContext, "shoot", spy)
     cfg = small_config(small_motions["data"], tmp_path / "run", "success.rmse=1e-6", "success.tip=1e-6",
                        "solver.each.max_fields=1", "solver.rescue.enabled=false",
                        "solver.path.steps=0", "solver.shooting.iterations=1")
@@ -417,22 +429,23 @@ def test_path_stage_starts_with_multiple_shooting(small_motions, tmp_path, monke
         assert recorded[name]["loss"] == pytest.approx(a, rel=1e-3), name
 
 
+@pytest.mark.slow
 def test_reduce_checks_trials_together_with_the_decisions_of_one_at_a_time(small_motions, tmp_path,
                                                                             monkeypatch):
     """With solver.path.batch: each, elimination checks several trials in one simulation;
     every trial's scores are exactly those it gets checked alone, so the run decides as
     one trial at a time would."""
     sizes = []
-    checks = train.Run._checks
+    checks = reduce.checks
 
-    def spy(self, models, tg):
-        out = checks(self, models, tg)
+    def spy(ctx, models, tg):
+        out = checks(ctx, models, tg)
         sizes.append(len(models))
         for model, (s, ok) in zip(models, out):
-            alone, ok_alone = self._check(*model, tg)
+            alone, ok_alone = ctx.check(*model, tg)
             assert (s.rmse, s.tip, ok) == (alone.rmse, alone.tip, ok_alone)
         return out
-    monkeypatch.setattr(train.Run, "_checks", spy)
+    monkeypatch.setattr(reduce, "checks", spy)
     cfg = small_config(small_motions["data"], tmp_path / "run", "solver.path.batch=each",
                        "solver.path.steps=0", "solver.shooting.iterations=0")
     metrics = train.run(cfg)
@@ -468,21 +481,22 @@ def _tuck_and_come_here():
 
 
 def test_nearest_programs_are_the_best_matching_ones_scaled_in_time():
-    """:func:`evaluate.nearest_programs`: each motion gets the basis' program whose torques
+    """:func:`synthesis.nearest_programs`: each motion gets the basis' program whose torques
     match it best — a motion's own (cost 0) —, its onsets and durations scaled by the
     ratio of the durations (a motion played at half speed: twice as long)."""
     lb, (come, tuck) = _tuck_and_come_here()
-    got = evaluate.nearest_programs(lb, targets.prepare(lb.body, [tuck, come]))
+    got = synthesis.nearest_programs(lb.basis, lb.weights, targets.prepare(lb.body, [tuck, come]))
     assert got.names == ["tuck", "come_here"]
     assert torch.equal(got.vector(), lb.weights.select_motions([1, 0]).vector())
     slow = Motion("slow_tuck", 2 * tuck.t, tuck.q, tuck.qd / 2)
-    got = evaluate.nearest_programs(lb, targets.prepare(lb.body, [slow]))
+    got = synthesis.nearest_programs(lb.basis, lb.weights, targets.prepare(lb.body, [slow]))
     keys = got.TIMING + got.WINDOWS
     k = [j for j in range(2) if torch.equal(got.flat(("a_raw",)), lb.weights.flat(("a_raw",))[[j]])]
     assert len(k) == 1 and float(got.duration[0]) == pytest.approx(2 * float(lb.weights.duration[k[0]]))
     assert torch.allclose(got.flat(keys), 2 * lb.weights.flat(keys)[k], rtol=1e-12, atol=0)
 
 
+@pytest.mark.slow
 def test_synthesis_falls_back_on_the_nearest_program():
     """A motion that its NNLS weights (a ridge of 1e6 shrinks them to nearly 0) and one
     shooting iteration from them bring within 0.0017 rad of its path, where the bar is
@@ -498,6 +512,7 @@ def test_synthesis_falls_back_on_the_nearest_program():
     assert torch.allclose(w.vector(), lb.weights.select_motions([1]).vector(), atol=1e-6)
 
 
+@pytest.mark.slow
 def test_synthesis_keeps_the_nearest_program_when_no_fit_comes_closer(monkeypatch):
     """Where both shooting fits (from the NNLS weights and from the nearest program) end
     with weights that cannot be simulated (a stand-in solver that throws every weight to
@@ -511,7 +526,7 @@ def test_synthesis_keeps_the_nearest_program_when_no_fit_comes_closer(monkeypatc
         with torch.no_grad():
             weights.a_raw[list(range(weights.N)) if motions is None else motions] = 1e4
         return shooting.ShootingResult(loss=[])
-    monkeypatch.setattr(evaluate, "shooting_match", wild)
+    monkeypatch.setattr(synthesis, "shooting_match", wild)
     from tflearn.fit.torque import DivergenceWarning
     with pytest.warns(DivergenceWarning, match="no fit came closer than the nearest trained program"):
         w = evaluate.synthesize(lb, tg, shooting.ShootingOptions(iterations=1), sim, (1e-5, 1e-5),

@@ -10,7 +10,9 @@ import pytest
 import torch
 
 from tflearn.data import gestures
-from tflearn.model.fields import FieldBasis, FieldProgram, MotionWeights
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram
+from tflearn.model.weights import MotionWeights
 from tflearn.physics.body import arm
 from tflearn.physics.configspace import pack
 from tflearn.simulation import simkernel
@@ -101,7 +103,7 @@ def _turning_bases(rng, n, T=41, span=1.0):
     return Bases.of(motions)
 
 
-@pytest.mark.parametrize("name", ["arm_offsets", "tree"])
+@pytest.mark.parametrize("name", [pytest.param("arm_offsets", marks=pytest.mark.slow), "tree"])
 def test_a_moving_base_per_member(name, rng, monkeypatch):
     """Each member on its own moving base (tflearn.motions.torso.Bases, members taken in another
     order and shifted in time, under gravity): the compiled loop's base polynomials and

@@ -18,7 +18,9 @@ from torch.autograd import gradcheck
 from torch.func import functional_call
 from torchdiffeq import odeint
 
-from tflearn.model import fields as F
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram
+from tflearn.model.weights import MotionWeights
 from tflearn.physics import body as tb
 from tflearn.physics import configspace as C
 from tflearn.physics import dynamics as D
@@ -84,12 +86,12 @@ def test_total_energy_conserved_with_gravity(gen):
 def _field_program(gen, N, M, n=7, scale=0.3):
     eta = 0.5 * torch.randn(M, n, dtype=DT, generator=gen)
     K = torch.diag_embed(0.5 + 1.5 * torch.rand(M, n, dtype=DT, generator=gen))
-    basis = F.FieldBasis(eta, K, kind="block", blocks=[3, 1, 3])
+    basis = FieldBasis(eta, K, kind="block", blocks=[3, 1, 3])
     a = scale * (0.5 + torch.rand(N, M, dtype=DT, generator=gen))
     b = scale * (0.5 + torch.rand(N, M, dtype=DT, generator=gen))
-    weights = F.MotionWeights(a, b, duration=torch.full((N,), 0.8, dtype=DT),
+    weights = MotionWeights(a, b, duration=torch.full((N,), 0.8, dtype=DT),
                               pulse_onset=0.1 * torch.rand(N, M, dtype=DT, generator=gen))
-    return F.FieldProgram(basis, weights)
+    return FieldProgram(basis, weights)
 
 
 def test_work_equals_energy_gain(gen):

@@ -7,7 +7,8 @@ import torch
 from tflearn.data import gestures
 from tflearn.fit import slsqp, torque
 from tflearn.fit.targets import prepare
-from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.model.fields import FieldBasis
+from tflearn.model.weights import MotionWeights
 from tflearn.physics import body as tb
 
 DT = torch.float64

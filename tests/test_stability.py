@@ -5,7 +5,8 @@ import torch
 
 from tflearn.fit.stability import growth, jacobians, program_growth, program_jacobians
 from tflearn.fit.targets import prepare
-from tflearn.model.fields import FieldBasis, MotionWeights
+from tflearn.model.fields import FieldBasis
+from tflearn.model.weights import MotionWeights
 from tflearn.motions.motion import Motion
 from tflearn.motions.torso import BaseMotion, Bases
 from tflearn.physics import body as tb
@@ -176,7 +177,7 @@ def test_each_motion_is_linearised_on_the_fields_it_uses(monkeypatch):
     and the rates are those of the whole basis (errors damped in the first, pushed apart
     in the second)."""
     from tflearn.fit import stability, targets
-    from tflearn.model import fields
+    from tflearn.model.program import FieldProgram
     body = tb.chain(2, "hinge", damping=0.02)
     eta = torch.tensor([[0.2, -0.4], [-0.3, 0.5], [1.5, 1.5]], dtype=F64)
     k = torch.tensor([5.0, 12.0, 3.0], dtype=F64)[:, None, None]
@@ -185,11 +186,11 @@ def test_each_motion_is_linearised_on_the_fields_it_uses(monkeypatch):
     weights = MotionWeights(a, torch.zeros_like(a), torch.tensor([1.0, 1.0], dtype=F64))
     off = eta[1] + torch.tensor([0.6, 0.0], dtype=F64)           # past the inflection, 1/√12
     tg = prepare(body, [held(body, eta[0], name="m0"), held(body, off, name="m1")])
-    full = program_growth(body, fields.FieldProgram(basis, weights), tg)
+    full = program_growth(body, FieldProgram(basis, weights), tg)
     assert float(full.rate[0, 25:].max()) < 0 < float(full.rate[1, 25:].min())   # the step on
     built = []
     monkeypatch.setattr(stability, "FieldProgram",
-                        lambda b, w: built.append(b.eta.tolist()) or fields.FieldProgram(b, w))
+                        lambda b, w: built.append(b.eta.tolist()) or FieldProgram(b, w))
     for size, chunked in ((None, [[[eta[0].tolist()], [eta[1].tolist()]]]),
                           (1, [[[eta[0].tolist()]], [[eta[1].tolist()]]])):
         built.clear()
@@ -222,8 +223,9 @@ def test_elimination_refuses_a_removal_that_adds_error_growth(tmp_path):
     from tflearn import config, train
     from tflearn.fit import stability
     from tflearn.metrics import Scores
-    run = train.Run(config.load(None, [f"out={tmp_path}", "solver.reduce.growth=1.0"]))
-    body = run.body
+    from tflearn.train.stages import reduce
+    from tflearn.train.state import Reference
+    body = tb.from_config(config.load(None, []).body)
     eta = torch.zeros(7, dtype=F64)
     wild = torch.full((7,), 0.6, dtype=F64)
     tg = prepare(body, [held(body, eta, name="calm"), held(body, wild, name="wild")])
@@ -232,13 +234,15 @@ def test_elimination_refuses_a_removal_that_adds_error_growth(tmp_path):
     efolds = stability.growth(body, basis, weights, tg).efolds.tolist()
     assert efolds[0] < 1e-6 and efolds[1] > 2.0          # at the centre / beyond the inflection
     reproduced = (Scores([0.0] * 2, [0.0] * 2, [0.0] * 2, tg.q, [None] * 2), [True, True])
-    state = train.RunState(config={}, stage="reduce", rng=torch.zeros(1), reference={
-        "rmse": [0.01] * 2, "tip": [0.01] * 2, "ok": [True] * 2, "efolds": [0.0, 0.0]})
-    trial = {"check": reproduced, "motions": [0, 1], "model": (basis, weights)}
-    assert not run._accepts(state, trial, tg)
-    assert trial["efolds"] == efolds
-    state.reference["efolds"][1] = efolds[1] - 0.9       # within one e-fold of the reference
-    assert run._accepts(state, trial, tg)
-    state.reference["efolds"][1] = 0.0
-    plain = train.Run(config.load(None, [f"out={tmp_path}"]))
-    assert plain._accepts(state, {"check": reproduced, "motions": [0, 1], "model": (basis, weights)}, tg)
+    state = train.RunState(config={}, stage="reduce", rng=torch.zeros(1), reference=Reference(
+        rmse=[0.01] * 2, tip=[0.01] * 2, ok=[True] * 2, efolds=[0.0, 0.0]))
+    ctx = train.new_context(config.load(None, [f"out={tmp_path}", "solver.reduce.growth=1.0"]), tg)
+    trial = reduce.Trial(0, "refit", check=reproduced, motions=[0, 1], model=(basis, weights))
+    assert not reduce.accepts(ctx, state, trial, tg)
+    assert trial.efolds == efolds
+    state.reference.efolds[1] = efolds[1] - 0.9          # within one e-fold of the reference
+    assert reduce.accepts(ctx, state, trial, tg)
+    state.reference.efolds[1] = 0.0
+    plain = train.new_context(config.load(None, [f"out={tmp_path}"]), tg)
+    assert reduce.accepts(plain, state, reduce.Trial(0, "refit", check=reproduced, motions=[0, 1],
+                                                     model=(basis, weights)), tg)

@@ -10,21 +10,26 @@ import shutil
 import sys
 
 import pytest
+import torch
+import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.hparams import plugin_data_pb2
 
-from tflearn import train
+from tflearn import render, train
 from tflearn.data import gestures
-from tflearn.log import RunLog, summary_table
-from tflearn.plots import render
+from tflearn.log import RunLog, flat_hparams, summary_table
+from tflearn.train.stages import titles
 
 from test_learning import small_config, write_motions
+
+pytestmark = pytest.mark.slow          # every test reads one training run (tb_run)
 
 # One gesture of ~0.5 s, 2 fields at most, 4 candidates, 5 EM steps; success bars at 0 so
 # that nothing counts as reproduced and every stage runs (path matching takes its 2
 # steps); M fixed at 1, so that reduce tries a field (a motion not reproduced otherwise
 # keeps its fields without a trial). Interrupted after 2 checkpoints (the end of "pool")
-# and resumed. ~10 s on one thread.
+# and resumed, then run again once finished. A bad file beside the motion is skipped.
+# ~10 s on one thread.
 TB_OVERRIDES = ["log.tensorboard=true", "solver.each.max_fields=2", "solver.init.candidates=4",
                 "solver.em.steps=5", "success.rmse=0", "success.tip=0", "model.fields=1"]
 HEADLINE = {"0_overview/M", "0_overview/rmse_rad", "0_overview/worst_tip_cm", "0_overview/torque_cost"}
@@ -36,11 +41,15 @@ def tb_run(tmp_path_factory):
     data, out = base / "data", base / "run"
     programs = gestures.random_gestures(1, seed=5, ranges={"duration": (0.5, 0.6)})
     write_motions(data, programs)
+    (data / "broken.npz").write_bytes(b"not a motion")
     cfg = small_config(data, out, *TB_OVERRIDES)
     with pytest.raises(train.Interrupted):
         train.run(cfg, stop_after=2)
     metrics = train.run(cfg)
-    return {"out": out, "metrics": metrics, "name": programs[0].name, "duration": programs[0].duration}
+    files = sorted((out / "tensorboard").iterdir())
+    again = train.run(cfg)                                        # finished: nothing new to log
+    return {"out": out, "metrics": metrics, "name": programs[0].name, "duration": programs[0].duration,
+            "again": again, "files": files, "broken": data / "broken.npz"}
 
 
 def events(logdir, purge: bool = True) -> EventAccumulator:
@@ -67,12 +76,13 @@ def test_tag_layout(tb_run):
     assert last["torque_cost/each"] < first["torque_cost/reduce"] <= last["torque_cost/reduce"] \
         < first["path/loss"]
     assert len(ea.Scalars("torque_cost/reduce")) == 1 and len(ea.Scalars("path/loss")) == 2
-    # M at every model change, the last one at the run's last step and equal to metrics.json's
+    # M at every model change, the last one at the run's last step and equal to metrics.json's;
+    # under one tag only
     metrics = json.loads((tb_run["out"] / "metrics.json").read_text())
-    for tag in ("model/M", "0_overview/M"):
-        M = ea.Scalars(tag)
-        assert len(M) >= 4
-        assert M[-1].step == max(last.values()) and M[-1].value == metrics["overall"]["M"]
+    M = ea.Scalars("0_overview/M")
+    assert len(M) >= 4
+    assert M[-1].step == max(last.values()) and M[-1].value == metrics["overall"]["M"]
+    assert not any(t.startswith("model/") for t in scalars)
     final = ea.Scalars("0_overview/rmse_rad")[-1]
     assert final.step == max(last.values())
     assert final.value == pytest.approx(metrics["overall"]["rmse"], rel=1e-6)
@@ -86,6 +96,7 @@ def test_one_run_with_hparams(tb_run):
     logdir = tb_run["out"] / "tensorboard"
     assert [p for p in logdir.rglob("*") if p.is_dir()] == []     # no timestamped sub-run
     assert len(list(logdir.glob("events.out.tfevents.*"))) == 2   # the first try and the resumed one
+    assert sorted(logdir.iterdir()) == tb_run["files"]            # none from the finished run run again
     ea = events(logdir)
     content = ea.PluginTagToContent("hparams")
     assert {"_hparams_/experiment", "_hparams_/session_start_info"} <= set(content)
@@ -93,8 +104,18 @@ def test_one_run_with_hparams(tb_run):
     assert {m.name.tag for m in exp.metric_infos} <= set(ea.Tags()["scalars"])
     start = plugin_data_pb2.HParamsPluginData.FromString(
         content["_hparams_/session_start_info"]).session_start_info
+    # every key of the run's config, dotted, lists as their JSON text
+    cfg = yaml.safe_load((tb_run["out"] / "config.yaml").read_text())
+    assert set(start.hparams) == set(flat_hparams(cfg)) and len(start.hparams) > 50
     assert start.hparams["seed"].number_value == 0
-    assert start.hparams["stiffness"].string_value == "diag"
+    assert start.hparams["model.stiffness"].string_value == "diag"
+    assert start.hparams["model.fields"].number_value == 1
+    assert start.hparams["solver.em.steps"].number_value == 5
+    assert start.hparams["solver.init.candidates"].number_value == 4
+    assert start.hparams["log.tensorboard"].number_value == 1           # a bool, as torch writes it
+    assert start.hparams["data"].string_value == cfg["data"]
+    assert start.hparams["bvh.window"].string_value == "null"
+    assert {m.name.tag for m in exp.metric_infos} == HEADLINE
 
 
 def test_steps_monotone_across_resume(tb_run):
@@ -107,6 +128,33 @@ def test_steps_monotone_across_resume(tb_run):
     for s in series:
         steps = [e.step for e in s]
         assert steps == sorted(set(steps)), steps
+
+
+def test_steps_are_the_global_iteration_count(tb_run):
+    """The step of every entry is the run's global iteration count, the checkpoint's
+    ``iteration``: the one motion is iteration 1, the pooled model's weights iteration 2,
+    the elimination trial comes after its EM steps, the shooting pass, each Adam step and
+    each rescue round are one, and the result's scoring is the last; a finished run run
+    again logs nothing and counts no iteration."""
+    ea = events(tb_run["out"] / "tensorboard")
+    state = torch.load(tb_run["out"] / "checkpoint.pt", weights_only=True)
+    assert [e.step for e in ea.Scalars("torque_cost/each")] == [1]
+    assert [e.step for e in ea.Scalars("torque_cost/pool")] == [2]
+    trial, = [e.step for e in ea.Scalars("torque_cost/reduce")]
+    path = [e.step for e in ea.Scalars("path/loss")]
+    assert trial >= 3 and path == [trial + 2, trial + 3]         # after the shooting pass
+    rounds = len(tb_run["metrics"]["history"].get("rescue", []))
+    assert [e.step for e in ea.Scalars("0_overview/M")][-1] == path[-1] + rounds + 1 == state["iteration"]
+    assert tb_run["again"]["history"] == tb_run["metrics"]["history"]
+    assert tb_run["again"]["overall"]["M"] == tb_run["metrics"]["overall"]["M"]
+
+
+def test_a_skipped_file_is_reported(tb_run):
+    """The bad file beside the motion is skipped: metrics.json and the summary name it
+    and why."""
+    skipped, = json.loads((tb_run["out"] / "metrics.json").read_text())["skipped"]
+    assert skipped["file"] == str(tb_run["broken"]) and skipped["reason"]
+    assert f"skipped {tb_run['broken']}: {skipped['reason']}" in summary_table(tb_run["metrics"]).splitlines()
 
 
 def test_render_logs_images(tb_run, tmp_path, monkeypatch):
@@ -132,7 +180,8 @@ def test_render_logs_images(tb_run, tmp_path, monkeypatch):
 def test_progress_and_summary(tb_run, capsys):
     """The bars name the stage with its total; summary_table lists every motion and
     where the artefacts are."""
-    log = RunLog(tb_run["out"], tensorboard=False, progress=True)
+    log = RunLog(tb_run["out"], tensorboard=False, progress=True,
+                 stages=titles(("each", "pool", "reduce", "path")))
     log.open()
     log.stage("each", 3)
     log.status(motion="a", M=2, cost=1e-4)

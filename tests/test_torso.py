@@ -118,6 +118,7 @@ def test_simulation_on_a_moving_base():
     assert float((held.q - held.q[0]).abs().max()) < 1e-8
 
 
+@pytest.mark.slow
 def test_bases_of_a_batch():
     """Simulating a batch on one tflearn.motions.torso.BaseMotion equals the same batch on
     Bases, one per member, batch each and shared alike; a wrong number of bases is
@@ -148,7 +149,7 @@ def _on_a_torso(rate=200.0, duration=1.2):
     base also turns gravity in the arm's frame): (body, basis, weights, motion, its torso
     BaseMotion, the torso's samples t, R, x)."""
     from tflearn.data import gestures
-    from tflearn.model.fields import FieldProgram
+    from tflearn.model.program import FieldProgram
     from tflearn.motions.motion import Motion
     from tflearn.motions.torso import BaseMotion
     from tflearn.physics.body import arm
@@ -170,6 +171,7 @@ def _on_a_torso(rate=200.0, duration=1.2):
     return body, basis, weights, Motion("on_torso", t, tr.q[0], tr.v[0], body), base, (ts, R, x)
 
 
+@pytest.mark.slow
 def test_targets_and_scores_on_each_motions_torso():
     """A motion made on a moving torso under gravity by come_here's field with its
     model's gravity torques fed forward: tflearn.fit.targets.prepare with its base gives
@@ -179,7 +181,7 @@ def test_targets_and_scores_on_each_motions_torso():
     its own stretch of the torso) is zero."""
     from tflearn.fit import shooting, targets
     from tflearn.metrics import score
-    from tflearn.model.fields import FieldProgram
+    from tflearn.model.program import FieldProgram
     from tflearn.motions.torso import Bases
     from tflearn.simulation.simulate import SimOptions
     body, basis, weights, m, base, _ = _on_a_torso()
@@ -209,6 +211,7 @@ def test_targets_and_scores_on_each_motions_torso():
     assert float(r.abs().max()) < 1e-5
 
 
+@pytest.mark.slow
 def test_training_on_each_motions_torso(tmp_path):
     """``torso: moving``: train reads each motion's torso file (torso/NAME.npz beside it,
     as tflearn bvh import writes) and learns the motion made on that torso (gravity fed
@@ -224,6 +227,7 @@ def test_training_on_each_motions_torso(tmp_path):
     from tflearn.errors import InputError
     from tflearn.evaluate import evaluate_run, simulate_basis_motion
     from tflearn.motions.motion import MotionFileError, load, save
+    from tflearn.physics.body import from_config
 
     from test_learning import small_config
     *_, m, _, (ts, R, x) = _on_a_torso()
@@ -231,8 +235,8 @@ def test_training_on_each_motions_torso(tmp_path):
     (data / "torso").mkdir(parents=True)
     save(m, data / "on_torso.npz")
     np.savez(data / "torso" / "on_torso.npz", t=ts, R=R, x=x)
-    run = train.Run(small_config(data, tmp_path / "run", "torso=moving"))
-    metrics = run.execute()
+    cfg = small_config(data, tmp_path / "run", "torso=moving")
+    metrics, body = train.run(cfg), from_config(cfg.body)
     row = metrics["motions"]["on_torso"]
     print("on its torso:", row["rmse"], row["tip"], metrics["overall"]["M"])
     assert row["success"] and row["rmse"] < 0.01                  # measured: 0.0043 rad
@@ -246,9 +250,9 @@ def test_training_on_each_motions_torso(tmp_path):
     assert err < 0.01
     with pytest.raises(InputError, match="ride their torsos"):
         recovery.targets(tmp_path / "run", ["on_torso"])
-    assert [x.name for x in named_motions(data, run.body, ["on_torso"], "run")] == ["on_torso"]
+    assert [x.name for x in named_motions(data, body, ["on_torso"], "run")] == ["on_torso"]
     with pytest.raises(InputError, match=r"^run: motion\(s\) 'wave' are not in the run's data"):
-        named_motions(data, run.body, ["on_torso", "wave"], "run")
+        named_motions(data, body, ["on_torso", "wave"], "run")
     assert torsos(data, [m], "fixed") is None
     np.savez(data / "torso" / "on_torso.npz", t=ts[:50], R=R[:50], x=x[:50])
     short = "the torso covers 0.000–0.490 s, motion 'on_torso' 0.000–1.200 s"

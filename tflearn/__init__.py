@@ -27,7 +27,7 @@ _API = {
     "Motion": "motions.motion", "load_motion": ("motions.motion", "load"),
     "save_motion": ("motions.motion", "save"),
     "load_motions": "data.loading", "read_csv": "motions.motion", "from_euler": "motions.motion",
-    "FieldBasis": "model.fields", "MotionWeights": "model.fields", "FieldProgram": "model.fields",
+    "FieldBasis": "model.fields", "MotionWeights": "model.weights", "FieldProgram": "model.program",
     "SimOptions": "simulation.simulate", "Trajectory": "simulation.simulate",
     "SimulationFailed": "simulation.simulate",
     "score": "metrics", "Scores": "metrics",

@@ -9,47 +9,59 @@ before torch is imported, so ``--help`` and refusals answer at once.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import os
+import signal
 import sys
+import threading
 import traceback
 from pathlib import Path
 
 from . import __version__
 
-DESCRIPTION = """\
-Learn a shared basis of convergent torque fields from limb motions, and use it.
+DESCRIPTION = "Learn a shared basis of convergent torque fields from limb motions, and use it."
+EPILOG = "MODEL is a run folder (written by train) or its basis.json."
 
-commands:
-  gestures    write the thesis' gesture library (NAME.npz, NAME.json, NAME.png)
-  train       learn a basis from motions (the same as the train command)
-  evaluate    re-simulate a trained model on motions; new motions are synthesised
-  simulate    play one motion's torque program from a trained model
-  render      animate one motion: target and reproduction side by side (GIF)
-  perturb     push the limb under each controller and measure its recovery
-  experiment  run one of the thesis' chapter 4 experiments
-  report      write docs/results.md from the experiments' results
-  modes       natural vibration modes of a body (frequencies, shapes, animations)
-  bvh         motion capture: import BVH clips (arm motions, body.yaml, report) or
-              export a model's motion (or an .npz) as BVH
 
-MODEL is a run folder (written by train) or its basis.json.
-"""
+def _commands(sub) -> str:
+    """The ``commands:`` list of ``tflearn --help``: each command of the subparsers
+    ``sub``, once, with its help, wrapped to 80 columns."""
+    import textwrap
+    helps = {a.dest: a.help for a in sub._get_subactions()}
+    width = max(map(len, sub.choices)) + 2
+    lines = ["commands:"]
+    for name, parser in sub.choices.items():
+        lines += textwrap.wrap(helps.get(name) or parser.description or "", 80,
+                               initial_indent=f"  {name:<{width}}", subsequent_indent=" " * (width + 2))
+    return "\n".join(lines)
 
 
 def _model_paths(model: Path) -> tuple:
-    """(run folder, basis.json) of a MODEL argument: a run folder or a basis.json."""
+    """(run folder, basis.json) of a MODEL argument: a run folder or a basis.json.
+    Raises :class:`InputError` naming the one that is missing."""
+    from .errors import InputError
     model = Path(model)
     if model.is_dir():
+        if not (model / "basis.json").exists():
+            raise InputError(f"{model / 'basis.json'}: no such file (is {model} a run folder "
+                             f"written by train?)")
         return model, model / "basis.json"
+    if not model.exists():
+        raise InputError(f"{model}: no such run folder or basis.json")
     return model.parent, model
 
 
-def _out_folder(path: Path) -> None:
-    """Create the folder ``path`` will be written into, saying so if it is new."""
-    folder = Path(path).parent
-    if not folder.exists():
-        folder.mkdir(parents=True)
-        print(f"created {folder}")
+@contextlib.contextmanager
+def _out_folder(out: Path):
+    """``with _out_folder(out):`` the output folder ``out`` exists inside; afterwards
+    the command says so if it is new, or, when it failed, the new folder is removed again
+    (:func:`tflearn.io.files.folder`)."""
+    from .io.files import folder
+    with folder(out) as made:
+        yield
+    if made:
+        print(f"created {out}")
 
 
 def _motion_lines(motions: dict) -> list:
@@ -68,9 +80,8 @@ def _motion_lines(motions: dict) -> list:
 
 def _gestures(args) -> int:
     from .data import gestures
-    if not args.out.exists():
-        print(f"created {args.out}")
-    written = gestures.write(args.out, rate=args.rate, plots=not args.no_plots)
+    with _out_folder(args.out):
+        written = gestures.write(args.out, rate=args.rate, plots=not args.no_plots)
     for path in written:
         print(path)
     print(f"wrote {len(gestures.GESTURES)} gestures ({len(written)} files) to {args.out}")
@@ -84,10 +95,13 @@ def _train(args) -> int:
     import torch
 
     from . import parallel, train
+    from .io.files import locked
     from .log import summary_table
     torch.set_num_threads(args.threads)
     with parallel.group("cpu"):           # started by torchrun: one rank of the run
-        metrics = train.run(cfg, restart=args.restart)
+        # one run at a time writes into OUT: its rank 0 holds OUT's lock
+        with locked(cfg.out) if parallel.rank() == 0 else contextlib.nullcontext():
+            metrics = train.run(cfg, restart=args.restart)
         if parallel.rank() == 0:
             print(summary_table(metrics, cfg.out))
     return 0 if metrics["overall"]["success"] else 1
@@ -100,8 +114,8 @@ def _evaluate(args) -> int:
     torch.set_num_threads(args.threads)
     run, _ = _model_paths(args.model)
     out = args.out or run / "evaluation.json"
-    _out_folder(out)
-    metrics = evaluate.evaluate_run(run, data=args.data, out=out)
+    with _out_folder(out.parent):
+        metrics = evaluate.evaluate_run(run, data=args.data, out=out)
     o = metrics["overall"]
     print("\n".join(_motion_lines(metrics["motions"])))
     print(f"M = {o['M']}, overall rmse {o['rmse']:.4f} rad, max tip error {100 * o['tip']:.2f} cm, "
@@ -113,9 +127,9 @@ def _evaluate(args) -> int:
 def _simulate(args) -> int:
     from . import evaluate
     _, basis = _model_paths(args.model)
-    _out_folder(args.out)
-    path = evaluate.simulate_basis_motion(basis, args.motion, args.out, rate=args.rate,
-                                          duration=args.duration)
+    with _out_folder(args.out.parent):
+        path = evaluate.simulate_basis_motion(basis, args.motion, args.out, rate=args.rate,
+                                              duration=args.duration)
     print(f"wrote {path}")
     return 0
 
@@ -130,13 +144,13 @@ def _positive_int(text: str) -> int:
 def _render(args) -> int:
     import torch
 
-    from .plots import render
+    from . import render
     torch.set_num_threads(args.threads)
     run, _ = _model_paths(args.model)
-    if args.out is not None:
-        _out_folder(args.out)
-    path = render.render(run, args.motion, out=args.out, fps=args.fps,
-                         tensorboard=not args.no_tensorboard)
+    out = args.out if args.out is not None else run / "figures" / f"{args.motion}.gif"
+    with _out_folder(out.parent):
+        path = render.render(run, args.motion, out=out, fps=args.fps,
+                             tensorboard=not args.no_tensorboard, progress=not args.quiet)
     print(f"wrote {path}")
     return 0
 
@@ -177,7 +191,7 @@ def _perturb(args) -> int:
 
     from .control import recovery
     torch.set_num_threads(args.threads)
-    doc = recovery.run(cfg)
+    doc = recovery.run(cfg, progress=not args.quiet)
     print("\n".join(recovery.summary_lines(doc)))
     print(f"wrote {cfg.out}/results.json and {cfg.out}/figures/"
           + (f"; tensorboard in {cfg.out}/tensorboard" if cfg.tensorboard else ""))
@@ -213,7 +227,7 @@ def _modes(args) -> int:
     from .modes.analysis import ModalError
     torch.set_num_threads(args.threads)
     try:
-        result = modal.run(cfg, out=args.out)
+        result = modal.run(cfg, out=args.out, progress=not args.quiet)
     except ModalError as err:
         raise ModalError(f"{args.config}: {err}") from None
     print(modal.table(result["modes"], cfg.table))
@@ -223,6 +237,30 @@ def _modes(args) -> int:
               f"max {fol['max_rad']:.4f} rad")
     print(f"wrote {len(result['written'])} files to {result['out']} (modes.json, "
           f"mode_II.npz/.png" + (", tensorboard/" if cfg.log.tensorboard else "") + ")")
+    return 0
+
+
+def _locomotion(args) -> int:
+    from . import config
+    from .modes.config import ModesConfig
+    cfg = config.load(args.config, args.overrides, schema=ModesConfig)
+    import torch
+
+    from .modes import locomotion
+    from .modes.analysis import ModalError
+    torch.set_num_threads(args.threads)
+    try:
+        result = locomotion.run(cfg, out=args.out, duration=args.duration, settle=args.settle,
+                                step=args.step, amplitude=args.amplitude)
+    except ModalError as err:
+        raise ModalError(f"{args.config}: {err}") from None
+    g = result["locomotion"]
+    dx, dy = g["direction_xy"]
+    cost = "none (no travel)" if g["cost_of_transport"] is None else f"{g['cost_of_transport']:.3g}"
+    print(f"{g['creature']}: {g['distance_m']:.4f} m in {args.duration - args.settle:g} s towards "
+          f"({dx:+.3f}, {dy:+.3f}), {g['speed_body_lengths_per_s']:.4f} body lengths/s, "
+          f"cost of transport {cost}")
+    print(f"wrote {', '.join(p.name for p in result['written'])} to {result['out']}")
     return 0
 
 
@@ -237,9 +275,8 @@ def _bvh_import(args) -> int:
                                gravity=args.gravity, strict=args.strict, amap=amap,
                                window=None if args.window is None else tuple(args.window),
                                split=args.split)
-    if not args.out.exists():
-        print(f"created {args.out}")
-    report = mocap.import_clips(args.clips, args.out, opts)
+    with _out_folder(args.out):
+        report = mocap.import_clips(args.clips, args.out, opts)
     print("\n".join(mocap.report_lines(report)))
     print(f"wrote {len(report['clips'])} motions, body.yaml and report.json to {args.out}")
     return 0
@@ -270,14 +307,15 @@ def _bvh_export(args) -> int:
             path = evaluate.simulate_basis_motion(basis, args.motion, Path(tmp) / "sim.npz")
             data = np.load(path)
             t, q = data["t"], data["q"]
-    _out_folder(args.out)
-    mocap.export(body, t, q, args.out, skeleton=args.skeleton, side=args.arm, mirror=args.mirror)
+    with _out_folder(args.out.parent):
+        mocap.export(body, t, q, args.out, skeleton=args.skeleton, side=args.arm, mirror=args.mirror)
     print(f"wrote {args.out}")
     return 0
 
 
 def _bvh_args(sub) -> None:
-    bvh = sub.add_parser("bvh", help="motion capture: BVH import and export").add_subparsers(
+    bvh = sub.add_parser("bvh", help="motion capture: import BVH clips (arm motions, body.yaml, "
+                                     "report) or export a model's motion (or an .npz) as BVH").add_subparsers(
         dest="bvh_command", required=True, metavar="ACTION")
     p = bvh.add_parser("import", help="retarget BVH clips onto the arm: NAME.npz, body.yaml, report.json")
     p.add_argument("clips", nargs="+", type=Path, metavar="CLIP", help="BVH files or folders of them")
@@ -308,21 +346,24 @@ def _bvh_args(sub) -> None:
 
 
 def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog=prog, usage="%(prog)s [-h] [--version] COMMAND ...",
+                                     epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"tflearn {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    # the commands are listed once, in the description (_commands), not again by argparse
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help=argparse.SUPPRESS,
+                                prog=prog)
 
-    p = sub.add_parser("gestures", help="write the thesis' gesture library (npz + json + png)")
+    p = sub.add_parser("gestures", help="write the thesis' gesture library (NAME.npz, NAME.json, NAME.png)")
     p.add_argument("--out", type=Path, default=Path("runs/gestures"), help="output folder")
     p.add_argument("--rate", type=float, default=100.0, help="sampling rate in Hz (default 100)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.set_defaults(func=_gestures)
 
-    p = sub.add_parser("train", help="learn a shared basis of torque fields (see configs/)")
+    p = sub.add_parser("train", help="learn a basis from motions (the same as the train command; "
+                                     "see configs/)")
     _train_args(p)
 
-    p = sub.add_parser("evaluate", help="re-simulate a trained model on motions")
+    p = sub.add_parser("evaluate", help="re-simulate a trained model on motions; new motions are synthesised")
     p.add_argument("model", type=Path, metavar="MODEL", help="a run folder or its basis.json")
     p.add_argument("--data", default=None, help="motions to evaluate (default: the run's data)")
     p.add_argument("--out", type=Path, default=None, help="metrics file (default RUN/evaluation.json)")
@@ -337,13 +378,14 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the motion's)")
     p.set_defaults(func=_simulate)
 
-    p = sub.add_parser("render", help="animate one motion: target and reproduced arm (GIF)")
+    p = sub.add_parser("render", help="animate one motion: target and reproduction side by side (GIF)")
     p.add_argument("model", type=Path, metavar="MODEL", help="a run folder or its basis.json")
     p.add_argument("--motion", required=True, help="motion name in the run's model")
     p.add_argument("--out", type=Path, default=None, help="output .gif (default RUN/figures/MOTION.gif)")
     p.add_argument("--fps", type=_positive_int, default=25, help="frames per second (default 25)")
     p.add_argument("--no-tensorboard", action="store_true",
                    help="do not log the animation's frames (images) to RUN/tensorboard")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_render)
 
@@ -362,15 +404,17 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, default=None,
                    help="a batch config (e.g. configs/perturb.yaml) instead of the push flags; "
                         "MODEL, if given, replaces its model")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_perturb)
 
+    from .experiments import NAMES
     p = sub.add_parser("experiment", help="run one of the thesis' chapter 4 experiments "
                                           "(configs/experiments/NAME.yaml)")
-    p.add_argument("name", type=Path, help="basin | shared | keyframes | filtering, or a .yaml file")
+    p.add_argument("name", type=Path, help=f"{' | '.join(NAMES)}, or a .yaml file")
     p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. seeds=5 jobs=1")
     p.add_argument("--quick", action="store_true", help="the config's small 'quick' size")
-    p.set_defaults(func=_experiment)
+    p.set_defaults(func=_experiment, resumes=True)
 
     p = sub.add_parser("report", help="write docs/results.md from the experiments' results")
     p.add_argument("--runs", type=Path, default=Path("runs/experiments"),
@@ -378,13 +422,30 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("docs/results.md"), help="report file")
     p.set_defaults(func=_report)
 
-    p = sub.add_parser("modes", help="natural vibration modes of a body (configs/modes/)")
+    p = sub.add_parser("modes", help="natural vibration modes of a body: frequencies, shapes, "
+                                     "animations (configs/modes/)")
     p.add_argument("config", type=Path, help="YAML config (e.g. configs/modes/arm.yaml)")
     p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. stiffness.uniform=5")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out)")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_modes)
+
+    p = sub.add_parser("locomotion", help="a floating-base creature of a modes config driven by its "
+                                          "modes on the ground: travel, speed, cost (configs/modes/)")
+    p.add_argument("config", type=Path, help="YAML modes config (e.g. configs/modes/loop_creature.yaml)")
+    p.add_argument("overrides", nargs="*", help="dotted key=value overrides, e.g. stiffness.uniform=2")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out)")
+    p.add_argument("--duration", type=float, default=3.0, help="simulated time in s (default 3)")
+    p.add_argument("--settle", type=float, default=0.5,
+                   help="measure from this time in s, leaving the landing out (default 0.5)")
+    p.add_argument("--step", type=float, default=5e-4, help="RK4 step in s (default 5e-4)")
+    p.add_argument("--amplitude", type=float, default=None,
+                   help="α of every drive in rad (default: the config's)")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    p.set_defaults(func=_locomotion)
     _bvh_args(sub)
+    parser.description = f"{DESCRIPTION}\n\n{_commands(sub)}"
     return parser
 
 
@@ -395,27 +456,71 @@ def _train_args(p) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress display (log.progress=false)")
     p.add_argument("--threads", type=_positive_int, default=1,
                    help="torch threads (default 1: the tensors are small, threads only add overhead)")
-    p.set_defaults(func=_train)
+    p.set_defaults(func=_train, resumes=True)
 
 
-def _run(args, prog: str) -> int:
-    """Run a command: bad input (:class:`tflearn.errors.InputError`) is one line on stderr
-    and exit status 2; any other exception is a bug: its traceback, a request to report
-    it, and exit status 3."""
+def _run(parse, prog: str) -> int:
+    """Parse the command line (``parse()``) and run its command: bad input
+    (:class:`tflearn.errors.InputError`) is one line on stderr and exit status 2; Ctrl-C
+    (SIGINT) anywhere is one line, ``interrupted`` (``interrupted, re-run to resume`` for
+    the commands that resume) and exit status 130 (:class:`_Interrupts`); any other
+    exception is a bug: its traceback, a request to report it, and exit status 3."""
     from .errors import InputError
-    try:
-        return args.func(args)
-    except InputError as err:
-        print(f"{prog}: {err}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted (re-run the same command to resume)", file=sys.stderr)
+    with _Interrupts(prog) as interrupts:
+        try:
+            args = interrupts.args = parse()
+            return args.func(args)
+        except InputError as err:
+            if not interrupts.hit:
+                print(f"{prog}: {err}", file=sys.stderr)
+                return 2
+            return interrupts.report()
+        except KeyboardInterrupt:
+            return interrupts.report()
+        except Exception:
+            if interrupts.hit:
+                return interrupts.report()
+            traceback.print_exc()
+            print(f"{prog}: this is a bug in tflearn {__version__}; please report it with the "
+                  f"command line and the traceback above", file=sys.stderr)
+            return 3
+
+
+class _Interrupts:
+    """``with _Interrupts(prog) as i:`` the first Ctrl-C raises KeyboardInterrupt as
+    usual and sets ``i.hit``: whatever exception ends the command then (a library may
+    turn the KeyboardInterrupt into another one while it unwinds) is the interruption,
+    reported (:meth:`report`) in one line. A second Ctrl-C, while the first unwinds, reports it
+    and ends the process at once (exit status 130). The previous handler is restored on
+    leaving; outside the main thread nothing is installed (signals go to the main thread)."""
+
+    def __init__(self, prog: str):
+        self.prog, self.args, self.hit, self._previous = prog, None, False, None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+    def _handler(self, signum, frame):
+        if self.hit:
+            self.report()
+            with contextlib.suppress(OSError, ValueError):     # a closed or broken stdout
+                sys.stdout.flush()
+            os._exit(130)
+        self.hit = True
+        raise KeyboardInterrupt
+
+    def report(self) -> int:
+        """Say that the command was interrupted (and that re-running it resumes, for the
+        commands that do); returns the exit status, 130."""
+        resumes = getattr(self.args, "resumes", False)
+        print(f"{self.prog}: interrupted" + (", re-run to resume" if resumes else ""), file=sys.stderr)
         return 130
-    except Exception:
-        traceback.print_exc()
-        print(f"{prog}: this is a bug in tflearn {__version__}; please report it with the "
-              f"command line and the traceback above", file=sys.stderr)
-        return 3
 
 
 def _parse(parser: argparse.ArgumentParser, argv):
@@ -430,7 +535,7 @@ def _parse(parser: argparse.ArgumentParser, argv):
 
 
 def main(argv=None) -> int:
-    return _run(_parse(build_parser(), argv), "tflearn")
+    return _run(lambda: _parse(build_parser(), argv), "tflearn")
 
 
 def train_main(argv=None) -> int:
@@ -439,7 +544,7 @@ def train_main(argv=None) -> int:
                                 "from motions (the same as tflearn train).")
     p.add_argument("--version", action="version", version=f"tflearn {__version__}")
     _train_args(p)
-    return _run(_parse(p, argv), "train")
+    return _run(lambda: _parse(p, argv), "train")
 
 
 if __name__ == "__main__":

@@ -365,10 +365,6 @@ class SimulationSection(Section):
     atol: float = Field(1e-8, gt=0)
     max_evals: int = Field(400_000, ge=1)
     batch: Literal["shared", "each"] = "shared"  # each: every motion its own steps (dopri5)
-    # the path stage's Adam steps: all = every motion simulated, fields and weights moved;
-    # unreproduced = only the motions not reproduced when it starts, their weights only
-    # (the fields held, so the reproduced motions stay exactly as they are: for many motions)
-    motions: Literal["all", "unreproduced"] = "all"
 
     def options(self):
         """These settings as :class:`tflearn.simulation.simulate.SimOptions`."""

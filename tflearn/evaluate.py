@@ -4,22 +4,25 @@ from __future__ import annotations
 
 import json
 import warnings
+from functools import partial
 from pathlib import Path
 from typing import Optional
 
 import torch
 
 from . import config as config_mod
+from . import synthesis
 from .config import Config
 from .data.loading import check_resolution, load_motions, named_motions, torsos
 from .fit import stability
-from .fit.shooting import ShootingOptions, shooting_match
+from .fit.shooting import ShootingOptions
 from .fit.targets import Targets, prepare, submovement_windows
-from .fit.torque import DivergenceWarning, solve_weights, torque_costs
+from .fit.torque import DivergenceWarning, solve_weights
 from .io import basis as basis_io
 from .io.files import write_text
 from .metrics import UNITS, pooled_rmse, score, summarize
-from .model.fields import FieldProgram, MotionWeights
+from .model.program import FieldProgram
+from .model.weights import MotionWeights
 from .motions.motion import Motion
 from .motions.motion import save as save_motion
 from .simulation.simulate import SimOptions, simulate
@@ -36,75 +39,30 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
                shooting: Optional[ShootingOptions] = ShootingOptions(),
                options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02), *,
                ridge: float = 0.0) -> MotionWeights:
-    """Held-out synthesis: with the basis frozen, fit new motions' weights by NNLS on
-    their torques (exact, or with a ``ridge``: :func:`~tflearn.fit.torque.solve_weights`);
-    the motions that this does not reproduce (joint RMSE ≤ ``success[0]`` rad and
-    hand-tip error ≤ ``success[1]`` m, as in training) then get
-    their weights (and with ``shooting.phases`` their activation timing) by
-    multiple-shooting path matching (:func:`tflearn.fit.shooting.shooting_match`; None:
-    NNLS only). A motion that is still not reproduced is fitted again by shooting from the
-    basis' own program whose torques match it best (:func:`nearest_programs`), and keeps
-    whichever of the two fits, or that program as it is, simulates closest to it (joint
-    RMSE; one that cannot be simulated is farthest); where the kept fit's
-    shooting stopped early, a :class:`~tflearn.fit.torque.DivergenceWarning` names the
-    motion and why. The new motions get as many sub-movement windows as the basis' own
-    motions have, placed from their data (:func:`submovement_windows`)."""
+    """Held-out synthesis (:mod:`tflearn.synthesis`): with the basis frozen, fit new
+    motions' weights by NNLS on their torques (exact, or with a ``ridge``:
+    :func:`~tflearn.fit.torque.solve_weights`); the motions that this does not reproduce
+    (joint RMSE ≤ ``success[0]`` rad and hand-tip error ≤ ``success[1]`` m, as in
+    training) then get their weights (and with ``shooting.phases`` their activation
+    timing) by multiple-shooting path matching (None: NNLS only). A motion that is still
+    not reproduced is fitted again by shooting from the basis' own program whose torques
+    match it best (:func:`~tflearn.synthesis.nearest_programs`), and keeps whichever
+    of the two fits, or that program as it is, simulates closest to it (joint RMSE; one
+    that cannot be simulated is farthest); where the kept fit's shooting stopped early, a
+    :class:`~tflearn.fit.torque.DivergenceWarning` names the motion and why. The new
+    motions get as many sub-movement windows as the basis' own motions have, placed from
+    their data (:func:`submovement_windows`)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P))
     solve_weights(lb.basis, weights, tg, ridge=ridge)
     if shooting is None or not shooting.iterations:
         return weights
-    todo = _unreproduced(lb, weights, tg, options, success, range(tg.N))[0]
-    if todo:
-        failures = shooting_match(lb.body, lb.basis, weights, tg, options=shooting, sim=options,
-                                  motions=todo).failures
-        still, rmse = _unreproduced(lb, weights, tg, options, success, todo)
-        if still:
-            sub = tg.select(still)
-            alt = nearest_programs(lb, sub)
-            near = alt.select_motions(range(sub.N))          # the nearest programs as they are
-            again = shooting_match(lb.body, lb.basis, alt, sub, options=shooting, sim=options).failures
-            keys = MotionWeights.PER_FIELD + MotionWeights.WINDOWS
-            shot, as_is = (score(lb.body, lb.basis, w, sub, options).rmse for w in (alt, near))
-            for r, (name, j) in enumerate(zip(sub.names, still)):
-                best = min((rmse[r], None), (shot[r], alt), (as_is[r], near), key=lambda x: x[0])[1]
-                if best is not None:
-                    weights.set_flat(keys, best.flat(keys)[[r]], [j])
-                    failures.pop(name, None)
-                    if name in again or best is near:
-                        failures[name] = again.get(name, "no fit came closer than the nearest "
-                                                         "trained program as it is")
-        for name, why in failures.items():
-            warnings.warn(f"synthesis of {name}: multiple shooting stopped: {why}", DivergenceWarning,
-                          stacklevel=2)
+    nearest = partial(synthesis.nearest_programs, lb.basis, lb.weights)
+    failures = synthesis.fit_programs(lb.body, lb.basis, weights, tg, shooting, options, success, nearest)
+    for name, why in failures.items():
+        warnings.warn(f"synthesis of {name}: multiple shooting stopped: {why}", DivergenceWarning,
+                      stacklevel=2)
     return weights
-
-
-def _unreproduced(lb, weights, tg: Targets, options, success, motions) -> tuple:
-    """(the motions of ``motions`` that ``weights`` does not reproduce, their joint RMSEs)."""
-    motions = list(motions)
-    s = score(lb.body, lb.basis, weights.select_motions(motions), tg.select(motions), options)
-    bad = [r for r, ok in enumerate(s.succeeded(*success)) if not ok]
-    return [motions[r] for r in bad], [s.rmse[r] for r in bad]
-
-
-def nearest_programs(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
-    """For each motion of ``tg``, the program of one of the basis' own motions (its
-    weights and activation timing, onsets and durations scaled by the ratio of the two
-    motions' durations) whose torques match it best: the lowest relative torque cost
-    C_j (:func:`~tflearn.fit.torque.torque_cost`) over the basis' motions. A start for
-    path matching where the new motion's own NNLS weights make a program that cannot be
-    simulated along it."""
-    keys = MotionWeights.TIMING + MotionWeights.WINDOWS
-
-    def programs(rows):                  # motion rows[j]'s program, for motion j of tg
-        w = lb.weights.select_motions(rows)
-        w.set_flat(keys, w.flat(keys) * (tg.duration / w.duration)[:, None], range(tg.N))
-        w.duration.copy_(tg.duration)
-        w.names = list(tg.names)
-        return w
-    costs = [torque_costs(lb.basis, programs([k] * tg.N), tg) for k in range(lb.weights.N)]
-    return programs(torch.stack(costs, 1).argmin(1).tolist())
 
 
 def weights_for(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:

@@ -12,7 +12,6 @@ TensorBoard (``log.tensorboard``, OUT/tensorboard, one run) — the tag layout:
   during ``each`` the fields found so far), and once the model is simulated,
   ``rmse_rad`` (over all samples of all motions), ``worst_tip_cm`` and ``torque_cost``
   (Σ_j C_j, the summed relative torque cost);
-* ``model/M``      the same M (kept for scripts reading it);
 * ``torque_cost/STAGE``  one curve per stage: ``each`` (the cost of each motion's own
   fit), ``pool`` (EM steps after pooling), ``reduce`` (each trial's cost after EM),
   ``slsqp`` (iterations), ``layout`` (the spanning basis' weights); ``path/loss`` and
@@ -23,12 +22,13 @@ TensorBoard (``log.tensorboard``, OUT/tensorboard, one run) — the tag layout:
 * histograms ``weights/a``, ``weights/b`` (and ``weights/c`` with windows),
   ``stiffness/eigenvalues`` at every model change; figures ``paths/NAME`` (target and
   simulated path) at the stage ends;
-* hyper-parameters (seed, model, data) with the final ``0_overview`` metrics in the
-  same run (TensorBoard's HPARAMS tab).
+* hyper-parameters: every key of the run's config, dotted (``seed``, ``model.fields``,
+  ``solver.em.steps``, …), with the final ``0_overview`` metrics in the same run
+  (TensorBoard's HPARAMS tab).
 
-Steps are :attr:`tflearn.train.RunState.step`, saved in the checkpoint, so that a
-resumed run continues its curves; events written after the last checkpoint of an
-interrupted run are purged on resuming.
+Steps are the run's global iteration count (:mod:`tflearn.train.context`), saved in the
+checkpoint, so that a resumed run continues its curves; events written after the last
+checkpoint of an interrupted run are purged on resuming.
 """
 from __future__ import annotations
 
@@ -45,14 +45,15 @@ from .metrics import Scores, pooled_rmse
 BAR_FORMAT = ("{desc}: {percentage:3.0f}%|{bar:24}| {n_fmt}/{total_fmt} {unit} "
               "[{elapsed}<{remaining}{postfix}]")
 
-# stage → (what the bar says, unit of work)
-STAGES = {"each": ("each motion alone", "motions"),
-          "pool": ("pool and merge", "stage"),
-          "reduce": ("reduce: try dropping fields", "fields"),
-          "path": ("path matching", "steps"),
-          "rescue": ("rescue: spanning fields for motions not reproduced", "stage"),
-          "slsqp": ("slsqp", "iterations"),
-          "layout": ("lay out spanning fields", "stage")}
+
+def progress_bar(total: Optional[int], desc: str, unit: str, progress: bool = True, initial: int = 0):
+    """A progress bar on stderr in the form of the run's (:data:`BAR_FORMAT`): ``desc``,
+    ``initial`` of ``total`` units of ``unit`` done, elapsed time and ETA; close it (or
+    use it as a context manager) when done. ``progress=False``: a disabled bar whose calls
+    do nothing (the commands' ``--quiet``, ``log.progress: false``)."""
+    from tqdm import tqdm
+    return tqdm(total=total, initial=initial, desc=desc, unit=unit, bar_format=BAR_FORMAT,
+                dynamic_ncols=True, file=sys.stderr, leave=True, disable=not progress)
 
 
 def _fmt(value) -> str:
@@ -70,16 +71,17 @@ class RunLog:
 
     ``out``: the run folder (events go to OUT/tensorboard); ``tensorboard``, ``progress``:
     ``log.tensorboard``, ``log.progress``; ``body``: for the path figures;
-    ``sequence``: the run's stages (for the "[i/n]" of the bar)."""
+    ``stages``: the run's stages in order, {name: (what the bar says, unit of work)}
+    (:func:`tflearn.train.stages.titles`; the "[i/n]" of the bar)."""
 
     def __init__(self, out, tensorboard: bool, progress: bool, body=None,
-                 sequence=("each", "pool", "reduce", "path", "done"), figures: int | None = None):
+                 stages: Optional[dict] = None, figures: int | None = None):
         self.out = Path(out)
         self.figures = figures
         self.tensorboard = tensorboard
         self.progress = progress
         self.body = body
-        self.stages = [s for s in sequence if s != "done"]
+        self.stages = dict(stages or {})
         self.writer = None
         self.bar = None
         self._stage = None
@@ -131,12 +133,10 @@ class RunLog:
         if not self.progress or self._stage == name:
             return
         self.end_stage()
-        from tqdm import tqdm
-        label, unit = STAGES.get(name, (name, "units"))
-        i = self.stages.index(name) + 1 if name in self.stages else 0
+        label, unit = self.stages.get(name, (name, "units"))
+        i = list(self.stages).index(name) + 1 if name in self.stages else 0
         desc = f"[{i}/{len(self.stages)}] {label}" if i else label
-        self.bar = tqdm(total=total, initial=done, desc=desc, unit=unit, bar_format=BAR_FORMAT,
-                        dynamic_ncols=True, file=sys.stderr, leave=True)
+        self.bar = progress_bar(total, desc, unit, initial=done)
         self._stage = name
 
     def status(self, advance: int = 1, total: Optional[int] = None, **values) -> None:
@@ -189,7 +189,6 @@ class RunLog:
         if self.writer is None:
             return
         self.scalar("0_overview/M", M, step)
-        self.scalar("model/M", M, step)
         if K is not None and len(K):
             self.writer.add_histogram("stiffness/eigenvalues",
                                       torch.linalg.eigvalsh(K.detach()).flatten(), step)
@@ -226,9 +225,10 @@ class RunLog:
                                          title=name)
                 self.writer.add_figure(f"paths/{name}", fig, step)
 
-    def hparams(self, hp: dict, metrics: dict) -> None:
-        """Hyper-parameters ``hp`` with the final metrics (metrics.json's dict) in the
-        same run: the HPARAMS tab reads the ``0_overview/`` scalars written here."""
+    def hparams(self, config: dict, metrics: dict) -> None:
+        """The run's config (``Config.model_dump()``) as hyper-parameters, every key
+        (:func:`flat_hparams`), with the final metrics (metrics.json's dict) in the same
+        run: the HPARAMS tab reads the ``0_overview/`` scalars written here."""
         if self.writer is None:
             return
         from torch.utils.tensorboard.summary import hparams
@@ -237,10 +237,27 @@ class RunLog:
                  "0_overview/worst_tip_cm": 100 * overall["tip"],
                  "0_overview/torque_cost": sum(m["torque_rel_rms"] ** 2
                                                for m in metrics["motions"].values())}
-        exp, ssi, sei = hparams(hp, final)
+        exp, ssi, sei = hparams(flat_hparams(config), final)
         for summary in (exp, ssi, sei):
             self.writer.file_writer.add_summary(summary)
         self.writer.flush()
+
+
+def flat_hparams(config: dict, prefix: str = "") -> dict:
+    """A nested config as TensorBoard hyper-parameters: one dotted key per leaf
+    (``solver.em.steps``); booleans, numbers and strings as they are, anything else
+    (lists, null) as its JSON text."""
+    import json
+    flat = {}
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and value:
+            flat.update(flat_hparams(value, f"{name}."))
+        elif isinstance(value, (bool, int, float, str)):
+            flat[name] = value
+        else:
+            flat[name] = json.dumps(value)
+    return flat
 
 
 # ------------------------------------------------------------------ the summary
@@ -256,8 +273,8 @@ def summary_table(metrics: dict, out=None) -> str:
     """The results of a run as a table (metrics.json's dict): per motion joint RMSE
     (rad), maximum tip error (cm), relative RMS torque error (%), the e-folds of error
     growth along its path and whether it was reproduced; then M, the overall figures, the
-    wall time and, given ``out`` (the run folder), where the artefacts were written. No
-    trailing newline."""
+    wall time, the bad data files skipped and, given ``out`` (the run folder), where the
+    artefacts were written. No trailing newline."""
     rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "growth (e-folds)", "reproduced")]
     for name, m in metrics["motions"].items():
         ok = "yes" if m["success"] else ("no: simulation failed" if m.get("failure") else "no")
@@ -277,6 +294,8 @@ def summary_table(metrics: dict, out=None) -> str:
     lines = [line(rows[0]), rule, *map(line, rows[1:-1]), rule, line(rows[-1]), ""]
     verdict = "every motion reproduced" if o["success"] else "not all motions reproduced"
     lines.append(f"M = {o['M']} fields, {verdict}, wall time {_duration(o['wall_time_s'])}")
+    for skip in metrics.get("skipped", []):
+        lines.append(f"skipped {skip['file']}: {skip['reason']}")
     if out is not None:
         lines.append(f"artefacts in {out}: basis.json, metrics.json, config.yaml, figures/"
                      + (", tensorboard/" if (Path(out) / "tensorboard").is_dir() else ""))

@@ -26,7 +26,9 @@ from . import parallel
 from .fit.stability import Growth
 from .fit.targets import Targets, on_samples, simulate_targets
 from .fit.torque import relative_rms_torque_error
-from .model.fields import FieldBasis, FieldProgram, MotionWeights, stack_rows
+from .model.fields import FieldBasis
+from .model.program import FieldProgram, stack_rows
+from .model.weights import MotionWeights
 from .physics import dynamics
 from .physics.body import Body
 from .physics.configspace import difference

@@ -157,7 +157,10 @@ def all_reduce_sum(tensor: torch.Tensor) -> torch.Tensor:
 
 def gather_motions(n: int, part: list) -> list:
     """The per-motion results of all ranks in motion order (n): ``part`` is this rank's,
-    one item per index of :func:`mine` (n), in that order."""
+    one item per index of :func:`mine` (n), in that order. Any n items dealt by
+    :func:`shard` are gathered so (EM's chunks of motions: :mod:`tflearn.fit.torque`);
+    summed in that order afterwards, they add up as in one process, whatever the number
+    of ranks — which :func:`all_reduce_sum`, adding each rank's partial sum, does not."""
     out = [None] * n
     for r, items in enumerate(all_gather(list(part))):
         for j, item in zip(shard(n, r, size()), items):

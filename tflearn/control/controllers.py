@@ -2,9 +2,9 @@
 2003) or play a learned torque-field program, all callable as :func:`tflearn.simulation.simulate.simulate`'s
 ``program``.
 
-A :class:`Target` is the motion to track: its quintic spline (:class:`tflearn.motions.motion.MotionSpline`)
+A :class:`Target` is the motion to track: its quintic spline (:class:`tflearn.motions.spline.MotionSpline`)
 gives ν_d(t) and v_d(t), and its feed-forward torque τ_ff(t) is by default the spline's
-inverse dynamics — the torques the learner fits (:func:`tflearn.motions.motion.torques`, body
+inverse dynamics — the torques the learner fits (:func:`tflearn.motions.spline.torques`, body
 gravity and damping included, so that τ_ff alone replays the motion on the nominal body).
 Any other exact torque (e.g. a gesture's generating program along its path) can be
 given instead. Outside [t₀, t₁] the target holds its end values.
@@ -22,7 +22,7 @@ The controllers (:data:`CONTROLLERS`, built by :func:`build`):
 * ``pd-high`` τ = s K₀ (ν_d ⊖ ν) + √s B (v_d − v): high-gain tracking without feed-forward
   (s = ``high_gain``; B scaled by √s keeps each joint's damping ratio) — the robotic reference.
 * ``fields``  the motion's learned torque-field program (a one-motion
-  :class:`tflearn.model.fields.FieldProgram`), which has no target term at all.
+  :class:`tflearn.model.program.FieldProgram`), which has no target term at all.
 
 The body's own viscous damping c v (``Body.damping``) is physics, subtracted by the
 simulator; it is not part of any controller. Every controller broadcasts over leading
@@ -37,8 +37,9 @@ from typing import Mapping, Optional
 import torch
 
 from ..errors import InputError
-from ..model.fields import FieldProgram
-from ..motions.motion import Motion, MotionSpline
+from ..model.program import FieldProgram
+from ..motions.motion import Motion
+from ..motions.spline import MotionSpline
 from ..physics.body import Body
 from ..physics.configspace import difference
 
@@ -158,7 +159,7 @@ def _pd_high(target, program, options):
 
 
 class OneMotion(torch.nn.Module):
-    """A one-motion :class:`~tflearn.model.fields.FieldProgram` on ν (...×nv) without its motion
+    """A one-motion :class:`~tflearn.model.program.FieldProgram` on ν (...×nv) without its motion
     dimension: τ = program(t, ν[..., None, :])[..., 0, :]."""
 
     def __init__(self, program: FieldProgram):

@@ -1,7 +1,7 @@
 """Perturbations of a controlled limb and how it responds (Yin, Cline & Pai 2003).
 
 A :class:`Push` is an external force f(t) = F φ((t − t₀)/D) on a named point of the body,
-in world coordinates, with φ the C¹ cosine pulse of :func:`tflearn.model.fields.pulse_profile`
+in world coordinates, with φ the C¹ cosine pulse of :func:`tflearn.model.weights.pulse_profile`
 (φ(u) = ½(1 − cos 2πu) on [0, 1], zero elsewhere), so its impulse is ∫f dt = F D/2
 (:meth:`Push.from_impulse` for a given impulse). It acts on the joints as τ = J_pᵀ f
 (:func:`tflearn.physics.dynamics.point_jacobian`, linear rows), added to the controller's torque.
@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..model.fields import pulse_profile
+from ..model.weights import pulse_profile
 from ..physics import dynamics
 from ..physics.body import JOINT_NAMES, Body
 from ..physics.configspace import difference

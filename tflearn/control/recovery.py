@@ -33,7 +33,7 @@ from ..config import PerturbConfig
 from ..errors import InputError
 from ..io import basis as basis_io
 from ..io.files import write_text
-from ..model.fields import FieldProgram
+from ..model.program import FieldProgram
 from ..simulation.simulate import SimOptions
 from . import controllers as C
 from . import pushes as P
@@ -113,10 +113,12 @@ def _push_doc(case: P.Perturbation, i: int) -> dict:
             "duration": push.duration, "point": push.point, "carry_kg": case.carry}
 
 
-def run_motion(body, lb, motion, cfg: PerturbConfig, options: SimOptions) -> dict:
+def run_motion(body, lb, motion, cfg: PerturbConfig, options: SimOptions,
+               done: Callable[[str], None] = lambda what: None) -> dict:
     """Every controller × case on one motion: {controller: {"rmse", "cases": [...]}} and the
     responses {controller: (unperturbed, [pushed per case])} for the figures. ``lb``: the
-    learned basis (for ``fields``), or None."""
+    learned basis (for ``fields``), or None. ``done(what)`` follows each simulation, 1 +
+    len(cases) per controller ("CONTROLLER: CASE")."""
     program = None
     if lb is not None:
         program = FieldProgram(lb.basis, lb.weights.select_motions([lb.index(motion.name)]))
@@ -125,17 +127,16 @@ def run_motion(body, lb, motion, cfg: PerturbConfig, options: SimOptions) -> dic
                                 high_gain=cfg.gains.high_gain)
     q0, v0, _ = target(motion.t[0])
     cases = _cases(cfg)
-    for _, case, _ in cases:                     # unknown points refused before any work
-        for push in case.pushes:
-            P.point_on(body, push.point)
     doc, responses = {}, {}
     for name in cfg.controllers:
         ctrl = C.build(name, target, program, copts)
         base = _select(P.respond(body, ctrl, P.Perturbation(), q0[None], v0[None], motion.t, options), 0)
+        done(f"{name}: unperturbed")
         rows, pushed = [], []
         for label, case, J in cases:
             B = 1 if J is None else len(J)
             r = P.respond(body, ctrl, case, q0.expand(B, -1), v0.expand(B, -1), motion.t, options)
+            done(f"{name}: {label}")
             pushed.append(r)
             for i in range(B):
                 row = {"case": label, **_push_doc(case, i)}
@@ -146,56 +147,68 @@ def run_motion(body, lb, motion, cfg: PerturbConfig, options: SimOptions) -> dic
     return doc, responses, cases
 
 
-def run(cfg: PerturbConfig, log: Callable[[str], None] = print) -> dict:
-    """Run the config; returns the content of OUT/results.json (see the module)."""
-    from ..log import RunLog
-    from ..plots import figures as plots
+def run(cfg: PerturbConfig, progress: bool = True) -> dict:
+    """Run the config; returns the content of OUT/results.json (see the module).
+    ``progress``: a bar on stderr (:func:`tflearn.log.progress_bar`) counting the
+    simulations and each motion's figures."""
+    from ..log import RunLog, progress_bar
     out = Path(cfg.out)
-    (out / "figures").mkdir(parents=True, exist_ok=True)
     body, lb, motions = targets(cfg.model, cfg.motions)
     if lb is None and "fields" in cfg.controllers:
         raise InputError(f"{cfg.model}: no basis.json, so there is no 'fields' controller to "
                          f"push (choose among {', '.join(c for c in C.CONTROLLERS if c != 'fields')})")
+    for _, case, _ in _cases(cfg):               # unknown points refused before any work
+        for push in case.pushes:
+            P.point_on(body, push.point)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
     options = cfg.simulation.options()
     doc = {"model": cfg.model, "config": cfg.model_dump(), "gains": {
         k: {"K": v[0], "B": v[1]} for k, v in C.HUMAN_ARM_GAINS.items()}, "motions": {},
         "units": {"max_joint_dev": "rad", "max_hand_dev": "m", "recovery_s": "s (null: not recovered)",
                   "final_joint_error": "rad", "final_hand_error": "m", "peak_torque": "N m",
                   "push_work": "J", "impulse_Ns": "N s", "rmse": "rad"}}
-    with RunLog(out, tensorboard=cfg.tensorboard, progress=False) as rl:
+    steps = len(motions) * (len(cfg.controllers) * (1 + len(_cases(cfg))) + 1)
+    with RunLog(out, tensorboard=cfg.tensorboard, progress=False) as rl, \
+            progress_bar(steps, "perturb", "steps", progress) as bar:
         rl.open()
         for name, motion in motions.items():
-            log(f"{name}: {', '.join(cfg.controllers)} ...")
-            res, responses, cases = run_motion(body, lb, motion, cfg, options)
+            def done(what: str, name=name) -> None:
+                bar.set_postfix_str(f"{name}: {what}", refresh=False)
+                bar.update()
+            res, responses, cases = run_motion(body, lb, motion, cfg, options, done)
             doc["motions"][name] = res
             for c, r in res.items():
                 for k, row in enumerate(r["cases"]):
                     for key in ("max_hand_dev", "max_joint_dev", "peak_torque", "final_joint_error"):
                         rl.scalar(f"perturb/{name}/{c}/{key}", row[key], k)
-            _figures(body, name, motion, res, responses, cases, cfg, out, rl, plots)
+            bar.set_postfix_str(f"{name}: figures" + (" and animation" if cfg.animation else ""))
+            _figures(body, name, motion, res, responses, cases, cfg, out, rl)
+            bar.update()
     write_text(out / "results.json", json.dumps(doc, indent=1))
     return doc
 
 
-def _figures(body, name, motion, res, responses, cases, cfg, out, rl, plots) -> None:
+def _figures(body, name, motion, res, responses, cases, cfg, out, rl) -> None:
     """The push figure and the animation of the first case, the sweep figure."""
+    from ..plots import figures as plots
+    from ..plots.recovery import deviation_sweep, push_response
     label, case, J = cases[0]
     base = {c: b.q for c, (b, _) in responses.items()}
     pushed = {c: p[0].q[0] for c, (_, p) in responses.items()}
     window = case.window()
     title = f"{name}: {label}" if J is None else f"{name}: {float(np.linalg.norm(J[0])):.3g} N·s push"
-    fig = plots.push_response(case.body(body), motion.t, base, pushed, window, cfg.tol, title)
+    fig = push_response(case.body(body), motion.t, base, pushed, window, cfg.tol, title)
     rl.figure(f"perturb/{name}/push", fig, 0)
     plots.save(fig, out / "figures" / f"{name}_push.png")
     if cases[-1][0] == "sweep":
         push = cases[-1][1].pushes[0]
         rows = {c: [row for row in r["cases"] if row["case"] == "sweep"] for c, r in res.items()}
-        fig = plots.deviation_sweep(rows, title=f"{name}: largest hand deviation against impulse "
-                                                f"({push.point}, {push.duration:g} s pulse)")
+        fig = deviation_sweep(rows, title=f"{name}: largest hand deviation against impulse "
+                                          f"({push.point}, {push.duration:g} s pulse)")
         rl.figure(f"perturb/{name}/sweep", fig, 0)
         plots.save(fig, out / "figures" / f"{name}_sweep.png")
     if cfg.animation:
-        from ..plots.render import frame_samples, write_gif
+        from ..render import frame_samples, write_gif
         t = motion.t.numpy()
         paths = {c: plots.joint_positions(case.body(body), q) for c, q in pushed.items()}
         write_gif(paths, t, frame_samples(t, 25), 25, out / "figures" / f"{name}.gif", title,

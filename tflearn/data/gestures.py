@@ -22,9 +22,12 @@ from pathlib import Path
 import torch
 
 from ..io import basis as basis_io
-from ..model.fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
-from ..motions.motion import RESOLVED, Motion, torque_resolution
+from ..model.fields import FieldBasis, MotionFields
+from ..model.program import FieldProgram
+from ..model.weights import MotionWeights
+from ..motions.motion import Motion
 from ..motions.motion import save as save_motion
+from ..motions.spline import RESOLVED, torque_resolution
 from ..physics.body import Body, arm
 from ..simulation import simulate as sim
 
@@ -194,8 +197,8 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
 def generate_resolved(gestures, body: Body | None = None, rate: float = 100.0,
                       max_rate: float = 1600.0) -> list:
     """Like :func:`generate`, but each gesture sampled at the lowest rate of rate·2ᵏ
-    (k = 0, 1, …) whose samples resolve it: :func:`tflearn.motions.motion.torque_resolution`
-    ≤ :data:`tflearn.motions.motion.RESOLVED` (the data condition of :data:`SUPPORTED`).
+    (k = 0, 1, …) whose samples resolve it: :func:`tflearn.motions.spline.torque_resolution`
+    ≤ :data:`tflearn.motions.spline.RESOLVED` (the data condition of :data:`SUPPORTED`).
     Raises ValueError naming a gesture that ``max_rate`` does not resolve."""
     body = body or arm()
     todo = dict(enumerate(gestures))

@@ -20,9 +20,10 @@ import roma
 import torch
 from scipy.interpolate import make_interp_spline
 
-from ..motions.motion import Motion, align_quaternions
+from ..motions.motion import Motion
 from ..physics import dynamics
 from ..physics.body import Body
+from ..physics.configspace import align_quaternions
 
 F64 = torch.float64
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..motions import motion as motion_mod
+from ..motions import spline
 from ..motions.torso import BaseMotion, Bases
 from ..physics.body import Body
 from . import gestures as gestures_mod
@@ -27,6 +28,23 @@ def load_motions(data, body: Body, strict: bool = False) -> list:
     if not data:
         raise motion_mod.MotionFileError("data", "an empty list of motion files")
     return [motion_mod.load(p, body) for p in data]
+
+
+def skipped_files(data, body: Body, motions: list) -> list:
+    """The bad files that :func:`load_motions` skipped in the folder ``data`` names, each
+    {"file", "reason"}: the .npz files there that gave none of ``motions`` (a motion is
+    named by its file's stem), with the problem that file's
+    :class:`~tflearn.motions.motion.MotionFileError` names; [] when ``data`` names no folder."""
+    if data == "gestures" or not isinstance(data, (str, Path)) or not Path(data).is_dir():
+        return []
+    loaded, skipped = {m.name for m in motions}, []
+    for file in sorted(Path(data).glob("*.npz")):
+        if file.stem not in loaded:
+            try:
+                motion_mod.load(file, body)
+            except motion_mod.MotionFileError as err:
+                skipped.append({"file": str(file), "reason": err.problem})
+    return skipped
 
 
 def named_motions(data, body: Body, names: list, where: str) -> list:
@@ -73,13 +91,13 @@ def torsos(data, motions: list, torso: str = "fixed") -> Bases | None:
 
 
 def check_resolution(body: Body, motions: list) -> list:
-    """Each motion's :func:`tflearn.motions.motion.torque_resolution`; warns, naming the motion,
-    for those above :data:`tflearn.motions.motion.RESOLVED` (too fast for their sampling)."""
-    eps = [motion_mod.torque_resolution(body, m) for m in motions]
+    """Each motion's :func:`tflearn.motions.spline.torque_resolution`; warns, naming the motion,
+    for those above :data:`tflearn.motions.spline.RESOLVED` (too fast for their sampling)."""
+    eps = [spline.torque_resolution(body, m) for m in motions]
     for m, e in zip(motions, eps):
-        if e > motion_mod.RESOLVED:
+        if e > spline.RESOLVED:
             warnings.warn(f"motion {m.name!r}: its samples do not resolve it at {m.rate:.0f} Hz "
                           f"(spline torques an estimated {100 * e:.1f}% off, above "
-                          f"{100 * motion_mod.RESOLVED:.0f}%); it may not be reproduced. "
+                          f"{100 * spline.RESOLVED:.0f}%); it may not be reproduced. "
                           f"Sample it faster or smooth it.", stacklevel=2)
     return eps

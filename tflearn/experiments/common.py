@@ -10,12 +10,13 @@ Success means the simulated path has joint RMSE ≤ ``success.rmse`` and hand-ti
 the methods' wall times and numbers of simulations (:data:`tflearn.simulation.simulate.calls`),
 as ratios to SLSQP measured in the same run. A case's rows are cached in OUT/cases/
 (written atomically), so an interrupted experiment resumes; rows hold their model as
-:func:`tflearn.model.fields.model_state` in JSON.
+:func:`tflearn.model.program.model_state` in JSON.
 """
 from __future__ import annotations
 
 import functools
 import json
+import sys
 import time
 from importlib import resources
 from pathlib import Path
@@ -33,11 +34,13 @@ from ..fit.targets import Targets, prepare
 from ..io import basis as basis_io
 from ..io.files import write_text
 from ..metrics import score
-from ..model.fields import FieldBasis, MotionWeights, model_from_state, model_state, state_to_json
+from ..model.fields import FieldBasis
+from ..model.program import model_from_state, model_state, state_to_json
+from ..model.weights import MotionWeights
 from ..motions.motion import save as save_motion
 from ..physics.body import Body, arm
 from ..plots import figures as plots
-from ..plots.render import render
+from ..render import render
 from ..simulation import simulate as sim_mod
 from .config import ExperimentConfig
 
@@ -110,7 +113,7 @@ def check(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
 
 
 def model_json(basis: FieldBasis, weights: MotionWeights) -> dict:
-    """A model as a row holds it: :func:`~tflearn.model.fields.model_state` as JSON lists."""
+    """A model as a row holds it: :func:`~tflearn.model.program.model_state` as JSON lists."""
     return state_to_json(model_state(basis, weights))
 
 
@@ -187,7 +190,12 @@ def fit_pipeline_case(motions: list, cfg: ExperimentConfig, out: Path, seed: int
         files.append(str(out / f"{m.name}.npz"))
     tcfg = cfg.training(method).replace(data=files, out=str(out / "run"), seed=seed,
                                         success=cfg.success.model_dump())
-    metrics = train.run(tcfg, progress=False)
+    alone = not _STATE.get("runner")          # not a case of run_cases (its bar counts them)
+    if alone:
+        from tqdm import tqdm
+        tqdm.write(f"{cfg.experiment}: {method} on {len(motions)} motion(s) in {out / 'run'}",
+                   file=sys.stderr)
+    metrics = train.run(tcfg, progress=alone)
     return {"metrics": metrics, "wall": metrics["overall"]["wall_time_s"],
             "sims": metrics["overall"]["simulations"], "M": metrics["overall"]["M"], "run": out / "run"}
 
@@ -269,27 +277,34 @@ def case_file(cfg: ExperimentConfig, case: tuple) -> Path:
 
 
 def run_cases(cfg: ExperimentConfig, cases: list) -> list:
-    """The rows of all cases (cached: a re-run skips the ones done), ``jobs`` at a time."""
-    from tqdm import tqdm
+    """The rows of all cases (cached: a re-run skips the ones done), ``jobs`` at a time,
+    with a progress bar over the cases on stderr (:func:`tflearn.log.progress_bar`). The
+    workers ignore Ctrl-C: it interrupts this process, which ends them."""
+    from ..log import progress_bar
     todo = [c for c in cases if not case_file(cfg, c).exists()]
-    bar = tqdm(total=len(cases), initial=len(cases) - len(todo), desc=cfg.experiment, disable=None)
 
     def store(case, rows):
         path = case_file(cfg, case)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_text(path, json.dumps(rows))
-        bar.update()
         bar.set_postfix_str(f"{case[1]} r={case[2]} seed={case[3]}: " + ", ".join(
-            f"{x['method']} {sum(x['success'])}/{len(x['success'])}" for x in rows))
-    if cfg.jobs > 1 and len(todo) > 1:
-        import multiprocessing as mp
-        with mp.get_context("fork").Pool(cfg.jobs) as pool:
-            for case, rows in zip(todo, pool.imap(run_case, todo)):
-                store(case, rows)
-    else:
-        for case in todo:
-            store(case, run_case(case))
-    bar.close()
+            f"{x['method']} {sum(x['success'])}/{len(x['success'])}" for x in rows), refresh=False)
+        bar.update()
+    _STATE["runner"] = True
+    try:
+        with progress_bar(len(cases), cfg.experiment, "cases", initial=len(cases) - len(todo)) as bar:
+            if cfg.jobs > 1 and len(todo) > 1:
+                import multiprocessing as mp
+                import signal
+                with mp.get_context("fork").Pool(cfg.jobs, signal.signal,
+                                                 (signal.SIGINT, signal.SIG_IGN)) as pool:
+                    for case, rows in zip(todo, pool.imap(run_case, todo)):
+                        store(case, rows)
+            else:
+                for case in todo:
+                    store(case, run_case(case))
+    finally:
+        _STATE["runner"] = False
     return [x for c in cases for x in json.loads(case_file(cfg, c).read_text())]
 
 
@@ -393,7 +408,7 @@ def sheets(body: Body, tg: Targets, sims: dict, fig_dir: Path) -> list:
 
 
 def animations(run_dir: Path, names: list, fig_dir: Path) -> list:
-    """A GIF per motion of a pipeline run: target and reproduced arm (:mod:`tflearn.plots.render`)."""
+    """A GIF per motion of a pipeline run: target and reproduced arm (:mod:`tflearn.render`)."""
     return [render(run_dir, name, out=fig_dir / f"{name}.gif", fps=10, tensorboard=False,
                    log=lambda line: None) for name in names]
 

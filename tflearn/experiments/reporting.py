@@ -12,6 +12,7 @@ from pathlib import Path
 from ..io.files import write_text
 from ..physics.body import arm
 from ..plots import figures as plots
+from ..plots import model as model_plots
 from . import common
 
 
@@ -32,8 +33,8 @@ def goal_line(goal: str, measured: str, met: bool) -> str:
 def _model_section(fig_root: Path) -> list:
     """The model's figures (torque fields, profiles), drawn into ``fig_root``."""
     words = common.text("report")
-    plots.save(plots.fields_gallery(arm()), fig_root / "fields.png")
-    plots.save(plots.profiles_figure(), fig_root / "profiles.png")
+    plots.save(model_plots.fields_gallery(arm()), fig_root / "fields.png")
+    plots.save(model_plots.profiles_figure(), fig_root / "profiles.png")
     return ["## The model", "", words["model"], "", "![fields](results/fields.png)", "",
             words["profiles"], "", "![profiles](results/profiles.png)", ""]
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from ..io import basis as basis_io
 from ..plots import figures as plots
+from ..plots import model as model_plots
 from . import common
 from .config import ExperimentConfig
 
@@ -36,13 +37,13 @@ def figures(cfg: ExperimentConfig, result: dict) -> list:
         if (run_dir / "basis.json").exists():
             lb = basis_io.load(run_dir / "basis.json")
             out.append(fig_dir / "weights.png")
-            plots.save(plots.weights_bars(lb.names, lb.weights.a.detach(), lb.weights.b.detach(),
-                                          title="pipeline (M = 4): weights per motion"), out[-1])
+            plots.save(model_plots.weights_bars(lb.names, lb.weights.a.detach(), lb.weights.b.detach(),
+                                                title="pipeline (M = 4): weights per motion"), out[-1])
     curves = {f"{x['method']} r={x['r']:g}": x["history"] for x in result["rows"]
               if x["seed"] == cfg.seed0 and "history" in x}
     if curves:
         out.append(fig_dir / "learning_curves.png")
-        plots.save(plots.learning_curves(curves, title="torque cost per iteration (seed 0)"), out[-1])
+        plots.save(model_plots.learning_curves(curves, title="torque cost per iteration (seed 0)"), out[-1])
     return out
 
 

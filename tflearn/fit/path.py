@@ -21,7 +21,9 @@ from typing import Callable, Optional
 import torch
 
 from .. import parallel
-from ..model.fields import FieldBasis, MotionWeights, model_from_state, model_state
+from ..model.fields import FieldBasis
+from ..model.program import model_from_state, model_state
+from ..model.weights import MotionWeights
 from ..physics.body import Body
 from ..physics.configspace import difference
 from ..simulation.simulate import SimOptions, SimulationFailed
@@ -49,7 +51,7 @@ def _params(basis, weights, fields: bool, phases: bool) -> list:
 class PathStep:
     """What one :func:`path_step` leaves: the loss at the parameters it was given (∞ when
     rejected as non-finite), the next learning rate, the best point so far
-    ({"loss", "model": :func:`~tflearn.model.fields.model_state`}, None if there is none), the
+    ({"loss", "model": :func:`~tflearn.model.program.model_state`}, None if there is none), the
     optimizer's state and, for a rejected step, why (``failure``)."""
 
     loss: float

@@ -27,7 +27,8 @@ import warnings
 
 import torch
 
-from ..model.fields import FieldBasis, MotionWeights, step_profile
+from ..model.fields import FieldBasis
+from ..model.weights import MotionWeights, step_profile
 from .nnls import nnls
 from .targets import Targets
 from .torque import DivergenceWarning, by_chunks, design, normal_equations

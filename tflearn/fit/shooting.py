@@ -11,7 +11,7 @@ torque matching on spline torques (docs/model.md, "Programs whose motion is chao
 **Segments.** Motion j is cut every K_j = max(1, round(h·rate_j)) samples; segment s
 starts at the target's own state (q, v) at its first sample k_s and is simulated to
 sample k_s + K_j under the motion's program at the motion's own time t_{k_s} + τ
-(:class:`~tflearn.model.fields.FieldProgram`'s ``start``). Its residuals at every sample but
+(:class:`~tflearn.model.program.FieldProgram`'s ``start``). Its residuals at every sample but
 its first are
 
     r = √(w_t / λ_j) · [e_t ;  √β (v_sim,t − v_target,t) ;  √γ (p(q_sim,t) − p(q_target,t))],
@@ -68,7 +68,9 @@ from typing import Callable, Optional
 
 import torch
 
-from ..model.fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
+from ..model.fields import FieldBasis, MotionFields
+from ..model.program import FieldProgram
+from ..model.weights import MotionWeights
 from ..motions.torso import Bases
 from ..physics.body import Body
 from ..physics.configspace import difference
@@ -334,7 +336,7 @@ def _lm_step(JtJ, Jtr, mu, theta, lower):
 
 
 def keys_of(options: ShootingOptions) -> tuple:
-    """The :class:`~tflearn.model.fields.MotionWeights` arrays that ``options`` fits."""
+    """The :class:`~tflearn.model.weights.MotionWeights` arrays that ``options`` fits."""
     return WEIGHTS + (TIMING if options.phases else ())
 
 

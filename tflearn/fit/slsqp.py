@@ -38,7 +38,8 @@ import numpy as np
 import torch
 from scipy.optimize import minimize
 
-from ..model.fields import FieldBasis, MotionWeights
+from ..model.fields import FieldBasis
+from ..model.weights import MotionWeights
 from .targets import Targets
 
 

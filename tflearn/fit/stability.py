@@ -28,7 +28,9 @@ from dataclasses import dataclass
 
 import torch
 
-from ..model.fields import FieldBasis, FieldProgram, MotionFields, MotionWeights
+from ..model.fields import FieldBasis, MotionFields
+from ..model.program import FieldProgram
+from ..model.weights import MotionWeights
 from ..physics.body import Body
 from ..physics.configspace import n_position, pack, state_tangent_basis
 from ..simulation.simulate import ArmODE

@@ -6,8 +6,10 @@ from typing import Optional
 
 import torch
 
-from ..model.fields import FieldBasis, FieldProgram, MotionWeights
-from ..motions import motion as motion_mod
+from ..model.fields import FieldBasis
+from ..model.program import FieldProgram
+from ..model.weights import MotionWeights
+from ..motions import spline
 from ..motions.torso import Bases
 from ..physics import dynamics
 from ..physics.body import Body
@@ -148,7 +150,7 @@ def on_samples(tg: Targets, x: torch.Tensor) -> torch.Tensor:
 
 def submovement_windows(tg: Targets, P: int, spread: float = 0.25):
     """P sub-movement windows per motion from its joint speed s(t) = ‖v(t)‖ (onsets,
-    durations: N×P each, for :class:`~tflearn.model.fields.MotionWeights`): the motion is cut at
+    durations: N×P each, for :class:`~tflearn.model.weights.MotionWeights`): the motion is cut at
     the P − 1 slowest interior local minima of s (a sub-movement ends where the limb
     nearly stops; minima within 5% of either end are ignored), the longest pieces halved
     while minima are missing, and window k spans its piece [t_k, t_{k+1}] widened by
@@ -206,7 +208,7 @@ def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform",
         k = len(m.t)
         tj = torch.as_tensor(m.t, **z)
         seen = None if base is None else base.take(torch.full((k,), j)).terms(body.gravity, tj - tj[0])
-        tau_j, vel_j, _ = motion_mod.torques(body, m, base=seen)
+        tau_j, vel_j, _ = spline.torques(body, m, base=seen)
         t[j, :k] = tj - tj[0]
         t[j, k:] = t[j, k - 1]
         mask[j, :k] = True

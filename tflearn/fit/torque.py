@@ -7,7 +7,7 @@ is linear in the motion's weights x_j = (a_j, b_j, c_j) ∈ R^{M(2+P)}:
     Φ_j(t) = [ψ_ji(t) χ_i | φ_ji(t) χ_i | φ_jk(t) χ_i (window k of field i)]   (n×M(2+P))
 
 (χ_i = χ_i(ν_j(t), v_j(t)) with the basis' field damping, :class:`~tflearn.model.fields.FieldBasis`;
-the window columns field by field, P sub-movement windows, :class:`~tflearn.model.fields.MotionWeights`).
+the window columns field by field, P sub-movement windows, :class:`~tflearn.model.weights.MotionWeights`).
 
 The cost of a motion is relative to its torque energy S_j = Σ_t w_t ‖T_j(t)‖²:
 
@@ -31,7 +31,8 @@ from typing import Callable, Optional
 import torch
 
 from .. import parallel
-from ..model.fields import FieldBasis, MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
+from ..model.fields import FieldBasis
+from ..model.weights import MotionWeights, pulse_profile, pulse_slope, step_profile, step_slope
 from .nnls import nnls, packed, take, warn_unconverged
 from .targets import Targets, chunks
 
@@ -393,37 +394,42 @@ def _projected_normal(J, Phi, r, x):
 
 
 class _Motions:
-    """The motions one process handles in :func:`em`: all of them, or with ``shared``
-    (a run of many processes, :mod:`tflearn.parallel`) this rank's own
-    (:func:`~tflearn.parallel.mine`), whose weights it solves and whose terms of JᵀJ and
-    Jᵀr it adds to the other ranks' (all-reduce); the costs and weights are gathered.
-    Without ``phases`` (θ then holds the fields alone) they are taken a chunk at a time
-    (:func:`~.targets.chunks`), each chunk's Jacobian built, projected and summed before
-    the next, so that memory stays bounded however many motions there are; the motions
-    that use the same fields at their first NNLS weights go together, so that a chunk's
-    Jacobian has the columns of few fields (:meth:`normal`)."""
+    """The motions of :func:`em`, cut into chunks (:func:`~.targets.chunks`; one chunk
+    with ``phases``, whose θ holds every motion's phases), each chunk's Jacobian built,
+    projected and summed before the next, so that memory stays bounded however many
+    motions there are; the motions that use the same fields at their first NNLS weights
+    go together, so that a chunk's Jacobian has the columns of few fields (:meth:`normal`).
+
+    ``shared`` (a run of many processes, :mod:`tflearn.parallel`) with at least as many
+    chunks as ranks: chunk c is rank c mod size's (:func:`~tflearn.parallel.shard`),
+    which solves its weights and forms its terms of JᵀJ and Jᵀr; the costs, terms and
+    weights are gathered, and every rank adds the terms in chunk order, as one process
+    does. The chunks are those one process cuts, so a run's steps are a single process'
+    to the last bit, whatever its number of processes (an all-reduce of each rank's
+    partial sums would group the additions by rank). With fewer chunks every rank does
+    the whole work itself: one process forms a chunk's JᵀJ as one product over all its
+    motions' rows, which no split between ranks reproduces."""
 
     def __init__(self, basis: FieldBasis, weights: MotionWeights, tg: Targets, support, shared: bool,
                  phases: bool):
-        self.all, self.N, self.shared = weights, tg.N, shared
-        self.idx = parallel.mine(tg.N) if shared else list(range(tg.N))
-        mine = tg.select(self.idx) if shared else tg
+        self.all, self.N = weights, tg.N
         width = basis.M * (basis.free_size + 2 + weights.P)
-        parts = [list(range(len(self.idx)))] if phases else chunks(mine, width)
+        parts = [list(range(tg.N))] if phases else chunks(tg, width)
         if len(parts) > 1:
-            parts = chunks(mine, width, self._uses(basis, weights, mine, support))
-        whole = len(parts) == 1 and not shared
-        self.parts = [[self.idx[i] for i in part] for part in parts]
+            parts = chunks(tg, width, self._uses(basis, weights, tg, support))
+        self.chunks, self.shared = parts, shared and 1 < parallel.size() <= len(parts)
+        whole = len(parts) == 1
+        self.parts = [parts[c] for c in parallel.mine(len(parts))] if self.shared else parts
         self.weights = [weights] if whole else [weights.select_motions(p) for p in self.parts]
         tgs = [tg] if whole else [tg.select(p, trim=True) for p in self.parts]
         self.support = [support if whole or support is None else support[p] for p in self.parts]
         self.fps = [_FieldParameters(basis, w, t, phases) for w, t in zip(self.weights, tgs)]
 
-    def _uses(self, basis, weights, tg, support) -> list:
-        """The fields (a tuple) each of this process' motions has a weight on at its
-        NNLS optimum."""
-        w = weights.select_motions(self.idx)
-        solve_weights(basis, w, tg, None if support is None else support[self.idx])
+    @staticmethod
+    def _uses(basis, weights, tg, support) -> list:
+        """The fields (a tuple) each motion has a weight on at its NNLS optimum."""
+        w = weights.select_motions(list(range(tg.N)))
+        solve_weights(basis, w, tg, support)
         return [tuple(row.nonzero().flatten().tolist()) for row in _used(w.vector().detach(), basis.M)]
 
     def vector(self) -> torch.Tensor:
@@ -433,42 +439,54 @@ class _Motions:
         for fp in self.fps:
             fp.assign(theta)
 
+    def _gather(self, rows: torch.Tensor) -> torch.Tensor:
+        """``rows`` (N×…, this rank's chunks' rows filled) with every chunk's rows, from
+        the rank that holds it."""
+        got = parallel.gather_motions(len(self.chunks), [rows[p] for p in self.parts])
+        for part, r in zip(self.chunks, got):
+            rows[part] = r
+        return rows
+
     def solve(self, basis: FieldBasis) -> torch.Tensor:
         """C_j (N) of every motion at its NNLS weights."""
         costs = torch.empty(self.N, dtype=torch.float64)
         for fp, support, part in zip(self.fps, self.support, self.parts):
             costs[part] = solve_weights(basis, fp.weights, fp.tg, support)
-        if not self.shared:
-            return costs
-        return torch.tensor(parallel.gather_motions(self.N, costs[self.idx].tolist()), dtype=costs.dtype)
+        return self._gather(costs) if self.shared else costs
+
+    @staticmethod
+    def _term(fp: _FieldParameters, theta: torch.Tensor):
+        """(fields, JᵀJ, Jᵀr) of one chunk (:func:`_projected_normal`) on the columns of the
+        fields it uses only (:meth:`_FieldParameters.active`), of the Jacobian and of the
+        design, the rest being zero or multiplied by zero weights; None if it uses none."""
+        x = fp.weights.vector().detach()
+        fields = fp.active(x)
+        if not fields:
+            return None
+        own = fp.weights.select_fields(fields)                      # every weight > 0 is here
+        Phi = scaled_design(fp.basis.select(fields), own, fp.tg, fp.scale)
+        x_f = own.vector().detach()
+        J = fp.jacobian(theta, x, fields).reshape(Phi.shape[:2] + (-1,))
+        return (fields, *_projected_normal(J, Phi, fp.residual(Phi, x_f), x_f))
 
     @torch.no_grad()
     def normal(self, theta: torch.Tensor):
-        """(JᵀJ, Jᵀr) of every motion (:func:`_projected_normal`), summed chunk by chunk
-        and over the ranks; a chunk computes the columns of the fields it uses only
-        (:meth:`_FieldParameters.active`), of the Jacobian and of the design, the rest
-        being zero or multiplied by zero weights."""
-        n = theta.numel()
+        """(JᵀJ, Jᵀr) of every motion, the chunks' terms (:meth:`_term`) added in chunk order."""
+        terms = [self._term(fp, theta) for fp in self.fps]
+        if self.shared:
+            terms = parallel.gather_motions(len(self.chunks), terms)
+        n, p = theta.numel(), self.fps[0].p
         A, g = theta.new_zeros(n, n), theta.new_zeros(n)
-        for fp in self.fps:
-            x = fp.weights.vector().detach()
-            fields = fp.active(x)
-            if not fields:
+        for term in terms:
+            if term is None:
                 continue
-            own = fp.weights.select_fields(fields)                  # every weight > 0 is here
-            Phi = scaled_design(fp.basis.select(fields), own, fp.tg, fp.scale)
-            x_f = own.vector().detach()
-            J = fp.jacobian(theta, x, fields).reshape(Phi.shape[:2] + (-1,))
-            a, b = _projected_normal(J, Phi, fp.residual(Phi, x_f), x_f)
-            if len(fields) == fp.M:
+            fields, a, b = term
+            if len(fields) * p == n:
                 A, g = A + a, g + b
                 continue
-            cols = (torch.tensor(fields)[:, None] * fp.p + torch.arange(fp.p)).flatten()
+            cols = (torch.tensor(fields)[:, None] * p + torch.arange(p)).flatten()
             A[cols[:, None], cols] += a
             g[cols] += b
-        if self.shared:
-            parallel.all_reduce_sum(A)
-            parallel.all_reduce_sum(g)
         return A, g
 
     def finish(self) -> None:
@@ -478,9 +496,7 @@ class _Motions:
         rows = torch.empty(self.N, self.weights[0].vector().shape[1], dtype=torch.float64)
         for w, part in zip(self.weights, self.parts):
             rows[part] = w.vector().detach()
-        if self.shared:
-            rows = torch.stack(parallel.gather_motions(self.N, list(rows[self.idx])))
-        self.all.set_vector(rows)
+        self.all.set_vector(self._gather(rows) if self.shared else rows)
 
 
 def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
@@ -511,12 +527,12 @@ def em(basis: FieldBasis, weights: MotionWeights, tg: Targets, steps: int = 50,
     Returns the cost history (sum over motions) and leaves the weights at their NNLS
     optimum.
 
-    ``distributed``: in a run of many processes each rank solves its own motions'
-    weights and the ranks sum JᵀJ and Jᵀr (:class:`_Motions`), so every rank takes the
-    same steps (not with variable ``phases``, whose θ holds every motion's phases: then
-    every rank runs it whole, as with fewer motions than ranks)."""
-    own = _Motions(basis, weights, tg, support, distributed and not phases and 1 < parallel.size() <= tg.N,
-                   phases)
+    ``distributed``: in a run of many processes the ranks share the chunks of motions,
+    each solving its chunks' weights and forming their terms of JᵀJ and Jᵀr, added in
+    chunk order on every rank (:class:`_Motions`), so every rank takes one process' steps
+    (not with variable ``phases``, whose θ holds every motion's phases, nor with fewer
+    chunks than ranks: then every rank runs it whole)."""
+    own = _Motions(basis, weights, tg, support, distributed and not phases, phases)
     theta = own.vector()
     costs = own.solve(basis)
     history = [float(costs.sum())]

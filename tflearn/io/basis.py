@@ -44,7 +44,8 @@ from typing import Optional
 import torch
 
 from ..errors import InputError
-from ..model.fields import FieldBasis, MotionWeights
+from ..model.fields import FieldBasis
+from ..model.weights import MotionWeights
 from ..physics.body import Body, arm, json_kind, json_numbers
 from ..physics.body import from_dict as body_from_dict
 from .files import write_text

@@ -5,7 +5,7 @@ Import (:func:`import_clips`): each clip is read (:mod:`tflearn.mocap.bvh`), ret
 one shared shoulder chart (:mod:`tflearn.mocap.retarget`), smoothed only if its samples do
 not resolve its torques, and resampled:
 
-* resolution is judged at the native rate (:func:`tflearn.motions.motion.torque_resolution`,
+* resolution is judged at the native rate (:func:`tflearn.motions.spline.torque_resolution`,
   estimated relative torque error; resolved at ≤ 1%): upsampling a spline adds no
   information and would hide the problem;
 * an unresolved clip is low-pass filtered, zero-phase (second-order Butterworth run
@@ -42,6 +42,7 @@ from scipy.signal import butter, filtfilt
 from ..errors import InputError
 from ..io.files import write_text
 from ..motions import motion as motion_mod
+from ..motions import spline
 from ..motions.torso import BaseMotion, Bases
 from ..physics import dynamics
 from ..physics.body import Body
@@ -104,19 +105,19 @@ def _filtered(q: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
 def smooth(m: motion_mod.Motion, cutoffs) -> tuple:
     """The motion, low-passed with the highest cutoff that resolves its torques at its
     own rate (unchanged when already resolved), and the filter report."""
-    eps = motion_mod.torque_resolution(m.body, m)
+    eps = spline.torque_resolution(m.body, m)
     report = {"resolution_native": eps, "cutoff_hz": None, "resolution_smoothed": eps,
               "change_rms_rad": 0.0}
-    if not eps > motion_mod.RESOLVED:
+    if not eps > spline.RESOLVED:
         return m, report
     q = m.q.numpy()
     for fc in [c for c in cutoffs if c < m.rate / 2]:
         x = _filtered(q, m.rate, fc)
         sm = motion_mod.Motion(m.name, m.t, x, None, m.body)
-        e = motion_mod.torque_resolution(m.body, sm)
+        e = spline.torque_resolution(m.body, sm)
         report.update(cutoff_hz=fc, resolution_smoothed=e,
                       change_rms_rad=float(np.sqrt(((x - q) ** 2).mean())))
-        if e <= motion_mod.RESOLVED:
+        if e <= spline.RESOLVED:
             return sm, report
     return sm, report
 
@@ -125,7 +126,7 @@ def torso_torque_share(body: Body, m: motion_mod.Motion, base: BaseMotion) -> fl
     """‖τ_moving − τ_fixed‖ / ‖τ_fixed‖ over the motion's samples: how much the torso's
     motion changes the arm's inverse-dynamics torques (spline ν, ω, ω̇ of the motion;
     RNEA with and without the base terms of :mod:`tflearn.motions.torso`)."""
-    q, v, a, rots = motion_mod.MotionSpline(body, m)(m.t)
+    q, v, a, rots = spline.MotionSpline(body, m)(m.t)
     fixed = dynamics.rnea_rot(body, rots, q, v, a)
     t = torch.as_tensor(m.t, dtype=torch.float64)
     g, b = Bases.of([base]).take(torch.zeros(len(t), dtype=torch.long)).terms(body.gravity, t)
@@ -164,14 +165,15 @@ def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -
     doc = _body_doc(frames, zero, options.gravity)
     body = from_config(doc)
     out = Path(out)
-    (out / "torso").mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     clips = []
     for r in rt.retarget_all(frames, zero):
         m = motion_mod.Motion(r.motion.name, r.motion.t, r.motion.q, None, body)
         if not _window_fits(m, options):
             continue
         sm, filt = smooth(m, options.cutoffs)
-        for final, span in _pieces(motion_mod.resample(sm, options.rate), options.window, options.split):
+        (out / "torso").mkdir(exist_ok=True)      # here: no empty folder when no clip fits
+        for final, span in _pieces(spline.resample(sm, options.rate), options.window, options.split):
             motion_mod.save(final, out / f"{final.name}.npz")
             base = _save_torso(r.frames, out / "torso" / f"{final.name}.npz", filt["cutoff_hz"], span)
             torso = {**r.report["torso"], "torque_share": torso_torque_share(body, final, base)}

@@ -343,7 +343,8 @@ def read_clips(paths, side: str = "right", mirror: bool = False, strict: bool = 
                amap: Optional[ArmMap] = None) -> list:
     """:class:`ArmFrames` of BVH files and folders (``*.bvh`` in name order). A file
     that cannot be read or mapped is skipped with a :class:`BVHWarning` naming it and
-    the problem, or, with ``strict``, raises its BVHError; nothing left raises."""
+    the problem, or, with ``strict``, raises its BVHError; nothing left raises, once:
+    the one file's own BVHError, or one naming the paths and every problem."""
     files = []
     for p in map(Path, paths):
         files.extend(sorted(p.glob("*.bvh")) if p.is_dir() else [p])
@@ -356,10 +357,13 @@ def read_clips(paths, side: str = "right", mirror: bool = False, strict: bool = 
             if strict:
                 raise
             errors.append(err)
-            warnings.warn(f"{err}; skipped", BVHWarning, stacklevel=2)
     if not out:
+        if len(errors) == 1:
+            raise errors[0]
         raise BVHError(", ".join(map(str, paths)) or "no paths",
                        "no readable BVH clip" + (f" ({'; '.join(map(str, errors))})" if errors else ""))
+    for err in errors:
+        warnings.warn(f"{err}; skipped", BVHWarning, stacklevel=2)
     return out
 
 

@@ -1,1 +1,2 @@
-"""The model: shared torque fields, per-motion weights and their torque program (fields)."""
+"""The model: shared torque fields (fields), per-motion weights and time profiles (weights),
+and their torque program with the one model state (program)."""

@@ -44,6 +44,17 @@ def skeleton_of(cfg: ModesConfig):
     return read(cfg.skeleton.file, scale=cfg.skeleton.scale)
 
 
+def constraints_of(cfg: ModesConfig) -> list:
+    """The config's constraints (:class:`tflearn.modes.analysis.Constraint`)."""
+    return [md.Constraint.from_config(c.model_dump(), f"constraints[{k}]")
+            for k, c in enumerate(cfg.constraints)]
+
+
+def drives_of(cfg: ModesConfig) -> list:
+    """The config's ``motion.drives`` (:class:`tflearn.modes.motion.ModeDrive`)."""
+    return [mm.ModeDrive(**d.model_dump()) for d in cfg.motion.drives]
+
+
 def analyse_config(cfg: ModesConfig, skel=None) -> md.Modes:
     """The modes a config describes (``skel``: its skeleton, if already read)."""
     skel = skel if skel is not None else skeleton_of(cfg)
@@ -54,9 +65,7 @@ def analyse_config(cfg: ModesConfig, skel=None) -> md.Modes:
         body = from_config(cfg.body)
     s = cfg.stiffness
     K = md.stiffness_matrix(body, s.uniform, s.scale, s.matrix)
-    constraints = [md.Constraint.from_config(c.model_dump(), f"constraints[{k}]")
-                   for k, c in enumerate(cfg.constraints)]
-    return md.analyse(body, md.rest_pose(body, cfg.pose), K, constraints,
+    return md.analyse(body, md.rest_pose(body, cfg.pose), K, constraints_of(cfg),
                       md.ModalOptions(chart=cfg.chart, floating=cfg.floating))
 
 
@@ -121,9 +130,13 @@ def document(cfg: ModesConfig, modes: md.Modes, following=None) -> dict:
             "following": following}
 
 
-def run(cfg: ModesConfig, out=None) -> dict:
+def run(cfg: ModesConfig, out=None, progress: bool = True) -> dict:
     """Analyse, write everything listed in the module into ``out`` (default cfg.out) and
-    return {"modes": Modes, "out": Path, "written": [paths], "following": dict | None}."""
+    return {"modes": Modes, "out": Path, "written": [paths], "following": dict | None}.
+    ``progress``: after the analysis, a bar on stderr (:func:`tflearn.log.progress_bar`)
+    over the steps: each animated mode, the combined motion, TensorBoard, each figure."""
+    from ..log import progress_bar
+    from ..plots import bodies
     from ..plots import figures as plots
     out = Path(out if out is not None else cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -132,27 +145,39 @@ def run(cfg: ModesConfig, out=None) -> dict:
     written, figures = [], {}
     a = cfg.animation
     unit = mm.unit_shapes(modes)[0]
-    for i in animated_modes(modes, a.modes):
-        motion = mode_motion(modes, i, a.amplitude, a.periods, a.samples)
-        save_motion(motion, out / f"{motion.name}.npz")
-        if skel is not None:
-            write_bvh(skel, modes.body, motion, out / f"{motion.name}.bvh")
-            written.append(out / f"{motion.name}.bvh")
-        poses = {"rest": (modes.q0, None)}
-        for sign, label in ((-1, "−α"), (1, "+α")):
-            x = sign * a.amplitude * unit[:, i]
-            poses[label] = (mm.retract(modes, torch.as_tensor(x[-modes.body.nv:])).numpy(),
-                            base_pose(modes.options.floating, x))
-        fig = plots.mode_shape(modes.body, poses, f"{modes.body.name}: mode {i}, "
-                               f"{modes.frequencies[i]:.3f} Hz (α = {a.amplitude} rad)")
-        figures[i] = fig
-        written += [out / f"{motion.name}.npz", out / f"{motion.name}.png"]
-    following = _combined_motion(cfg, modes, out, written)
-    write_text(out / "modes.json", json.dumps(document(cfg, modes, following), indent=1))
-    written.insert(0, out / "modes.json")
-    _log(cfg, modes, out, figures)
-    for i, fig in figures.items():
-        plots.save(fig, out / f"mode_{i:02d}.png")
+    animated = animated_modes(modes, a.modes)
+    with progress_bar(2 * len(animated) + bool(cfg.motion.drives) + cfg.log.tensorboard, "modes",
+                      "steps", progress) as bar:
+        for i in animated:
+            bar.set_postfix_str(f"mode {i}")
+            motion = mode_motion(modes, i, a.amplitude, a.periods, a.samples)
+            save_motion(motion, out / f"{motion.name}.npz")
+            if skel is not None:
+                write_bvh(skel, modes.body, motion, out / f"{motion.name}.bvh")
+                written.append(out / f"{motion.name}.bvh")
+            poses = {"rest": (modes.q0, None)}
+            for sign, label in ((-1, "−α"), (1, "+α")):
+                x = sign * a.amplitude * unit[:, i]
+                poses[label] = (mm.retract(modes, torch.as_tensor(x[-modes.body.nv:])).numpy(),
+                                base_pose(modes.options.floating, x))
+            fig = bodies.mode_shape(modes.body, poses, f"{modes.body.name}: mode {i}, "
+                                    f"{modes.frequencies[i]:.3f} Hz (α = {a.amplitude} rad)")
+            figures[i] = fig
+            written += [out / f"{motion.name}.npz", out / f"{motion.name}.png"]
+            bar.update()
+        bar.set_postfix_str("combined motion" + (" and PD follow" if cfg.motion.dynamic else ""))
+        following = _combined_motion(cfg, modes, out, written)
+        bar.update(bool(cfg.motion.drives))
+        write_text(out / "modes.json", json.dumps(document(cfg, modes, following), indent=1))
+        written.insert(0, out / "modes.json")
+        if cfg.log.tensorboard:
+            bar.set_postfix_str("TensorBoard")
+            _log(cfg, modes, out, figures)
+            bar.update()
+        for i, fig in figures.items():
+            bar.set_postfix_str(f"mode_{i:02d}.png")
+            plots.save(fig, out / f"mode_{i:02d}.png")
+            bar.update()
     return {"modes": modes, "out": out, "written": written, "following": following}
 
 
@@ -161,7 +186,7 @@ def _combined_motion(cfg: ModesConfig, modes: md.Modes, out: Path, written: list
     m = cfg.motion
     if not m.drives:
         return None
-    drives = [mm.ModeDrive(**d.model_dump()) for d in m.drives]
+    drives = drives_of(cfg)
     limits = mm.Limits.from_config(modes.body, m.limits, m.soft)
     t = np.linspace(0.0, m.duration, max(4, int(round(m.duration * m.rate)) + 1))
     q = mm.kinematic(modes, drives, t, limits)

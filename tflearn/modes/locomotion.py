@@ -20,22 +20,32 @@ length: the largest distance between two contact points at the rest pose θ₀),
 direction of travel (a unit vector in the ground plane) and the cost of transport
 W⁺/(m g d) with W⁺ = ∫ Σ_j max(0, τ_j θ̇_j) dt the positive mechanical work of the
 joint torques (trapezoidal rule over the output samples).
+
+``tflearn locomotion CONFIG`` (:func:`run`) does this for the creature of a modes config
+(configs/modes/linear_creature.yaml, loop_creature.yaml) and writes the measures, the
+path and a side-view GIF.
 """
 from __future__ import annotations
 
+import json
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Optional, Sequence
 
 import numpy as np
 import torch
 
+from ..io.files import write_text
+from ..motions.motion import Motion
+from ..motions.motion import save as save_motion
 from ..physics import dynamics
 from ..physics.body import Body
 from ..physics.configspace import difference
 from ..physics.contact import Ground, with_ground
-from ..simulation.simulate import SimOptions, Trajectory, simulate
+from ..simulation.simulate import SimOptions, SimulationFailed, Trajectory, simulate
 from .analysis import ModalError, Modes, link_index, tangent_stiffness
+from .command import analyse_config, constraints_of, drives_of
+from .config import ModesConfig
 from .motion import Limits, ModeDrive, set_point
 
 N_FREE = 6   # the free joint's coordinates, first in ν: rotation vector, translation
@@ -210,3 +220,57 @@ def locomote(modes: Modes, drives: Sequence[ModeDrive], constraints=(),
                 direction=step / distance if distance > 0 else np.zeros(2), work=work,
                 cost_of_transport=work / (mass * 9.81 * distance) if distance > 0 else math.inf,
                 evals=evals[0])
+
+
+def run(cfg: ModesConfig, out=None, duration: float = 3.0, settle: float = 0.5, step: float = 5e-4,
+        amplitude: Optional[float] = None) -> dict:
+    """``tflearn locomotion CONFIG``: the creature of a floating-base modes config — its
+    body, stiffness, loop-closing constraints, ``motion.drives`` (every drive's α replaced
+    by ``amplitude`` when given) and ``motion.limits`` — on the ground for ``duration`` s,
+    fixed-step RK4 with step ``step`` s, measured from ``settle`` s (:func:`locomote`, the
+    rest as :class:`LocomotionOptions`). Writes into ``out`` (default the config's):
+    ``locomotion.json`` (the measures of :class:`Gait` and the options), ``locomotion.npz``
+    (the free body's path in the Motion format, ν = the free joint's 6 coordinates then
+    the joints', at the output rate) and ``locomotion.gif`` (a side view,
+    :func:`tflearn.plots.bodies.side_view_gif`). Returns {"locomotion": the JSON document,
+    "out": Path, "written": [paths]}."""
+    from pathlib import Path
+
+    from ..plots.bodies import side_view_gif
+    if not 0 <= settle < duration:
+        raise ModalError(f"locomotion: the measurement must start within the run "
+                         f"(0 ≤ settle < duration), got settle {settle} s, duration {duration} s")
+    if not step > 0:
+        raise ModalError(f"locomotion: the RK4 step must be positive, got {step}")
+    out = Path(out if out is not None else cfg.out)
+    modes = analyse_config(cfg)
+    drives = drives_of(cfg)
+    if amplitude is not None:
+        drives = [replace(d, amplitude=amplitude) for d in drives]
+    limits = Limits.from_config(modes.body, cfg.motion.limits, cfg.motion.soft) if cfg.motion.limits else None
+    base = LocomotionOptions()
+    opts = replace(base, duration=duration, settle=settle,
+                   sim=replace(base.sim, solver_options={"step_size": step}))
+    try:
+        gait = locomote(modes, drives, constraints_of(cfg), limits, opts)
+    except SimulationFailed as err:
+        raise ModalError(f"locomotion: {err} (a smaller RK4 step may help: {step} s now)") from None
+    traj = gait.trajectory
+    doc = {"creature": modes.body.name, "drives": [asdict(d) for d in drives],
+           "speed_body_lengths_per_s": gait.speed, "distance_m": gait.distance,
+           "body_length_m": gait.body_length, "direction_xy": gait.direction.tolist(),
+           "positive_joint_work_J": gait.work,
+           "cost_of_transport": gait.cost_of_transport if math.isfinite(gait.cost_of_transport) else None,
+           "evals": gait.evals,
+           "com_height_m": [float(gait.com[:, 2].min()), float(gait.com[:, 2].max())],
+           "com_lateral_max_m": float(abs(gait.com[:, 1] - gait.com[0, 1]).max()),
+           "options": {"duration": duration, "settle": settle, "step": step, "rate": opts.rate,
+                       "damping": opts.damping, "ground": asdict(opts.ground),
+                       "closure_stiffness": opts.closure_stiffness,
+                       "closure_damping": opts.closure_damping}}
+    out.mkdir(parents=True, exist_ok=True)
+    written = [out / "locomotion.json", out / "locomotion.npz", out / "locomotion.gif"]
+    write_text(written[0], json.dumps(doc, indent=1))
+    save_motion(Motion("locomotion", traj.t, traj.q, traj.v, gait.body), written[1])
+    side_view_gif(gait.body, traj.t.numpy(), traj.q, written[2], fps=25, title=modes.body.name, com=gait.com)
+    return {"locomotion": doc, "out": out, "written": written}

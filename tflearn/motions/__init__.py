@@ -1,2 +1,2 @@
-"""Motions: sampled joint trajectories with splines and inverse-dynamics torques (motion) and the
-moving base a motion may carry (torso)."""
+"""Motions: sampled joint trajectories and their files (motion), splines through them and
+their inverse-dynamics torques (spline), and the moving base a motion may carry (torso)."""

@@ -8,7 +8,7 @@ The arm's dynamics in the base frame then see (thesis §4.5.3, non-inertial fram
 which :func:`tflearn.physics.dynamics.rnea_rot` and :func:`~tflearn.physics.dynamics.forward_dynamics_rot`
 take as ``base=(ω_b, ω̇_b, a_b)`` and ``gravity=g_b`` (g the body's gravity, a world
 vector). :class:`BaseMotion` splines sampled poses (quintic, exact derivatives:
-quaternions through :func:`tflearn.motions.motion.quat_body_motion`, positions directly);
+quaternions through :func:`tflearn.motions.spline.quat_body_motion`, positions directly);
 :class:`Bases` holds the splines of a batch's members, one per member, as piecewise
 polynomials that torch (:meth:`Bases.terms`) and the compiled simulator
 (:mod:`tflearn.simulation.simkernel`) evaluate alike; :func:`tflearn.simulation.simulate.simulate`
@@ -34,7 +34,8 @@ from scipy.interpolate import make_interp_spline
 from ..physics import dynamics
 from ..physics.body import Body
 from ..physics.configspace import align_quaternions
-from .motion import MotionFileError, quat_body_motion
+from .motion import MotionFileError
+from .spline import quat_body_motion
 
 DTYPE = torch.float64
 DEGREE = 5

@@ -25,7 +25,7 @@ import numpy as np
 import roma
 import torch
 
-from . import kernels
+from . import kernels, kernels_state
 from .body import Body
 
 TAYLOR_THETA2 = 0.25  # below θ² = 0.25 the J_r coefficients use their Taylor series
@@ -340,13 +340,13 @@ def state_tangent_basis(body: Body, y: torch.Tensor) -> torch.Tensor:
 
 
 def _unpack_compiled(body: Body, L: dict, y: torch.Tensor):
-    """:func:`unpack` by :func:`tflearn.physics.kernels.read_state` (no gradient, float64 CPU)."""
+    """:func:`unpack` by :func:`tflearn.physics.kernels_state.read_state` (no gradient, float64 CPU)."""
     batch, nr = y.shape[:-1], L["quat"].shape[0]
     flat = kernels.as_numpy(y.reshape(-1, y.shape[-1]))
     B = flat.shape[0]
     coords, quats, R = np.empty((B, body.nv)), np.empty((B, nr, 4)), np.empty((B, nr, 3, 3))
     N = L["numpy"]
-    kernels.read_state(flat, N["quat"], N["other"], N["coords"], coords, quats, R)
+    kernels_state.read_state(flat, N["quat"], N["other"], N["coords"], coords, quats, R)
     R = torch.from_numpy(R).reshape(batch + (nr, 3, 3))
     return (_per_link(body, L, R), torch.from_numpy(coords).reshape(batch + (body.nv,)),
             torch.from_numpy(quats).reshape(batch + (nr, 4)), y[..., L["n_pos"]:])
@@ -397,8 +397,8 @@ def position_rate(body: Body, rots: list, quats: torch.Tensor, v: torch.Tensor) 
         R = (kernels.as_numpy(torch.stack(R, -3).reshape(B, nr, 3, 3)) if (kind == 3).any()
              else np.zeros((1, 0, 3, 3)))
         out = np.empty((B, L["position"].numel()))
-        kernels.position_rate(kind, rot, offset, R, kernels.as_numpy(quats.reshape(B, nr, 4)),
-                              kernels.as_numpy(v.reshape(B, -1)), L["numpy"]["position"], out)
+        kernels_state.position_rate(kind, rot, offset, R, kernels.as_numpy(quats.reshape(B, nr, 4)),
+                                    kernels.as_numpy(v.reshape(B, -1)), L["numpy"]["position"], out)
         return torch.from_numpy(out).reshape(v.shape[:-1] + out.shape[-1:])
     rates = [quat_rate(quats, v[..., L["rate"]]).flatten(-2)]
     for i, link in enumerate(body.links):

@@ -49,17 +49,6 @@ class Ground:
             raise ValueError("ground.slip: must be positive")
 
 
-def cylinder_ends(body: Body):
-    """(links, points P×3): both ends of every cylinder link — its joint origin (0, 0, 0)
-    and its far end (0, 0, −length) — in link order; links without a length are skipped."""
-    links, points = [], []
-    for i, link in enumerate(body.links):
-        if math.isfinite(link.length):
-            links += [i, i]
-            points += [(0.0, 0.0, 0.0), (0.0, 0.0, -link.length)]
-    return links, torch.tensor(points, dtype=torch.float64)
-
-
 def contact_forces(p: torch.Tensor, pd: torch.Tensor, ground: Ground) -> torch.Tensor:
     """World forces (...×P×3) on points at p with velocities pd (...×P×3 each)."""
     depth = ground.height - p[..., 2]

@@ -3,22 +3,22 @@
 
 :func:`tflearn.simulation.simulate.simulate` hands a batch to :func:`integrate` when its members are
 stepped each alone (``SimOptions(batch="each")``), the program can be
-unrolled per member (:meth:`tflearn.model.fields.FieldProgram.rows`: field programs, stacks of
+unrolled per member (:meth:`tflearn.model.program.FieldProgram.rows`: field programs, stacks of
 them, the gesture library's own-field programs), the tensors are float64 on the CPU and
 no gradient is to be carried. Otherwise the torch path runs (:func:`tflearn.simulation.ode.odeint_each`
 with :class:`tflearn.simulation.simulate.ArmODE`) — the same maths, the two agree to rounding
 (tests/test_simkernel.py):
 
 - the right-hand side of :class:`~tflearn.simulation.simulate.ArmODE`: the state read by
-  :func:`tflearn.physics.kernels.read_state`, the program's torque
+  :func:`tflearn.physics.kernels_state.read_state`, the program's torque
 
       τ_b(t, ν, v) = Σ_i w_bi(s_b + t) · (−K_gi (d + ζ_g v) exp(−½ dᵀ K_gi d)),  d = ν − η_gi
 
-  (:class:`tflearn.model.fields.ProgramRows`; a field whose activation is 0 is skipped),
+  (:class:`tflearn.model.program.ProgramRows`; a field whose activation is 0 is skipped),
   the body's joint damping −c v, the articulated-body algorithm
   (:func:`tflearn.physics.kernels.aba`) from a fixed base under the body's gravity or from each
   member's moving base (:class:`tflearn.motions.torso.Bases`, :func:`_base_root`), and the
-  position rates (:func:`tflearn.physics.kernels.position_rate`); with ``track_work`` one more
+  position rates (:func:`tflearn.physics.kernels_state.position_rate`); with ``track_work`` one more
   entry, dW/dt = τ · v;
 - the solver of :func:`tflearn.simulation.ode.odeint_each`: its tableau, initial step, error norm,
   step-size control, dense output at the sample times, evaluation count and failure codes
@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from ..physics import kernels
+from ..physics import kernels, kernels_state
 from ..physics.body import Body
 from ..physics.configspace import _layout
 from ..physics.dynamics import _kernel_root, _kernel_tables
@@ -210,7 +210,7 @@ def _rate(m, t, y, out, work, tables, root, base, damping, orders, n_pos, progra
     nv = coords.shape[1]
     for k in range(y.shape[0]):
         Y[0, k] = y[k]
-    kernels.read_state(Y, quat, other, coords_order, coords, quats, R)
+    kernels_state.read_state(Y, quat, other, coords_order, coords, quats, R)
     for k in range(nv):
         v[0, k] = y[n_pos + k]
     _torque(m, t, coords[0], v[0], program, tau, d, Kd, win)
@@ -223,7 +223,7 @@ def _rate(m, t, y, out, work, tables, root, base, damping, orders, n_pos, progra
     else:
         kernels.aba(kind, rot, R0, origin, axis, offset, parent, inertia, R, coords, root[0], root[1],
                     v, total, qdd)
-    kernels.position_rate(kind, rot, offset, R, quats, v, position_order, pos)
+    kernels_state.position_rate(kind, rot, offset, R, quats, v, position_order, pos)
     for k in range(n_pos):
         out[k] = pos[0, k]
     for k in range(nv):

@@ -20,14 +20,14 @@ from typing import Callable
 
 import numpy as np
 
-from ..data.loading import named_motions, torsos
-from ..errors import InputError
-from ..evaluate import run_config, weights_for
-from ..fit.targets import prepare
-from ..io import basis as basis_io
-from ..io.files import replacing
-from ..metrics import score
-from . import figures as plots
+from .data.loading import named_motions, torsos
+from .errors import InputError
+from .evaluate import run_config, weights_for
+from .fit.targets import prepare
+from .io import basis as basis_io
+from .io.files import replacing
+from .metrics import score
+from .plots import figures as plots
 
 STRIP_FRAMES = 8          # frames in the TensorBoard contact sheet (4 per row)
 
@@ -53,12 +53,14 @@ def frame_samples(t, fps: float) -> np.ndarray:
 
 
 def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
-           log: Callable[[str], None] = print) -> Path:
+           log: Callable[[str], None] = print, progress: bool = True) -> Path:
     """Animate motion ``motion`` of the run folder ``run``: target and reproduced arm.
 
     Writes a GIF (default RUN/figures/MOTION.gif) and, with ``tensorboard``, the same
     frames as images in RUN/tensorboard (see the module); ``log`` receives a line
-    saying what was logged. Returns the GIF's path.
+    saying what was logged. ``progress``: a bar on stderr
+    (:func:`tflearn.log.progress_bar`): the simulation, then the frames drawn. Returns the
+    GIF's path.
 
     Raises :class:`~tflearn.errors.InputError` for a motion name the basis does not hold
     (the message lists the names it holds) or one missing from the run's data, and for
@@ -71,19 +73,27 @@ def render(run, motion: str, out=None, fps: int = 25, tensorboard: bool = True,
     lb.index(motion)
     cfg, options = run_config(run)
     found = named_motions(cfg.data, lb.body, [motion], str(run / "basis.json"))
-    tg = prepare(lb.body, found, base=torsos(cfg.data, found, cfg.torso))
-    s = score(lb.body, lb.basis, weights_for(lb, tg), tg, options)
-    T = int(tg.mask[0].sum())
-    t = tg.t[0, :T].numpy()
-    paths = {"target": plots.joint_positions(lb.body, tg.q[0, :T]),
-             "reproduced": plots.joint_positions(lb.body, s.q_sim[0, :T])}
-    out = Path(out) if out is not None else run / "figures" / f"{motion}.gif"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    frames = write_gif(paths, t, frame_samples(t, fps), fps, out,
-                        f"{motion}: rmse {s.rmse[0]:.4f} rad, tip error {100 * s.tip[0]:.2f} cm",
-                        keep=tensorboard)
+    from .log import progress_bar
+    with progress_bar(None, f"render {motion}", "frames", progress) as bar:
+        bar.set_postfix_str("simulating")
+        tg = prepare(lb.body, found, base=torsos(cfg.data, found, cfg.torso))
+        s = score(lb.body, lb.basis, weights_for(lb, tg), tg, options)
+        T = int(tg.mask[0].sum())
+        t = tg.t[0, :T].numpy()
+        paths = {"target": plots.joint_positions(lb.body, tg.q[0, :T]),
+                 "reproduced": plots.joint_positions(lb.body, s.q_sim[0, :T])}
+        out = Path(out) if out is not None else run / "figures" / f"{motion}.gif"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        samples = frame_samples(t, fps)
+        bar.total = len(samples)
+        bar.set_postfix_str("drawing")
+        frames = write_gif(paths, t, samples, fps, out,
+                           f"{motion}: rmse {s.rmse[0]:.4f} rad, tip error {100 * s.tip[0]:.2f} cm",
+                           keep=tensorboard, tick=bar.update)
+        if tensorboard:
+            bar.set_postfix_str("logging the frames to TensorBoard")
+            log_frames(run / "tensorboard", motion, frames)
     if tensorboard:
-        log_frames(run / "tensorboard", motion, frames)
         log(f"tensorboard: logged {len(frames)} frames as images render/{motion}/frames "
             f"(steps 0-{len(frames) - 1}; see them all with tensorboard --samples_per_plugin "
             f"images={len(frames)}) and render/{motion}/strip to {run / 'tensorboard'}")
@@ -106,7 +116,8 @@ def log_frames(logdir, motion: str, frames: list) -> None:
 
 
 def write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Path,
-              title: str, keep: bool, reference=None, window=None) -> list:
+              title: str, keep: bool, reference=None, window=None,
+              tick: Callable[[], object] = lambda: None) -> list:
     """Draw one frame per entry of ``samples`` and write them to ``out`` with
     PillowWriter; ``paths``: label → joint positions (T×(L+1)×3), one 3-D panel each
     (axes x, y, z in m), the title above them with the time in s. ``reference`` (joint
@@ -114,7 +125,8 @@ def write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Pa
     first path is, in the other panels. ``window`` (t₀, t₁): while t₀ ≤ t ≤ t₁ the hands
     are marked with a red star and the title says "push". Frames are at least
     :data:`GIF_MIN_WIDTH` px wide (560 px per panel), fonts at least :data:`GIF_FONT` pt.
-    Returns the frames as H×W×3 uint8 arrays when ``keep``, else []."""
+    ``tick()`` follows each frame drawn (a progress bar's ``update``). Returns the frames
+    as H×W×3 uint8 arrays when ``keep``, else []."""
     import matplotlib.pyplot as plt
     from matplotlib.animation import PillowWriter
 
@@ -157,5 +169,6 @@ def write_gif(paths: dict, t: np.ndarray, samples: np.ndarray, fps: int, out: Pa
             if keep:
                 fig.canvas.draw()
                 frames.append(np.asarray(fig.canvas.buffer_rgba())[..., :3].copy())
+            tick()
     plt.close(fig)
     return frames

@@ -1,0 +1,133 @@
+"""Programs for motions on a frozen basis — the synthesis that held-out evaluation
+(:func:`tflearn.evaluate.synthesize`) and training's rescue stage
+(:mod:`tflearn.train.stages.rescue`) share:
+
+1. weights by NNLS on each motion's torques (:func:`~tflearn.fit.torque.solve_weights`:
+   exact, or with a ridge, or on some fields only), the basis fixed;
+2. the motions those weights do not reproduce (:func:`unreproduced`: joint RMSE ≤
+   ``success[0]`` rad and maximum tip error ≤ ``success[1]`` m, by simulation) get their
+   weights — and with ``options.phases`` their activation timing — by multiple-shooting
+   path matching (:func:`shoot`, :func:`tflearn.fit.shooting.shooting_match`);
+3. of two programs for a motion, the one simulated closer is kept (:func:`closer`): one
+   that reproduces it, else the smaller joint RMSE of a simulation that reaches its end
+   (a failed simulation is farthest).
+
+:func:`fit_programs` runs 2–3 for new motions, with a second start for those still not
+reproduced (the nearest of the basis' own programs, :func:`nearest_programs`).
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import torch
+
+from . import parallel
+from .fit.shooting import ShootingOptions, keys_of, shooting_match
+from .fit.targets import Targets
+from .fit.torque import torque_costs
+from .metrics import Scores, score
+from .model.weights import MotionWeights
+from .simulation.simulate import SimOptions
+
+#: The arrays of a motion's program: its weights on every field and its windows' timing.
+PROGRAM = MotionWeights.PER_FIELD + MotionWeights.WINDOWS
+
+
+def unreproduced(body, basis, weights: MotionWeights, tg: Targets, sim: SimOptions, success: tuple,
+                 motions) -> tuple:
+    """(the motions of ``motions`` (indices) that ``weights`` does not reproduce, their
+    joint RMSEs), the motions simulated together."""
+    motions = list(motions)
+    s = score(body, basis, weights.select_motions(motions), tg.select(motions), sim)
+    bad = [r for r, ok in enumerate(s.succeeded(*success)) if not ok]
+    return [motions[r] for r in bad], [s.rmse[r] for r in bad]
+
+
+def shoot(body, basis, weights: MotionWeights, tg: Targets, motions: list, options: ShootingOptions,
+          sim: SimOptions, distributed: bool = False) -> dict:
+    """Multiple-shooting path matching of ``motions``' programs (indices; ``options``'
+    arrays: weights, and timing with ``options.phases``), the basis fixed, ``weights``
+    changed in place. ``distributed``: the motions shared by the ranks of a run and the
+    results gathered, so that every rank holds every motion's. Returns, per motion name,
+    {"loss": the path loss left (None: ∞), "failure": why shooting stopped early, or None}."""
+    keys = keys_of(options)
+    mine = [motions[i] for i in parallel.mine(len(motions))] if distributed else list(motions)
+    rows = []
+    if mine:
+        res = shooting_match(body, basis, weights, tg, options=options, sim=sim, motions=mine)
+        rows = [{"theta": x.tolist(), "loss": loss if loss < float("inf") else None,
+                 "failure": res.failures.get(tg.names[j])}
+                for j, x, loss in zip(mine, weights.flat(keys)[mine], res.loss)]
+    if distributed:
+        rows = parallel.gather_motions(len(motions), rows)
+        weights.set_flat(keys, torch.tensor([r["theta"] for r in rows], dtype=torch.float64), motions)
+    return {tg.names[j]: {"loss": r["loss"], "failure": r["failure"]} for j, r in zip(motions, rows)}
+
+
+def closer(rmse: list, after: Scores, ok: Optional[list] = None) -> list:
+    """Per motion, whether the programs ``after`` was scored with simulate it closer than
+    programs of joint RMSEs ``rmse``: ``after`` reproduces it (``ok``, when given), or its
+    simulation reaches the end with a smaller joint RMSE (a failed one never does)."""
+    ok = ok or [False] * len(rmse)
+    return [o or (f is None and r < r0) for o, f, r, r0 in zip(ok, after.failure, after.rmse, rmse)]
+
+
+def take(weights: MotionWeights, source: MotionWeights, rows: list, into: list) -> None:
+    """Motions ``into`` of ``weights`` take the programs of motions ``rows`` of ``source``."""
+    weights.set_flat(PROGRAM, source.flat(PROGRAM)[rows], into)
+
+
+def nearest_programs(basis, trained: MotionWeights, tg: Targets) -> MotionWeights:
+    """For each motion of ``tg``, the program of one of the basis' own motions
+    (``trained``: their weights and activation timing, onsets and durations scaled by the
+    ratio of the two motions' durations) whose torques match it best: the lowest relative
+    torque cost C_j (:func:`~tflearn.fit.torque.torque_cost`) over the basis' motions. A
+    start for path matching where the new motion's own NNLS weights make a program that
+    cannot be simulated along it."""
+    keys = MotionWeights.TIMING + MotionWeights.WINDOWS
+
+    def programs(rows):                  # motion rows[j]'s program, for motion j of tg
+        w = trained.select_motions(rows)
+        w.set_flat(keys, w.flat(keys) * (tg.duration / w.duration)[:, None], range(tg.N))
+        w.duration.copy_(tg.duration)
+        w.names = list(tg.names)
+        return w
+    costs = [torque_costs(basis, programs([k] * tg.N), tg) for k in range(trained.N)]
+    return programs(torch.stack(costs, 1).argmin(1).tolist())
+
+
+def fit_programs(body, basis, weights: MotionWeights, tg: Targets, options: ShootingOptions,
+                 sim: SimOptions, success: tuple,
+                 second: Optional[Callable[[Targets], MotionWeights]] = None) -> dict:
+    """Steps 2–3 for every motion of ``tg`` whose ``weights`` (step 1's, changed in place)
+    do not reproduce it: shot from them; those still not reproduced are shot again from
+    ``second(their targets)`` (other programs for them), and each keeps whichever of the
+    first fit, the second, or the second's start as it is simulates closest. Returns, per
+    motion, why the shooting of the fit it kept stopped early (or, where it kept the
+    second's start, that no fit came closer)."""
+    todo = unreproduced(body, basis, weights, tg, sim, success, range(tg.N))[0]
+    if not todo:
+        return {}
+    failures = {name: r["failure"] for name, r in shoot(body, basis, weights, tg, todo, options, sim).items()
+                if r["failure"]}
+    still, rmse = unreproduced(body, basis, weights, tg, sim, success, todo)
+    if not still or second is None:
+        return failures
+    sub = tg.select(still)
+    alt = second(sub)
+    start = alt.select_motions(range(sub.N))                # the second's start as it is
+    again = {name: r["failure"] for name, r in shoot(body, basis, alt, sub, list(range(sub.N)), options,
+                                                     sim).items() if r["failure"]}
+    kept = [None] * sub.N
+    for program, s in [(w, score(body, basis, w, sub, sim)) for w in (alt, start)]:
+        for r, better in enumerate(closer(rmse, s)):
+            if better:
+                kept[r], rmse[r] = program, s.rmse[r]
+    for r, (name, j) in enumerate(zip(sub.names, still)):
+        if kept[r] is not None:
+            take(weights, kept[r], [r], [j])
+            failures.pop(name, None)
+            if name in again or kept[r] is start:
+                failures[name] = again.get(name, "no fit came closer than the nearest trained program "
+                                                 "as it is")
+    return failures

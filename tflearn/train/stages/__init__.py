@@ -1,0 +1,23 @@
+"""The stages of a run, behind one registry: :data:`STAGES`, each stage a module with
+its ``NAME`` (the name its checkpoints and metrics.json use), ``TITLE`` and ``UNIT``
+(what its progress bar says, and the unit of work it counts) and ``run(ctx, state)``,
+which does one unit of work (:mod:`tflearn.train.pipeline` calls it until the stage
+moves the state on); :data:`SEQUENCES` the stages of each ``solver.method``.
+"""
+from __future__ import annotations
+
+from . import each, layout, path, pool, reduce, rescue, slsqp
+
+STAGES = {m.NAME: m for m in (each, pool, reduce, path, rescue, slsqp, layout)}
+SEQUENCES = {"pipeline": (each, pool, reduce, path, rescue), "slsqp": (slsqp,), "layout": (layout, path)}
+
+
+def sequence(cfg) -> tuple:
+    """The names of the stages a config runs, in order (``rescue`` with
+    ``solver.rescue.enabled`` only)."""
+    return tuple(m.NAME for m in SEQUENCES[cfg.solver.method] if m is not rescue or cfg.solver.rescue.enabled)
+
+
+def titles(names) -> dict:
+    """{name: (title, unit)} of the stages ``names``, in order (for :class:`~tflearn.log.RunLog`)."""
+    return {name: (STAGES[name].TITLE, STAGES[name].UNIT) for name in names}

@@ -1,0 +1,292 @@
+"""Stage ``reduce`` — backward elimination: drop each field in turn, smallest share
+first (:func:`~tflearn.fit.search.field_shares`), and keep it dropped if no motion gets
+worse by simulation (:func:`no_worse`); the smallest M found is reported. One unit per
+field tried.
+
+With ``model.fields`` = 0 a field goes only if no motion gets worse; a field no motion
+uses goes as it is (:func:`idle`), and a field that a motion not reproduced uses is kept
+without a trial (:func:`carried`). Any other is tried first with every field refitted
+by EM (:func:`refit_trial`; ``solver.reduce.refit``), then, if that breaks a motion or
+refitting is off, with every other field held where it is (:func:`held_trial`: only the
+motions that used it re-solve their weights and are simulated again). With ``sharing:
+own`` a motion that loses one of its fields may then use every field left (or those in
+reach, ``solver.reduce.reach``). With ``model.fields`` = M the smallest-share fields go
+until M remain (refitted).
+
+With ``solver.path.batch: each`` (one process) the refitted trials of the next fields
+are checked together in one simulation (:func:`~tflearn.metrics.score_models`) and
+applied in order up to the first removal, the rest dropped: the same decisions as one
+at a time, since each motion's simulation is then independent of its batch; the window
+(``state.window``) doubles after trials that all keep their field, and starts again at
+one after a removal.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import torch
+
+from ... import parallel
+from ...fit import search, torque
+from ...fit.targets import Targets
+from ...metrics import Scores, score_models
+from ...model.program import model_from_state, model_state
+from ..context import RunContext
+from ..models import weight_support
+from ..state import Reference, Removal, RunState
+
+NAME, TITLE, UNIT = "reduce", "reduce: try dropping fields", "fields"
+
+
+@dataclass
+class Trial:
+    """A field tried for removal: its id (``victim``), how (``kind``: ``refit``,
+    ``held``, or ``none``: kept without a trial, ``refused`` saying why), the positions
+    kept, the model without it (basis, weights) and the fields each motion may then use
+    (``support``), its summed torque cost Σ_j C_j (``costs``: per motion, for a held
+    trial), its EM steps, and its check — (scores, success) of the ``motions`` simulated
+    — with, once judged under ``solver.reduce.growth``, their e-folds of error growth."""
+
+    victim: int
+    kind: str
+    model: Optional[tuple] = None
+    keep: Optional[list] = None
+    support: Optional[list] = None
+    cost: Optional[float] = None
+    costs: Optional[list] = None
+    em_steps: int = 0
+    check: Optional[tuple] = None
+    motions: list = field(default_factory=list)
+    refused: Optional[str] = None
+    efolds: Optional[list] = None
+
+
+def no_worse(reference: Reference, scores: Scores, ok: list) -> bool:
+    """Whether a smaller basis keeps every motion as good as ``reference``: a motion
+    reproduced stays reproduced; one not reproduced is still simulated and has joint RMSE
+    and tip error no larger than before (a failed simulation is never "no worse",
+    whatever the reference: ∞ ≤ ∞ does not count)."""
+    return all(now if was else (f is None and r <= r0 and p <= p0)
+               for was, now, f, r, r0, p, p0 in zip(reference.ok, ok, scores.failure, scores.rmse,
+                                                    reference.rmse, scores.tip, reference.tip))
+
+
+def run(ctx: RunContext, state: RunState) -> None:
+    """The next trial (or window of trials) and its checkpoint (:func:`apply`); once M
+    reaches its floor or every field was tried, on to the next stage."""
+    tg, fixed = ctx.tg, ctx.cfg.model.fields
+    basis, weights = model_from_state(state.model)
+    if state.order is None:
+        state.order = [int(i) for i in torch.argsort(search.field_shares(basis, weights, tg))]
+        state.ids = list(range(basis.M))
+    if state.reference.cost is None:               # kept up to date by apply
+        state.reference.cost = torque.torque_costs(basis, weights, tg).tolist()
+    k, floor = state.cursor, max(fixed, 1)
+
+    def total(M):                        # fields to try: at most one per field, until M = floor
+        return min(len(state.order), k + max(M - floor, 0))
+    ctx.log.stage(NAME, total(basis.M), k)
+    if basis.M <= floor or k >= len(state.order):
+        ctx.log.end_stage()
+        return state.advance(ctx.sequence)
+    refit = fixed or ctx.cfg.solver.reduce.refit
+    together = refit and not fixed and ctx.options.batch == "each" and parallel.size() == 1
+    window = state.window if together else 1
+    victims = state.order[k:total(basis.M)][:window]
+    carried_ = set() if fixed else carried(weights, state)
+    idle_ = set() if fixed else idle(weights, state)
+    if victims[0] in carried_:                     # kept without a trial
+        apply(ctx, state, Trial(victims[0], "none", refused="used by a motion not reproduced"), tg, total)
+        return
+    if victims[0] in idle_:                        # removed as it is: nothing changes
+        apply(ctx, state, held_trial(ctx, basis, weights, tg, state, victims[0]), tg, total)
+        return
+    victims = victims[:next((i for i, v in enumerate(victims) if v in carried_ | idle_), len(victims))]
+    trials = [refit_trial(ctx, basis, weights, tg, state, v) for v in victims] if refit else []
+    if trials and not fixed:
+        for trial, check in zip(trials, checks(ctx, [t.model for t in trials], tg)):
+            trial.check = check
+    for i, victim in enumerate(victims):           # each field: refitted, else held
+        trial = trials[i] if refit else None
+        if not (refit and accepts(ctx, state, trial, tg)) and not fixed:
+            held = held_trial(ctx, basis, weights, tg, state, victim)
+            trial = held if accepts(ctx, state, held, tg) or not refit else trial
+        removed = accepts(ctx, state, trial, tg)
+        state.window = 1 if removed else 2 * window if i == len(victims) - 1 else window
+        if apply(ctx, state, trial, tg, total):
+            return
+
+
+def carried(weights, state: RunState) -> set:
+    """The fields (ids) that a motion not reproduced, but simulated to its end, has a
+    weight on. Elimination keeps them: such a motion's path is still to be matched
+    (multiple shooting, the path stage), which needs its fields, and its simulation,
+    already off the path, cannot show what losing one costs (a removal judged by it
+    left straight_reach with two fields that shooting could not carry). The fields of
+    a motion whose simulation fails are still tried: a removal that lets it be
+    simulated is one that path matching needs."""
+    ref = state.reference
+    off = torch.tensor([not ok and math.isfinite(r) for ok, r in zip(ref.ok, ref.rmse)])
+    return {state.ids[i] for i in weights.used()[off].any(0).nonzero().flatten().tolist()}
+
+
+def idle(weights, state: RunState) -> set:
+    """The fields (ids) on which no motion has a weight: removed without a refit (its
+    held trial changes no motion's torques, so it needs no simulation either)."""
+    return {state.ids[i] for i in (~weights.used().any(0)).nonzero().flatten().tolist()}
+
+
+def without(ctx: RunContext, basis, weights, state: RunState, victim: int, tg: Targets) -> tuple:
+    """(its position, the positions kept, basis, weights, support) once field
+    ``victim`` is gone; a motion that lost it may use any field left, or with
+    ``solver.reduce.reach`` its own and those in reach (:func:`reach`)."""
+    pos = state.ids.index(victim)
+    keep = [i for i in range(basis.M) if i != pos]
+    nb = basis.select(keep)
+    support = None if state.support is None else [[row[i] for i in keep] for row in state.support]
+    for j, row in enumerate(state.support or []):
+        if row[pos]:
+            support[j] = reach(ctx, nb, tg, j, support[j])
+    return pos, keep, nb, weights.select_fields(keep), support
+
+
+def reach(ctx: RunContext, basis, tg: Targets, j: int, own: list) -> list:
+    """The fields motion j may draw on once it has lost one: every field of ``basis``,
+    or with ``solver.reduce.reach`` r > 0 its ``own`` (bools) and those whose Gaussian
+    exp(−½ dᵀKd) reaches r at one of its samples at least."""
+    r = ctx.cfg.solver.reduce.reach
+    if not r:
+        return [True] * basis.M
+    near = (basis.gaussians(tg.q[j][tg.mask[j]]) >= r).any(0).tolist()
+    return [a or b for a, b in zip(own, near)]
+
+
+def refit_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, victim: int) -> Trial:
+    """The basis without field ``victim``, refitted by EM (its EM steps counted, to be
+    iterations of the run when the trial is applied); not yet checked."""
+    _, keep, nb, nw, support = without(ctx, basis, weights, state, victim, tg)
+    ctx.log.busy(M=basis.M, trying=victim)
+    history = ctx.em(nb, nw, tg, support=support)
+    return Trial(victim, "refit", model=(nb, nw), keep=keep, support=support, cost=history[-1],
+                 em_steps=len(history) - 1, motions=list(range(tg.N)))
+
+
+def held_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, victim: int) -> Trial:
+    """The basis without field ``victim``, every other field held: the motions with a
+    weight on it (a, b or c) get their weights re-solved by NNLS over the fields left
+    and are checked by simulation (:func:`held_check`); the others keep their weights,
+    paths and scores."""
+    pos, keep, nb, nw, support = without(ctx, basis, weights, state, victim, tg)
+    users = weights.used()[:, pos].nonzero().flatten().tolist()
+    ctx.log.busy(M=basis.M, holding=victim, motions=len(users))
+    check, costs = None, state.reference.cost
+    if users:
+        sub, one = nw.select_motions(users), tg.select(users)
+        after = torque.solve_weights(nb, sub, one, None if support is None else
+                                     weight_support([support[j] for j in users], nw.P))
+        keys = ("a_raw", "b_raw", "c_raw")
+        nw.set_flat(keys, sub.flat(keys), users)
+        costs = costs.copy()
+        for j, x in zip(users, after.tolist()):
+            costs[j] = x
+        users, check = held_check(ctx, state, users, (nb, sub), one, after)
+    return Trial(victim, "held", model=(nb, nw), keep=keep, support=support, cost=math.fsum(costs),
+                 costs=costs, check=check, motions=users)
+
+
+def held_check(ctx: RunContext, state: RunState, users: list, new: tuple, one: Targets,
+               costs: torch.Tensor) -> tuple:
+    """(the motions simulated, their (scores, success)) for a held trial of ``users``
+    (their targets ``one``): ``new`` (basis, their weights) the model without the
+    field; all in one check, or with ``solver.reduce.chunk`` c > 0, c at a time, those
+    whose torque cost rose most (``costs``: theirs on ``new``, over their reference's)
+    first, until a chunk holds a motion worse than its reference: the trial is then
+    refused, as it would be had every user been simulated."""
+    c, (basis, weights) = ctx.cfg.solver.reduce.chunk, new
+    if not c:
+        return users, ctx.check(basis, weights, one, until_failure=True)
+    rise = costs / torch.tensor([state.reference.cost[j] for j in users]).clamp_min(1e-300)
+    order = torch.argsort(rise, descending=True, stable=True).tolist()
+    done, parts = [], []
+    for lo in range(0, len(order), c):
+        part = order[lo:lo + c]
+        scores, ok = ctx.check(basis, weights.select_motions(part), one.select(part), until_failure=True)
+        done, parts = done + [users[i] for i in part], parts + [scores]
+        if not no_worse(state.reference.select([users[i] for i in part]), scores, ok):
+            break
+    scores = Scores.join(parts)
+    return done, (scores, scores.succeeded(ctx.cfg.success.rmse, ctx.cfg.success.tip))
+
+
+def checks(ctx: RunContext, models: list, tg: Targets) -> list:
+    """(scores, success) of each model, for a trial's judge (:func:`accepts`, which
+    refuses any failed simulation): one batch for several, else the run's check up to
+    the first failure."""
+    if len(models) == 1:
+        return [ctx.check(*models[0], tg, until_failure=True)]
+    return [(s, s.succeeded(ctx.cfg.success.rmse, ctx.cfg.success.tip))
+            for s in score_models(ctx.body, models, tg, ctx.options)]
+
+
+def accepts(ctx: RunContext, state: RunState, trial: Trial, tg: Targets) -> bool:
+    """Whether a trial's check keeps every motion it simulated (``trial.motions``) no
+    worse than the reference and, with ``solver.reduce.growth``, adds no more than that
+    many e-folds of error growth to any of them (``trial.efolds``, computed once); a
+    ``refused`` trial is not accepted; one without a check (a fixed M, or a field no
+    motion used) is."""
+    if trial.refused:
+        return False
+    if trial.check is None:
+        return True
+    if not no_worse(state.reference.select(trial.motions), *trial.check):
+        return False
+    allow = ctx.cfg.solver.reduce.growth
+    if allow is None:
+        return True
+    if trial.efolds is None:
+        nb, nw = trial.model
+        trial.efolds = ctx.efolds(nb, nw.select_motions(trial.motions), tg.select(trial.motions))
+    return all(e <= state.reference.efolds[j] + allow for j, e in zip(trial.motions, trial.efolds))
+
+
+def apply(ctx: RunContext, state: RunState, trial: Trial, tg: Targets, total: Callable) -> bool:
+    """Decide a trial (one iteration, after its EM steps), log it, record it and save;
+    whether the field was removed."""
+    state.iteration += trial.em_steps
+    state.cursor += 1
+    accept = accepts(ctx, state, trial, tg)
+    step = ctx.tick(state)
+    if trial.cost is not None:                       # a field kept without a trial has none
+        ctx.log.scalar("torque_cost/reduce", trial.cost, step)
+    ctx.log.scalar("reduce/removed", float(accept), step)
+    if accept:
+        _adopt(ctx, state, trial, tg, step)
+    refused = {"refused": trial.refused} if trial.refused else {}
+    ctx.log.status(total=total(len(state.ids)), M=len(state.ids), field=trial.victim, removed=accept,
+                   trial=trial.kind, **(refused or {"cost": trial.cost}))
+    state.history.reduce.append(Removal(trial.victim, accept, trial.kind, len(state.ids), trial.refused))
+    ctx.save(state)
+    return accept
+
+
+def _adopt(ctx: RunContext, state: RunState, trial: Trial, tg: Targets, step: int) -> None:
+    """An accepted trial's model becomes the run's; its check updates the reference of
+    the motions it simulated."""
+    nb, nw = trial.model
+    state.model = model_state(nb, nw)
+    state.ids = [state.ids[i] for i in trial.keep]
+    state.support = trial.support
+    ref = state.reference                 # a refitted trial changes every motion's costs
+    ref.cost = trial.costs if trial.costs is not None else torque.torque_costs(nb, nw, tg).tolist()
+    ctx.log.model(nb, nw, step)
+    if trial.check is None:
+        ctx.log.scalar("0_overview/torque_cost", trial.cost, step)
+        return
+    scores, ok = trial.check
+    for key, x in (("rmse", scores.rmse), ("tip", scores.tip), ("ok", ok), ("efolds", trial.efolds)):
+        if x is not None:
+            for i, j in enumerate(trial.motions):
+                getattr(ref, key)[j] = x[i]
+    ctx.log.scores(scores, tg.select(trial.motions), step, overview=len(trial.motions) == tg.N)
