@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from dataclasses import dataclass
 
 import torch
 
@@ -231,31 +232,49 @@ def best_pairs(tg: Targets, template: FieldBasis, candidates: int, stiffnesses,
     return [(b, w) for _, _, b, w in pairs[:keep]]
 
 
-def grow(tg: Targets, template: FieldBasis, max_fields: int, tol: float, candidates: int,
-         stiffnesses, generator: torch.Generator, em_steps: int,
-         phases: bool = False, min_gain: float = 0.05, em_tol: float = 1e-6, reproduced=None,
-         windows=None):
+@dataclass(frozen=True)
+class GrowOptions:
+    """Settings of :func:`grow`. max_fields: the most fields it adds; tol: the relative
+    torque cost C_j ≤ tol every motion must reach; candidates: data-driven centres scored
+    per field; stiffnesses: the coarse stiffness grid each candidate is scored with;
+    em_steps, em_tol: EM's steps and relative tolerance after each field joins; phases:
+    EM also fits the activation timing; min_gain: a new field that lowers the summed
+    cost by less than this fraction is not kept."""
+
+    max_fields: int
+    tol: float
+    candidates: int
+    stiffnesses: tuple
+    em_steps: int
+    em_tol: float = 1e-6
+    phases: bool = False
+    min_gain: float = 0.05
+
+
+def grow(tg: Targets, template: FieldBasis, generator: torch.Generator, options: GrowOptions, *,
+         reproduced=None, windows=None):
     """Greedy growth: add the best data-driven field and refine by EM, until every
-    motion's relative torque cost is ≤ ``tol`` and ``reproduced(basis, weights)`` (if
-    given: a check by simulation) holds, there are ``max_fields`` fields, or a new field
-    lowers the summed cost by less than the fraction ``min_gain`` (it is then not kept).
-    ``template`` is an empty basis giving the fields' kind, blocks and damping;
-    ``windows`` the motions' sub-movement windows (onsets, durations: N×P each, see
-    :func:`~.targets.submovement_windows`) or None. Returns (basis, weights, costs per
+    motion's relative torque cost is ≤ ``options.tol`` and ``reproduced(basis, weights)``
+    (if given: a check by simulation) holds, there are ``options.max_fields`` fields, or a
+    new field lowers the summed cost by less than the fraction ``options.min_gain`` (it is
+    then not kept). ``template`` is an empty basis giving the fields' kind, blocks and
+    damping; ``windows`` the motions' sub-movement windows (onsets, durations: N×P each,
+    see :func:`~.targets.submovement_windows`) or None. Returns (basis, weights, costs per
     motion)."""
     from .torque import em, solve_weights
     n = tg.q.shape[-1]
     basis, weights = template, MotionWeights.zeros(0, tg.duration, tg.names, windows)
     costs = torch.ones(tg.N, dtype=torch.float64)
-    while basis.M < max_fields:
-        c, s, _ = best_candidate(basis, weights, tg, candidates, stiffnesses, generator)
+    while basis.M < options.max_fields:
+        c, s, _ = best_candidate(basis, weights, tg, options.candidates, options.stiffnesses, generator)
         starts = [(basis.extend(c[None], s * torch.eye(n, dtype=torch.float64)[None]),
                    weights.extend_fields(1))]
         if basis.M == 1:
-            starts += best_pairs(tg, template, candidates, stiffnesses, generator, windows=windows)
+            starts += best_pairs(tg, template, options.candidates, options.stiffnesses, generator,
+                                 windows=windows)
         fits = []
         for nb, nw in starts:
-            em(nb, nw, tg, steps=em_steps, phases=phases, tol=em_tol)
+            em(nb, nw, tg, steps=options.em_steps, phases=options.phases, tol=options.em_tol)
             cost = float(solve_weights(nb, nw, tg).sum())
             fits.append((cost if math.isfinite(cost) else math.inf, len(fits), nb, nw))
         best, _, nb, nw = min(fits, key=lambda f: f[:2])
@@ -264,10 +283,10 @@ def grow(tg: Targets, template: FieldBasis, max_fields: int, tol: float, candida
                           f"{', '.join(tg.names)}", DivergenceWarning, stacklevel=2)
             break
         new_costs = solve_weights(nb, nw, tg)
-        if basis.M and float(new_costs.sum()) > (1 - min_gain) * float(costs.sum()):
+        if basis.M and float(new_costs.sum()) > (1 - options.min_gain) * float(costs.sum()):
             break
         basis, weights, costs = nb, nw, new_costs
-        if bool((costs <= tol).all()) and (reproduced is None or reproduced(basis, weights)):
+        if bool((costs <= options.tol).all()) and (reproduced is None or reproduced(basis, weights)):
             break
     return basis, weights, costs
 

@@ -163,10 +163,11 @@ def fit_one(ctx: RunContext, tg: Targets, k: int, seed: int) -> MotionFit:
     def reproduced(b, w):
         checked["last"] = (b, *ctx.check(b, w, one, distributed=False))
         return all(checked["last"][2])
-    b, w, costs = search.grow(one, ctx.template(), c.each.max_fields, c.each.tol, c.init.candidates,
-                              c.init.stiffness_grid, torch.Generator().manual_seed(seed), c.em.steps,
-                              phases=ctx.variable_phases, em_tol=c.em.tol, reproduced=reproduced,
-                              windows=submovement_windows(one, m.windows))
+    options = search.GrowOptions(max_fields=c.each.max_fields, tol=c.each.tol,
+                                 candidates=c.init.candidates, stiffnesses=tuple(c.init.stiffness_grid),
+                                 em_steps=c.em.steps, em_tol=c.em.tol, phases=ctx.variable_phases)
+    b, w, costs = search.grow(one, ctx.template(), torch.Generator().manual_seed(seed), options,
+                              reproduced=reproduced, windows=submovement_windows(one, m.windows))
     if b.M and checked.get("last", (None,))[0] is not b:
         reproduced(b, w)                         # grow stopped before checking its last basis
     if b.M and not all(checked["last"][2]) and shoot_alone(ctx, b, w, one, reproduced):
