@@ -23,12 +23,12 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tflearn import plots  # noqa: E402
 from tflearn.data.loading import load_motions, torsos  # noqa: E402
 from tflearn.evaluate import run_config, weights_for  # noqa: E402
 from tflearn.fit import stability  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402
 from tflearn.io import basis as basis_io  # noqa: E402
+from tflearn.plots import figures as plots  # noqa: E402
 
 
 def run_growth(run: Path, names) -> tuple:

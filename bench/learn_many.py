@@ -2,12 +2,13 @@
 (:func:`tflearn.data.gestures.random_gestures`, each stepped alone by the compiled simulator at
 rtol = atol = 1e-12 and sampled at the lowest of 100·2ᵏ Hz that resolves it,
 :func:`tflearn.data.gestures.generate_resolved` — the data condition of the supported box —,
-written as NAME.npz), then the main job's
-configuration on them, ``train configs/gestures.yaml data=DIR``, in a fresh process: the
-wall time of making them and of training, each stage's share (from the progress bars),
-M, how many motions simulation reproduces, the worst joint RMSE and tip error, the
-training process' peak memory, and the fitted exponent of each time (cost ∝ N^p, least
-squares on log–log). One torch thread.
+written as NAME.npz with its generating program beside it as NAME.json), then the main
+job's configuration on them, ``train configs/gestures.yaml data=DIR``, in a fresh process:
+the wall time of making them and of training, each stage's share (from the progress
+bars), M, how many motions simulation reproduces, the worst joint RMSE and tip error, how
+many of the G generating fields a learned field matches (metrics.json's ``identity``,
+:mod:`tflearn.fit.identity`), the training process' peak memory, and the fitted exponent
+of each time (cost ∝ N^p, least squares on log–log). One torch thread.
 
     python bench/learn_many.py --sizes 5,10 --out runs/bench/learn_many.json
     python bench/learn_many.py --sizes 100 --library 10 --nproc 2 solver.reduce.refit=false
@@ -34,18 +35,22 @@ _BAR = re.compile(r"\[\d+/\d+\] (.+?): .*?\[(?:(\d+):)?(\d+):(\d+)<")
 
 def make(n: int, seed: int, folder: Path, library: int = 0) -> dict:
     """Write n random programs' motions into ``folder`` (``library`` = G > 0: their fields
-    drawn from G shared ones): the seconds it took, the number of motions at each
-    sampling rate, the samples in all and the number of generating fields G."""
+    drawn from G shared ones), each as NAME.npz and its generating program as NAME.json
+    (basis format, as ``tflearn gestures --out`` writes): the seconds it took, the number
+    of motions at each sampling rate, the samples in all and the number of generating
+    fields G."""
     import torch
 
     from tflearn.data import gestures
+    from tflearn.io import basis
     from tflearn.motions.motion import save
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     rates, samples = {}, 0
     programs = gestures.random_gestures(n, seed=seed, library=library)
-    for motion, _ in gestures.generate_resolved(programs):
+    for motion, generating in gestures.generate_resolved(programs):
         save(motion, folder / f"{motion.name}.npz")
+        basis.save(generating, folder / f"{motion.name}.json")
         rates[f"{motion.rate:.0f}"] = rates.get(f"{motion.rate:.0f}", 0) + 1
         samples += motion.T
     G = len({(e, k) for p in programs for e, k in zip(p.eta, p.k)})
@@ -81,10 +86,12 @@ def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
                                           + " ".join(proc.stderr.strip().splitlines()[-1:])[-300:]}
     m = json.loads((out / "metrics.json").read_text())
     motions, each = m["motions"].values(), m["history"].get("each", {})
+    identity = m.get("identity", {})
     return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
             "reproduced": sum(bool(x["success"]) for x in motions),
             "worst_rmse_rad": max(x["rmse"] for x in motions),
-            "worst_tip_m": max(x["tip"] for x in motions), "max_rss_mb_so_far": peak,
+            "worst_tip_m": max(x["tip"] for x in motions), "fields_matched": identity.get("matched"),
+            "generating_fields": identity.get("G"), "max_rss_mb_so_far": peak,
             "reproduced_alone": sum(each.get("reproduced", [])), "reused": len(each.get("reused", [])),
             "declined": each.get("declined", {})}
 

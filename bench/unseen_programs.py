@@ -3,17 +3,20 @@ SLSQP baseline on the same motions.
 
 For each seed, three random programs within :data:`tflearn.data.gestures.SUPPORTED` are
 simulated from rest and each sampled at the lowest of 100·2ᵏ Hz that resolves it
-(:func:`tflearn.data.gestures.generate_resolved`). Then
+(:func:`tflearn.data.gestures.generate_resolved`) and written as NAME.npz with its
+generating program beside it as NAME.json (:func:`tflearn.data.gestures.write`). Then
 
 * ``pipeline`` — ``train`` with the default config (no initial guess, M found);
 * ``slsqp``    — ``train ... solver.method=slsqp model.fields=G`` with G the number of
   generating fields (the thesis' method from a seeded random guess; ``--slsqp-iter``
   iterations, default 2000).
 
-Each row: M, motions reproduced (joint RMSE ≤ 0.03 rad and tip ≤ 2 cm), the worst joint
-RMSE and tip error, the worst relative RMS torque error, the largest local error growth
-along a path (e-folds, :mod:`tflearn.fit.stability`) and the run's wall time. ``--set
-KEY=VALUE`` passes config overrides to the pipeline's runs.
+Each row: M, motions reproduced (joint RMSE ≤ 0.03 rad and tip ≤ 2 cm), the generating
+fields a learned field matches (metrics.json's ``identity``, :mod:`tflearn.fit.identity`:
+centre within 0.1 rad and stiffness within 20% along the directions the motions excite),
+the worst joint RMSE and tip error, the worst relative RMS torque error, the largest
+local error growth along a path (e-folds, :mod:`tflearn.fit.stability`) and the run's
+wall time. ``--set KEY=VALUE`` passes config overrides to the pipeline's runs.
 
     python bench/unseen_programs.py --seeds 2024 3 5 7 11 --out unseen.json
     python bench/unseen_programs.py --methods pipeline --set solver.reduce.growth=1.0
@@ -57,6 +60,7 @@ def run_seed(seed: int, work: Path, slsqp_iter: int, stiffness: str = "scalar",
         rows.append({"seed": seed, "stiffness": stiffness, "method": method, "fields": fields, "rates": rates,
                      "M": metrics["overall"]["M"],
                      "reproduced": sum(r["success"] for r in per), "motions": len(per),
+                     "fields_matched": metrics["identity"]["matched"], "identity": metrics["identity"],
                      "rmse": max(r["rmse"] for r in per), "tip": max(r["tip"] for r in per),
                      "torque": max(r["torque_rel_rms"] for r in per),
                      "efolds": max(r["growth_efolds"] for r in per),
@@ -78,15 +82,16 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     rows = []
-    print("| seed | method | generating fields | M | reproduced | worst RMSE (rad) | worst tip (cm) "
-          "| worst torque error | largest growth (e-folds) | wall (s) |\n"
-          "|---|---|---|---|---|---|---|---|---|---|")
+    print("| seed | method | generating fields | M | reproduced | fields matched | worst RMSE (rad) "
+          "| worst tip (cm) | worst torque error | largest growth (e-folds) | wall (s) |\n"
+          "|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             for r in run_seed(seed, Path(tmp), args.slsqp_iter, args.stiffness, args.methods, args.set):
                 rows.append(r)
                 print(f"| {r['seed']} | {r['method']} | {r['fields']} | {r['M']} | "
-                      f"{r['reproduced']}/{r['motions']} | {r['rmse']:.4f} | {100 * r['tip']:.2f} | "
+                      f"{r['reproduced']}/{r['motions']} | {r['fields_matched']}/{r['identity']['G']} | "
+                      f"{r['rmse']:.4f} | {100 * r['tip']:.2f} | "
                       f"{100 * r['torque']:.2f}% | {r['efolds']:.2f} | {r['wall']:.0f} |", flush=True)
     if args.out:
         args.out.write_text(json.dumps(rows, indent=1))

@@ -249,3 +249,29 @@ def random_states(body, rng, n):
             ax /= np.linalg.norm(ax, axis=1, keepdims=True)
             q[:, s.start:s.start + 3] = ax * rng.uniform(0.0, np.pi, size=(n, 1))
     return q
+
+
+# ----------------------------------------------------------------------------- a run
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A run folder without training, for the render, perturb and evaluate tests: two
+    short random programs (0.3–0.4 s at 100 Hz) saved as the data, their generating
+    fields and weights as basis.json, and a config.yaml pointing at the data."""
+    from tflearn import config
+    from tflearn.data import gestures
+    from tflearn.io import basis as bio
+    from tflearn.motions import motion as motion_mod
+    base = tmp_path_factory.mktemp("tiny_run")
+    data, run = base / "data", base / "run"
+    data.mkdir()
+    run.mkdir()
+    programs = gestures.random_gestures(2, seed=3, ranges={"duration": (0.3, 0.4)})
+    for m, _ in gestures.generate(gestures=programs):
+        motion_mod.save(m, data / f"{m.name}.npz")
+    basis, weights, _ = gestures.library_model(programs)
+    z = torch.zeros(2, 7, dtype=DT)
+    bio.save(bio.LearnedBasis(tb.arm(), basis, weights, z, z, torch.full((2,), 100.0, dtype=DT)),
+             run / "basis.json")
+    config.dump(config.load(None, [f"data={data}", f"out={run}"]), run / "config.yaml")
+    return {"run": run, "programs": programs}

@@ -11,13 +11,11 @@ from matplotlib.patches import Rectangle
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from tflearn import cli, config, render
+from tflearn import cli, render
 from tflearn.data import gestures
 from tflearn.errors import InputError
-from tflearn.io import basis as bio
 from tflearn.model.fields import FieldBasis
 from tflearn.model.weights import pulse_profile, step_profile
-from tflearn.motions import motion as motion_mod
 from tflearn.physics import body as tb
 from tflearn.physics import dynamics
 from tflearn.plots import figures as plots
@@ -368,26 +366,6 @@ def test_figures_of_the_motions_furthest_from_their_paths(tmp_path):
 
 
 # ------------------------------------------------------------------ render
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    """A run folder without training: two short random programs (0.3–0.4 s at 100 Hz)
-    saved as the data, their generating fields and weights as basis.json, and a
-    config.yaml pointing at the data."""
-    base = tmp_path_factory.mktemp("tiny_run")
-    data, run = base / "data", base / "run"
-    data.mkdir()
-    run.mkdir()
-    programs = gestures.random_gestures(2, seed=3, ranges={"duration": (0.3, 0.4)})
-    for m, _ in gestures.generate(gestures=programs):
-        motion_mod.save(m, data / f"{m.name}.npz")
-    basis, weights, _ = gestures.library_model(programs)
-    z = torch.zeros(2, 7, dtype=DT)
-    bio.save(bio.LearnedBasis(tb.arm(), basis, weights, z, z, torch.full((2,), 100.0, dtype=DT)),
-             run / "basis.json")
-    config.dump(config.load(None, [f"data={data}", f"out={run}"]), run / "config.yaml")
-    return {"run": run, "programs": programs}
-
 
 @pytest.mark.slow
 def test_render_writes_gif(tiny_run, tmp_path):

@@ -273,8 +273,9 @@ def summary_table(metrics: dict, out=None) -> str:
     """The results of a run as a table (metrics.json's dict): per motion joint RMSE
     (rad), maximum tip error (cm), relative RMS torque error (%), the e-folds of error
     growth along its path and whether it was reproduced; then M, the overall figures, the
-    wall time, the bad data files skipped and, given ``out`` (the run folder), where the
-    artefacts were written. No trailing newline."""
+    wall time, the generating fields matched (:func:`identity_line`, for data that
+    carries them), the bad data files skipped and, given ``out`` (the run folder), where
+    the artefacts were written. No trailing newline."""
     rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "growth (e-folds)", "reproduced")]
     for name, m in metrics["motions"].items():
         ok = "yes" if m["success"] else ("no: simulation failed" if m.get("failure") else "no")
@@ -294,9 +295,35 @@ def summary_table(metrics: dict, out=None) -> str:
     lines = [line(rows[0]), rule, *map(line, rows[1:-1]), rule, line(rows[-1]), ""]
     verdict = "every motion reproduced" if o["success"] else "not all motions reproduced"
     lines.append(f"M = {o['M']} fields, {verdict}, wall time {_duration(o['wall_time_s'])}")
+    if "identity" in metrics:
+        lines.append(identity_line(metrics["identity"]))
     for skip in metrics.get("skipped", []):
         lines.append(f"skipped {skip['file']}: {skip['reason']}")
     if out is not None:
         lines.append(f"artefacts in {out}: basis.json, metrics.json, config.yaml, figures/"
                      + (", tensorboard/" if (Path(out) / "tensorboard").is_dir() else ""))
     return "\n".join(lines)
+
+
+def identity_line(identity: dict, listed: int = 3) -> str:
+    """One line of metrics.json's ``identity`` block (:func:`tflearn.fit.identity.identify`):
+    how many generating fields meet the bar, the worst centre distance and stiffness
+    ratio among them, and the first ``listed`` that do not, each with its match."""
+    fields = identity["fields"]
+    ok = [f for f in fields if f["matched"]]
+    line = f"generating fields matched: {identity['matched']}/{identity['G']}"
+    if ok:
+        worst = max((abs(f["stiffness_ratio"] - 1) for f in ok if f["stiffness_ratio"] is not None),
+                    default=0.0)
+        line += (f" (centre ≤ {max(f['centre_distance_rad'] for f in ok):.3f} rad, stiffness within "
+                 f"{100 * worst:.0f}%)")
+    missed = [f for f in fields if not f["matched"]]
+    if missed:
+        def one(f):
+            if f["learned"] is None:
+                return f"{f['field']} (none)"
+            ratio = "" if f["stiffness_ratio"] is None else f", stiffness ×{f['stiffness_ratio']:.2f}"
+            return f"{f['field']} (nearest field {f['learned']}: {f['centre_distance_rad']:.3f} rad{ratio})"
+        more = f" and {len(missed) - listed} more" if len(missed) > listed else ""
+        line += "; not: " + ", ".join(map(one, missed[:listed])) + more
+    return line

@@ -184,13 +184,27 @@ def generate(body: Body | None = None, rate: float = 100.0, gestures=None,
         options = options or sim.SimOptions(batch="each", rtol=1e-12, atol=1e-12, max_evals=None)
         tr = sim.simulate(body, own_fields_program(basis, weights, spans), q0, q0, t, options)
     out = []
-    for j, g in enumerate(gestures):
+    for j, (g, lb) in enumerate(zip(gestures, generating_bases(gestures, body, rate))):
         T = int(round(g.duration * rate)) + 1
-        motion = Motion(g.name, t[:T], tr.q[j, :T], tr.v[j, :T])
-        own = range(*spans[j])
+        out.append((Motion(g.name, t[:T], tr.q[j, :T], tr.v[j, :T]), lb))
+    return out
+
+
+def generating_bases(gestures=None, body: Body | None = None, rate: float = 100.0) -> list:
+    """Each gesture's (default: the library's) own generating parameters, without
+    simulating: a LearnedBasis per gesture holding its fields only, its weights, rest
+    as its start and ``rate`` as its sampling rate — what :func:`generate` pairs with
+    its motion."""
+    body = body or arm()
+    gestures = list(gestures or GESTURES.values())
+    basis, weights, spans = library_model(gestures, body)
+    q0 = torch.zeros(1, body.nv, dtype=torch.float64)
+    out = []
+    for j, (lo, hi) in enumerate(spans):
+        own = range(lo, hi)
         w = weights.select_motions([j]).select_fields(own)
-        out.append((motion, basis_io.LearnedBasis(body, basis.select(own), w, q0[j:j + 1], q0[j:j + 1],
-                                                   torch.tensor([rate], dtype=torch.float64))))
+        out.append(basis_io.LearnedBasis(body, basis.select(own), w, q0, q0,
+                                         torch.tensor([rate], dtype=torch.float64)))
     return out
 
 

@@ -1,11 +1,13 @@
 """Motions for any command: what a config's ``data`` names, their torsos (a moving
-base), and whether each motion's samples resolve its torques."""
+base), their generating fields where the data carries them, and whether each motion's
+samples resolve its torques."""
 from __future__ import annotations
 
 import warnings
 from pathlib import Path
 
 from ..errors import InputError
+from ..io import basis as basis_io
 from ..motions import motion as motion_mod
 from ..motions import spline
 from ..motions.torso import BaseMotion, Bases
@@ -88,6 +90,39 @@ def torsos(data, motions: list, torso: str = "fixed") -> Bases | None:
             raise motion_mod.MotionFileError(str(path), f"the torso covers {lo:.3f}–{hi:.3f} s, motion "
                                                         f"{m.name!r} {t0:.3f}–{t1:.3f} s")
     return Bases.of(bases, start=[float(m.t[0]) for m in motions])
+
+
+def generating_bases(data, body: Body, names: list) -> dict:
+    """The generating parameters of the motions ``names`` of ``data``, where the data
+    carries them: {name: a LearnedBasis holding that motion alone, its fields and
+    weights}. The built-in gestures' own programs
+    (:func:`tflearn.data.gestures.generating_bases`), or a file NAME.json (basis format,
+    one motion named NAME) beside a motion file NAME.npz — what ``tflearn gestures --out``
+    and the benchmarks write. Motions without one are left out ({} for data that carries
+    none, such as recorded motion); a NAME.json that is not such a file for this body
+    is warned about, naming it, and left out."""
+    if data == "gestures":
+        return {n: lb for lb in gestures_mod.generating_bases(body=body) for n in lb.names if n in names}
+    if isinstance(data, (str, Path)):
+        p = Path(data)
+        files = {n: p / f"{n}.json" for n in names} if p.is_dir() else {p.stem: p.with_suffix(".json")}
+    else:
+        files = {Path(f).stem: Path(f).with_suffix(".json") for f in data}
+    out = {}
+    for name, file in files.items():
+        if name not in names or not file.is_file():
+            continue
+        try:
+            lb = basis_io.load(file)
+        except basis_io.BasisFileError as err:
+            warnings.warn(f"{err}; not read as motion {name!r}'s generating fields", stacklevel=2)
+            continue
+        if lb.names != [name] or lb.body.nv != body.nv:
+            warnings.warn(f"{file}: not read as motion {name!r}'s generating fields: it holds motion(s) "
+                          f"{', '.join(lb.names)} over {lb.body.nv} coordinates", stacklevel=2)
+            continue
+        out[name] = lb
+    return out
 
 
 def check_resolution(body: Body, motions: list) -> list:

@@ -2,9 +2,10 @@
 scored by simulation — one iteration, logged with the paths' figures — and, by rank 0,
 the artefacts: ``basis.json`` (:mod:`tflearn.io.basis`), ``metrics.json`` (per motion
 and overall scores, error growth, torque resolution, simulations, the history, the data
-files skipped), ``config.yaml``, ``figures/NAME.png``, TensorBoard's hyper-parameters,
-and the checkpoint of the finished run. A finished run run again writes them again
-from its checkpoint, logging nothing.
+files skipped and, for data that carries its generating fields, each matched to a
+learned one: :mod:`tflearn.fit.identity`), ``config.yaml``, ``figures/NAME.png``,
+TensorBoard's hyper-parameters, and the checkpoint of the finished run. A finished run
+run again writes them again from its checkpoint, logging nothing.
 """
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from typing import Optional
 
 from .. import config as config_mod
 from .. import parallel
-from ..fit import stability
+from ..data.loading import generating_bases
+from ..fit import identity, stability
 from ..fit.targets import Targets
 from ..io import basis as basis_io
 from ..io.files import write_text
@@ -41,6 +43,9 @@ def finish(ctx: RunContext, state: RunState) -> dict:
     metrics["overall"]["simulations"] = ctx.checkpoints.simulations(state)
     metrics["history"] = state.history.to_dict()
     metrics["skipped"] = ctx.skipped
+    generating = generating_bases(ctx.cfg.data, ctx.body, tg.names)
+    if generating:
+        metrics["identity"] = identity.identify(generating, basis, tg)
     state.stage, state.finished = DONE, True
     if parallel.rank() == 0:
         write(ctx, state, scores, lb, metrics)
