@@ -53,3 +53,15 @@ def test_imports_point_down(path):
     own = room("tflearn." + ".".join(path.relative_to(PACKAGE).with_suffix("").parts))
     up = sorted(m for m in imported(path) if ROOMS.index(room(m)) > ROOMS.index(own))
     assert not up, f"{path.relative_to(PACKAGE)} ({own}) imports from rooms above it: {up}"
+
+
+def test_readme_layout_lists_the_rooms_in_order():
+    """README's "Layout" tree names every room once, bottom up, in the order checked here."""
+    text = (PACKAGE.parent / "README.md").read_text()
+    tree = text[text.index("## Layout"):].split("```")[1]
+    names = []
+    for line in tree.splitlines():
+        if line.startswith(("├── ", "└── ")):
+            entry = line[4:].split("  ")[0]
+            names += [n.strip().removesuffix("/").removesuffix(".py") for n in entry.split(",")]
+    assert tuple(names) == ROOMS
