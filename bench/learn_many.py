@@ -7,7 +7,8 @@ job's configuration on them, ``train configs/gestures.yaml data=DIR``, in a fres
 the wall time of making them and of training, each stage's share (from the progress
 bars), M, how many motions simulation reproduces, the worst joint RMSE and tip error, how
 many of the G generating fields a learned field matches (metrics.json's ``identity``,
-:mod:`tflearn.fit.identity`), the training process' peak memory, and the fitted exponent
+:mod:`tflearn.fit.identity`) and the worst centre distance and stiffness error |r − 1|
+among those, the training process' peak memory, and the fitted exponent
 of each time (cost ∝ N^p, least squares on log–log). One torch thread.
 
     python bench/learn_many.py --sizes 5,10 --out runs/bench/learn_many.json
@@ -87,11 +88,16 @@ def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
     m = json.loads((out / "metrics.json").read_text())
     motions, each = m["motions"].values(), m["history"].get("each", {})
     identity = m.get("identity", {})
+    matched = [f for f in identity.get("fields", []) if f["matched"]]
     return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
             "reproduced": sum(bool(x["success"]) for x in motions),
             "worst_rmse_rad": max(x["rmse"] for x in motions),
             "worst_tip_m": max(x["tip"] for x in motions), "fields_matched": identity.get("matched"),
-            "generating_fields": identity.get("G"), "max_rss_mb_so_far": peak,
+            "generating_fields": identity.get("G"),
+            "worst_matched_centre_rad": max((f["centre_distance_rad"] for f in matched), default=None),
+            "worst_matched_stiffness": max((abs(f["stiffness_ratio"] - 1) for f in matched
+                                            if f["stiffness_ratio"] is not None), default=None),
+            "max_rss_mb_so_far": peak,
             "reproduced_alone": sum(each.get("reproduced", [])), "reused": len(each.get("reused", [])),
             "declined": each.get("declined", {})}
 

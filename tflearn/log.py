@@ -315,8 +315,8 @@ def identity_line(identity: dict, listed: int = 3) -> str:
     if ok:
         worst = max((abs(f["stiffness_ratio"] - 1) for f in ok if f["stiffness_ratio"] is not None),
                     default=0.0)
-        line += (f" (centre ≤ {max(f['centre_distance_rad'] for f in ok):.3f} rad, stiffness within "
-                 f"{100 * worst:.0f}%)")
+        line += (f" (centre ≤ {max(f['centre_distance_rad'] for f in ok):.4f} rad, stiffness within "
+                 f"{100 * worst:.2f}%)")
     missed = [f for f in fields if not f["matched"]]
     if missed:
         def one(f):
