@@ -86,7 +86,8 @@ class ExperimentConfig(Section):
     local: LocalSection = LocalSection()
     simulation: SimulationSection = SimulationSection()
     success: SuccessSection = SuccessSection()
-    # the pipeline's training config; TensorBoard and progress bars off unless set
+    # the pipeline's training config; TensorBoard off unless set; a training run that is
+    # not one of many cases shows its own progress bars (common.fit_pipeline_case)
     train: Config = Config(log=LogSection(tensorboard=False, progress=False))
     # the layout method's training config: ``train`` with these keys over it and
     # solver.method layout, e.g. {model: {windows: 4}, solver: {layout: {shape: simplex}}}
