@@ -6,10 +6,11 @@ written as NAME.npz with its generating program beside it as NAME.json), then th
 job's configuration on them, ``train configs/gestures.yaml data=DIR``, in a fresh process:
 the wall time of making them and of training, each stage's share (from the progress
 bars), M, how many motions simulation reproduces, the worst joint RMSE and tip error, how
-many of the G generating fields a learned field matches (metrics.json's ``identity``,
-:mod:`tflearn.fit.identity`) and the worst centre distance and stiffness error |r − 1|
-among those, the training process' peak memory, and the fitted exponent
-of each time (cost ∝ N^p, least squares on log–log). One torch thread.
+many fields were pooled, how many the selection chose (:mod:`tflearn.fit.select`) and how
+many motions got their own back, how many of the G generating fields a learned field
+matches (metrics.json's ``identity``, :mod:`tflearn.fit.identity`) and the worst centre
+distance and stiffness error |r − 1| among those, the training process' peak memory, and
+the fitted exponent of each time (cost ∝ N^p, least squares on log–log). One torch thread.
 
     python bench/learn_many.py --sizes 5,10 --out runs/bench/learn_many.json
     python bench/learn_many.py --sizes 100 --library 10 --nproc 2 solver.reduce.refit=false
@@ -88,8 +89,11 @@ def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
     m = json.loads((out / "metrics.json").read_text())
     motions, each = m["motions"].values(), m["history"].get("each", {})
     identity = m.get("identity", {})
+    chosen = (m["history"].get("pool") or {}).get("selection") or {}
     matched = [f for f in identity.get("fields", []) if f["matched"]]
     return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
+            "pooled": chosen.get("pooled"), "selected": chosen.get("kept"),
+            "restored": len(m["history"].get("pool", {}).get("restored") or []),
             "reproduced": sum(bool(x["success"]) for x in motions),
             "worst_rmse_rad": max(x["rmse"] for x in motions),
             "worst_tip_m": max(x["tip"] for x in motions), "fields_matched": identity.get("matched"),

@@ -294,3 +294,16 @@ def test_a_rescue_round_that_improves_no_motion_changes_nothing(tmp_path, monkey
     row = metrics["motions"]["come_here_keys"]
     assert seen[0][0] == metrics["overall"]["M"] == 1 and seen[0][1] > 0.03
     assert (row["rmse"], row["tip"]) == pytest.approx(seen[0][1:], rel=1e-9)
+
+
+@pytest.mark.slow
+def test_a_rescue_round_that_reproduces_no_motion_is_not_kept(tmp_path, monkeypatch):
+    """Fields that bring a motion closer but reproduce none would only grow the basis:
+    with every motion judged closer (``synthesis.closer`` made to say so) and none
+    reproduced (no shooting), the round keeps nothing."""
+    from tflearn import train
+    from tflearn.train.stages import rescue
+    monkeypatch.setattr(rescue.synthesis, "closer", lambda rmse, after, ok=None: [True] * len(rmse))
+    metrics = train.run(_spline_run(tmp_path, "solver.rescue.iterations=0"))
+    assert metrics["history"]["rescue"][0]["reproduced"] == []
+    assert metrics["history"]["rescue"][0]["kept"] is False and metrics["overall"]["M"] == 1

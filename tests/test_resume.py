@@ -138,6 +138,19 @@ def test_checkpoint_of_other_config_refused(run_dir):
 
 
 @pytest.mark.slow
+def test_a_run_resumes_whatever_its_log_settings(run_dir):
+    """log.* says how a run shows its progress, not what it computes: a finished run run
+    again with other log settings is the same run, its basis unchanged."""
+    before = (run_dir["out"] / "basis.json").read_bytes()
+    finished = json.loads((run_dir["out"] / "metrics.json").read_text())
+    cfg = small_config(run_dir["data"], run_dir["out"], "log.progress=true", "log.figures=1")
+    metrics = train.run(cfg)
+    assert metrics["overall"]["M"] == finished["overall"]["M"]
+    assert metrics["history"] == finished["history"]
+    assert (run_dir["out"] / "basis.json").read_bytes() == before
+
+
+@pytest.mark.slow
 def test_checkpoint_from_before_a_config_key_resumes(run_dir, tmp_path):
     """A checkpoint written before a config key existed (its config lacks the key) ran as
     the key's default does: it resumes under the default, and is refused, naming the key,

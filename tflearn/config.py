@@ -160,6 +160,22 @@ class ReduceSection(Section):                   # backward elimination of pooled
     chunk: int = Field(0, ge=0)
 
 
+class SelectSection(Section):                   # the shared basis chosen among pooled fields
+    # true: the fewest pooled fields that serve every motion, judged by each motion's
+    # torque cost (tflearn.fit.select: copies of one field are one where the motions
+    # look; docs/model.md); false: near-duplicates merged by distance (solver.merge)
+    enabled: bool = True
+    # the relative torque cost a motion may gain over its own fit's on the chosen fields
+    tol: float = Field(1e-4, ge=0, allow_inf_nan=False)
+    # a pooled field is one of a motion's candidates where its Gaussian exp(−½ dᵀKd)
+    # reaches this on the motion's path (or it is one of its own)
+    reach: float = Field(1e-4, ge=0, le=1)
+    # multiple-shooting iterations per horizon (solver.shooting's other settings) for a
+    # motion its own fields reproduced and the chosen basis does not, before it gets its
+    # own fields back: a restored motion costs fields for good, an iteration only time
+    shooting: int = Field(20, ge=0)
+
+
 class MergeSection(Section):                    # merge pooled fields that nearly coincide
     distance: float = Field(0.05, ge=0)          # centres closer than this (rad)
     stiffness: float = Field(0.05, ge=0)         # and stiffnesses within this fraction
@@ -225,6 +241,7 @@ class SolverSection(Section):
     path: PathSection = PathSection()
     shooting: ShootingSection = ShootingSection()
     pool: PoolSection = PoolSection()
+    select: SelectSection = SelectSection()
     merge: MergeSection = MergeSection()
     reduce: ReduceSection = ReduceSection()
     slsqp: SlsqpSection = SlsqpSection()

@@ -145,7 +145,7 @@ def _solve_on(fields: list, basis, weights, tg, support, ridge):
     ``support`` holds: the other fields' weights are 0 either way, and a motion's normal
     equations over every field cost O(M²) where its own few fields cost O(1) (many
     motions pooled with :attr:`~tflearn.config.PoolSection.sharing` own)."""
-    cols = _columns(fields, basis.M, weights.P)
+    cols = columns(fields, basis.M, weights.P)
     sub = weights.select_fields(fields)
     costs = _solve_weights(basis.select(fields), sub, tg, support[:, cols], ridge)
     x = torch.zeros_like(weights.vector())
@@ -154,7 +154,7 @@ def _solve_on(fields: list, basis, weights, tg, support, ridge):
     return costs
 
 
-def _columns(fields: list, M: int, P: int) -> torch.Tensor:
+def columns(fields: list, M: int, P: int) -> torch.Tensor:
     """The columns of ``fields``' weights in the layout of :meth:`MotionWeights.vector`
     (a, b, then c field by field), in the order of ``fields``."""
     i = torch.as_tensor(fields, dtype=torch.long)

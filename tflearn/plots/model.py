@@ -211,3 +211,22 @@ def learning_curves(curves: dict, title: str = "", ylabel: str = "relative torqu
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def knee(path: list, chosen: int, motions: int, title: str = "") -> plt.Figure:
+    """The shared basis' model selection (:func:`tflearn.fit.select.select`): for each
+    size m of the forward selection ``path`` ([m, Σ_j C_j, motions served]), the summed
+    relative torque cost (log) and the motions served, ``chosen`` marked."""
+    m, cost, served = (np.array(c, dtype=float) for c in zip(*path)) if path else ([], [], [])
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    ax.semilogy(m, np.maximum(cost, 1e-300), "o-", color="C0")
+    ax.set_xlabel("fields M")
+    ax.set_ylabel("summed relative torque cost", color="C0")
+    right = ax.twinx()
+    right.plot(m, served, "s--", color="C1")
+    right.set_ylabel(f"motions served (of {motions})", color="C1")
+    right.set_ylim(0, motions * 1.05)
+    ax.axvline(chosen, color="k", lw=0.8, ls=":")
+    ax.set_title(title or f"choosing the shared basis: M = {chosen}")
+    fig.tight_layout()
+    return fig

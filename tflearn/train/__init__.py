@@ -6,8 +6,8 @@ module each), each unit of work ending in an atomically written checkpoint
 with the same command resumes at the last unit and ends with the same result:
 
 1. ``each``   — every motion alone (:mod:`~tflearn.train.stages.each`);
-2. ``pool``   — all per-motion fields in one basis, near-duplicates merged
-                (:mod:`~tflearn.train.stages.pool`);
+2. ``pool``   — all per-motion fields in one basis, the shared ones chosen among them
+                by the motions' torque costs (:mod:`~tflearn.train.stages.pool`);
 3. ``reduce`` — backward elimination of fields while no motion gets worse
                 (:mod:`~tflearn.train.stages.reduce`);
 4. ``path``   — path matching for motions not yet reproduced

@@ -4,6 +4,7 @@ the artefacts: ``basis.json`` (:mod:`tflearn.io.basis`), ``metrics.json`` (per m
 and overall scores, error growth, torque resolution, simulations, the history, the data
 files skipped and, for data that carries its generating fields, each matched to a
 learned one: :mod:`tflearn.fit.identity`), ``config.yaml``, ``figures/NAME.png``,
+``knee.png`` (how the shared basis was chosen: :func:`tflearn.plots.model.knee`),
 TensorBoard's hyper-parameters, and the checkpoint of the finished run. A finished run
 run again writes them again from its checkpoint, logging nothing.
 """
@@ -56,6 +57,11 @@ def write(ctx: RunContext, state: RunState, scores: Scores, lb: basis_io.Learned
     """The artefacts of a finished run in OUT, the checkpoint last."""
     cfg, out = ctx.cfg, Path(ctx.cfg.out)
     write_figures(ctx.body, ctx.tg, scores, out, cfg.log.figures)
+    pool = state.history.pool
+    if pool is not None and pool.selection:
+        from ..plots import figures, model
+        chosen = pool.selection["kept"]
+        figures.save(model.knee(pool.selection["path"], chosen, ctx.tg.N), out / "knee.png")
     config_mod.dump(cfg, out / "config.yaml")
     write_text(out / "metrics.json", json.dumps(metrics, indent=1))
     basis_io.save(lb, out / "basis.json")

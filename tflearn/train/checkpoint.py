@@ -105,8 +105,9 @@ class Checkpoints:
             raise CheckpointError(f"{self.path}: not a complete checkpoint ({err}); pass --restart") from None
         # a key the checkpoint lacks was added to the config after it was written: it ran
         # as that key's default does (a new key's default keeps the old behaviour)
+        # (log: how a run shows its progress, not what it computes)
         old = config_mod.merge(type(self.cfg)().model_dump(), state.config)
-        changed = config_changes(old, self.cfg.model_dump())
+        changed = [k for k in config_changes(old, self.cfg.model_dump()) if not k.startswith("log.")]
         if changed:
             raise CheckpointError(
                 f"{self.path}: a checkpoint of a different config is in this output folder "

@@ -84,18 +84,21 @@ class EachRecord:
 @dataclass
 class ModelRecord:
     """A stage's model (``pool``, ``layout``): M, its summed torque cost, which motions it
-    reproduces; for ``pool`` the fields ``merged`` as near-duplicates ([kept, merged]
-    pairs) and the motions ``restored`` to their own fields (None: none)."""
+    reproduces; for ``pool`` the fields ``merged`` ([kept, merged] pairs), the
+    ``selection`` of the shared fields (:func:`tflearn.fit.select.select`: the pooled M,
+    the M kept and pruned, the knee's path [m, Σ C_j, served], motions left unserved)
+    and the motions ``restored`` to their own fields (None: none)."""
 
     M: int
     torque_cost: float
     success: list
     merged: Optional[list] = None
     restored: Optional[list] = None
+    selection: Optional[dict] = None
 
     def to_dict(self) -> dict:
         doc = {"M": self.M, "merged": self.merged, "torque_cost": self.torque_cost,
-               "success": self.success, "restored": self.restored}
+               "success": self.success, "restored": self.restored, "selection": self.selection}
         return {k: v for k, v in doc.items() if v is not None}
 
 

@@ -1,10 +1,14 @@
-"""Stage ``pool`` — all per-motion fields in one basis, every motion's weights re-solved
-over all of them, so that no motion fits worse than alone (with ``solver.pool.sharing:
-own`` each motion keeps to its own fields, as it was reproduced alone); fields that
-nearly coincide (``solver.merge``) merged and refined jointly by EM.
+"""Stage ``pool`` — all per-motion fields in one basis; the shared fields chosen among
+them by what the motions need (``solver.select``, :func:`~tflearn.fit.select.select`:
+the fewest that keep every motion's torque cost within its own fit's plus δ), refined
+jointly by EM and chosen again among the refined ones; with ``solver.select.enabled:
+false`` fields that nearly coincide (``solver.merge``) are merged instead, every other
+pooled field kept (with ``solver.pool.sharing: own`` each motion keeps to its own
+fields, as it was reproduced alone).
 
-Motions that their own fits reproduced but the pooled model does not get their own
-fields back (:func:`restore`). The pooled model is scored by simulation: the reference
+Motions that their own fits reproduced but the chosen basis does not are first
+path-matched on it by multiple shooting (:func:`shoot`), and get their own fields back
+if that fails (:func:`restore`). The pooled model is scored by simulation: the reference
 that elimination (``reduce``) keeps every motion to. One unit.
 """
 from __future__ import annotations
@@ -13,10 +17,11 @@ from dataclasses import replace
 
 import torch
 
-from ...fit import search, torque
+from ...fit import search, select, torque
 from ...metrics import Scores
 from ...model.program import model_from_state, model_state
 from ...model.weights import MotionWeights
+from ...plots.model import knee
 from ..context import RunContext
 from ..models import weight_support
 from ..state import ModelRecord, Reference, RunState
@@ -25,27 +30,33 @@ NAME, TITLE, UNIT = "pool", "pool and merge", "stage"
 
 
 def run(ctx: RunContext, state: RunState) -> None:
-    """Pool, merge, refine, solve the weights (one iteration), restore, score; the
-    reference of ``reduce``; one checkpoint."""
-    tg, merge, c = ctx.tg, ctx.cfg.solver.merge, ctx.cfg.solver.pool
+    """Pool, choose the shared fields (or merge near-duplicates), refine, solve the
+    weights (one iteration), restore, score; the reference of ``reduce``; one
+    checkpoint."""
+    tg, c = ctx.tg, ctx.cfg.solver.pool
     ctx.log.stage(NAME, 1)
     basis, weights = search.pool(tg, state.fits, ctx.template())
-    if c.sharing == "own":                          # each motion on its own fields
-        ends = torch.tensor([len(f.eta) for f in state.fits]).cumsum(0).tolist()
-        state.support = [[lo <= i < hi for i in range(basis.M)] for lo, hi in zip([0] + ends, ends)]
-    basis, weights, merged = search.merge_close(basis, weights, merge.distance, merge.stiffness)
-    if merged and state.support is not None:        # a merged cluster: its motions may use it
-        drop = {k for _, k in merged}
-        for row in state.support:
-            for i, k in merged:
-                row[i] = row[i] or row[k]
-        state.support = [[x for i, x in enumerate(row) if i not in drop] for row in state.support]
-    if merged or ctx.variable_phases:               # other motions' phases: default
+    ends = torch.tensor([len(f.eta) for f in state.fits]).cumsum(0).tolist()
+    own = [[lo <= i < hi for i in range(basis.M)] for lo, hi in zip([0] + ends, ends)]
+    if ctx.cfg.solver.select.enabled:
+        basis, weights, merged, chosen = _select(ctx, state, basis, weights, own)
+    else:
+        state.support = own if c.sharing == "own" else None
+        basis, weights, merged = _merge(ctx, state, basis, weights)
+        chosen = None
+    dropped = chosen is not None and chosen["kept"] < chosen["pooled"]
+    if merged or dropped or ctx.variable_phases:    # other motions' phases: default
         ctx.em(basis, weights, tg, state, tag="torque_cost/pool", support=state.support, min_gain=c.min_gain)
+    tolerance = chosen.pop("tolerance") if chosen else None
+    if dropped:
+        basis, weights = _refined(ctx, state, basis, weights, chosen, tolerance)
     cost = float(torque.solve_weights(basis, weights, tg, weight_support(state.support, weights.P)).sum())
     scores, ok = ctx.check(basis, weights, tg)
+    if chosen:
+        scores, ok = shoot(ctx, state, basis, weights, scores, ok)
     state.model = model_state(basis, weights)
-    state.history.pool = ModelRecord(M=basis.M, torque_cost=cost, success=ok, merged=merged)
+    state.history.pool = ModelRecord(M=basis.M, torque_cost=cost, success=ok, merged=merged or None,
+                                     selection=chosen)
     scores, ok = restore(ctx, state, scores, ok)
     step = ctx.tick(state)
     ctx.log.scalar("torque_cost/pool", cost, step)
@@ -63,6 +74,87 @@ def run(ctx: RunContext, state: RunState) -> None:
     ctx.save(state)
 
 
+def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tuple:
+    """The fewest pooled fields that serve every motion (:func:`~tflearn.fit.select.select`):
+    (basis, weights on them, merged pairs [kept, dropped] — each dropped field with the
+    kept one that serves most of its motions —, the selection's record for metrics.json).
+    With ``sharing: own`` a motion may use the chosen fields among its candidates."""
+    o = ctx.cfg.solver.select
+    pooled = basis.M
+    ctx.log.busy(pooled=pooled, choosing="fields")
+    sel = select.select(basis, weights, ctx.tg, torch.tensor(own),
+                        select.SelectOptions(tol=o.tol, reach=o.reach),
+                        progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m))
+    weights = weights.select_fields(sel.kept)
+    state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
+                     if ctx.cfg.solver.pool.sharing == "own" else None)
+    record = {"pooled": pooled, "kept": len(sel.kept), "pruned": len(sel.pruned),
+              "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved]}
+    if ctx.log.writer is not None:
+        ctx.log.figure("model/knee", knee(sel.path, len(sel.kept), ctx.tg.N), state.iteration)
+    record["tolerance"] = sel.tolerance
+    return basis.select(sel.kept), weights, sel.merged, record
+
+
+def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tolerance: list) -> tuple:
+    """EM has moved the chosen copies towards what all their motions need: the selection
+    again among them, each motion held to the same bar τ_j (a copy that served few
+    motions may now be served by a refined field); if fewer remain, EM again. Returns
+    (basis, weights); ``chosen`` records the count (``refined``)."""
+    used = weights.used() | torch.tensor(state.support or [[False] * basis.M] * ctx.tg.N)
+    o = ctx.cfg.solver.select
+    sel = select.select(basis, weights, ctx.tg, used, select.SelectOptions(tol=o.tol, reach=o.reach),
+                        tolerance=tolerance)
+    chosen["refined"] = len(sel.kept)
+    if len(sel.kept) == basis.M:
+        return basis, weights
+    keep = sorted(sel.kept)
+    basis, weights = basis.select(keep), weights.select_fields(keep)
+    if state.support is not None:
+        state.support = [[row[i] for i in keep] for row in state.support]
+    ctx.em(basis, weights, ctx.tg, state, tag="torque_cost/pool", support=state.support,
+           min_gain=ctx.cfg.solver.pool.min_gain)
+    return basis, weights
+
+
+def _merge(ctx: RunContext, state: RunState, basis, weights) -> tuple:
+    """Near-duplicates merged by distance (``solver.merge``): (basis, weights, merged
+    pairs); a merged cluster's motions may use it (``state.support``)."""
+    merge = ctx.cfg.solver.merge
+    basis, weights, merged = search.merge_close(basis, weights, merge.distance, merge.stiffness)
+    if merged and state.support is not None:
+        drop = {k for _, k in merged}
+        for row in state.support:
+            for i, k in merged:
+                row[i] = row[i] or row[k]
+        state.support = [[x for i, x in enumerate(row) if i not in drop] for row in state.support]
+    return basis, weights, merged
+
+
+def broken(state: RunState, ok: list) -> list:
+    """The motions their own fits reproduced (``each``) that ``ok`` says are not."""
+    alone = state.history.each.reproduced if state.history.each else []
+    return [j for j, (a, o) in enumerate(zip(alone, ok)) if a and not o]
+
+
+def shoot(ctx: RunContext, state: RunState, basis, weights, scores: Scores, ok: list) -> tuple:
+    """The chosen fields are right where their weights, solved on torques, are not quite
+    (a motion whose simulation amplifies small torque errors): the :func:`broken` motions'
+    weights by multiple shooting on the chosen basis (``solver.select.shooting``
+    iterations, ``solver.shooting``'s other settings), ``weights`` changed in place;
+    the (scores, success) of every motion after."""
+    motions, iterations = broken(state, ok), ctx.cfg.solver.select.shooting
+    if not motions or not iterations:
+        return scores, ok
+    options = replace(ctx.cfg.solver.shooting.options(ctx.variable_phases), iterations=iterations)
+    ctx.shoot(state, basis, weights, motions, options)
+    check, fine = ctx.check(basis, weights.select_motions(motions), ctx.tg.select(motions))
+    ok = list(ok)
+    for i, j in enumerate(motions):
+        ok[j] = fine[i]
+    return _replaced(scores, motions, check), ok
+
+
 def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple:
     """Motions their own fits reproduced (``each``) that the pooled model does not —
     merging or refitting moved a field their path needs to the digit — get their own
@@ -71,20 +163,18 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple
     elimination may still remove them, by its rule. Changes ``state.model``,
     ``state.support`` and the pool's record; returns the (scores, success) of every
     motion."""
-    tg = ctx.tg
-    alone = state.history.each.reproduced if state.history.each else []
-    broken = [j for j, (a, o) in enumerate(zip(alone, ok)) if a and not o]
-    if not broken:
+    tg, lost = ctx.tg, broken(state, ok)
+    if not lost:
         return scores, ok
     basis, weights = model_from_state(state.model)
-    M0, own = basis.M, [state.fits[j] for j in broken]
+    M0, own = basis.M, [state.fits[j] for j in lost]
     nb = basis.extend(torch.cat([f.eta for f in own]), torch.cat([f.K for f in own]))
     nw = weights.extend_fields(nb.M - M0)
     rows = state.support or [[True] * M0 for _ in range(tg.N)]
     support = [row + [False] * (nb.M - M0) for row in rows]
     start = M0
     with torch.no_grad():
-        for j, (eta, _, fit) in zip(broken, own):
+        for j, (eta, _, fit) in zip(lost, own):
             for key in ("a_raw", "b_raw", "c_raw"):
                 getattr(nw, key)[j] = 0.0
             for key, row in fit.items():
@@ -95,13 +185,13 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple
                     target[j, start:start + len(eta)] = row
             support[j] = [start <= i < start + len(eta) for i in range(nb.M)]
             start += len(eta)
-    check, fine = ctx.check(nb, nw.select_motions(broken), tg.select(broken))
-    scores, ok = _replaced(scores, broken, check), list(ok)
-    for i, j in enumerate(broken):
+    check, fine = ctx.check(nb, nw.select_motions(lost), tg.select(lost))
+    scores, ok = _replaced(scores, lost, check), list(ok)
+    for i, j in enumerate(lost):
         ok[j] = fine[i]
     state.model, state.support = model_state(nb, nw), support
     record = state.history.pool
-    record.M, record.success, record.restored = nb.M, ok, [tg.names[j] for j in broken]
+    record.M, record.success, record.restored = nb.M, ok, [tg.names[j] for j in lost]
     return scores, ok
 
 

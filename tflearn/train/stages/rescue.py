@@ -2,10 +2,11 @@
 spanning layout's fields laid out around them (:func:`tflearn.fit.layout.spanning_basis`)
 added to the basis, and programs on it by the synthesis service
 (:mod:`tflearn.synthesis`): weights by NNLS on those fields, then multiple shooting
-over the whole basis (``solver.rescue``'s settings); a motion keeps the new program if it
-reproduces it or comes closer, and those still not reproduced get a layout of their own
-in the next round. One unit per round, at most ``solver.rescue.rounds``, until a round
-improves none.
+over the whole basis (``solver.rescue``'s settings); when the new fields reproduce at
+least one motion they are kept, and a motion keeps its new program if it reproduces it
+or comes closer; those still not reproduced get a layout of their own in the next round
+(fields that reproduce nothing are not kept: they would only grow the basis). One unit
+per round, at most ``solver.rescue.rounds``, until a round keeps nothing.
 """
 from __future__ import annotations
 
@@ -57,11 +58,12 @@ def rescue_round(ctx: RunContext, state: RunState, basis, weights, scores: Score
     weights start on the new fields alone, by NNLS (its ridge and torque weights), and
     multiple shooting (``solver.shooting``'s horizon, ``solver.rescue``'s iterations, tip
     and velocity weights) then fits them over the whole basis (with
-    ``solver.shooting.used``, over the new fields their weights are on). A motion takes
-    its new program where that is closer (:func:`tflearn.synthesis.closer`: it
-    reproduces the motion, or is simulated closer to it); the others keep theirs, with
-    zero weight on the new fields. The grown model becomes the run's result if some
-    motion took its new program; returns the round's record."""
+    ``solver.shooting.used``, over the new fields their weights are on). If the new
+    fields reproduce some motion, a motion takes its new program where that is closer
+    (:func:`tflearn.synthesis.closer`: it reproduces the motion, or is simulated closer
+    to it); the others keep theirs, with zero weight on the new fields. The grown model
+    becomes the run's result if some motion took its new program; returns the round's
+    record."""
     r, tg = ctx.cfg.solver.rescue, ctx.tg
     todo = [j for j, x in enumerate(ok) if not x]
     sub = tg.select(todo)
@@ -77,6 +79,8 @@ def rescue_round(ctx: RunContext, state: RunState, basis, weights, scores: Score
     ctx.shoot(state, grown, more, todo, opts)
     after, now = ctx.check(grown, more, tg)
     better = synthesis.closer(scores.rmse, after, now)
+    if not any(now[j] for j in todo):     # fields that reproduce nothing are not kept
+        better = [False] * tg.N
     took, back = [j for j in todo if better[j]], [j for j in todo if not better[j]]
     if back:
         synthesis.take(more, weights.extend_fields(laid.M), back, back)

@@ -1,0 +1,82 @@
+"""The shared basis chosen among pooled fields (tflearn.fit.select): copies of one field
+that differ only where no motion looks are one field, different fields are not, and a
+planted library comes back whole and no larger."""
+from dataclasses import replace
+
+import pytest
+import torch
+
+from tflearn import config
+from tflearn.data import gestures as gs
+from tflearn.fit import select, torque
+from tflearn.fit.targets import prepare
+from tflearn.model.fields import FieldBasis
+from tflearn.model.weights import MotionWeights
+from tflearn.physics import body as tb
+from tflearn.train import run
+
+SOFT, STIFF = 6, 0          # the wrist axis of K = diag(1.5, …, 1.5, 1e-3), and a stiff one
+
+
+def _copies(axis: int, distance: float = 0.3):
+    """Four motions of one field with a soft wrist axis, the first made by a copy moved
+    ``distance`` rad along ``axis``; the pooled candidates are each motion's own field
+    (the copy, then three times the original), with each motion's own weights."""
+    body = tb.arm()
+    programs = [replace(g, k=((1.5,) * 6 + (1e-3,),)) for g in gs.random_gestures(4, seed=3, library=1)]
+    eta = torch.tensor(programs[0].eta[0])
+    moved = eta + distance * torch.eye(7, dtype=torch.float64)[axis]
+    programs[0] = replace(programs[0], eta=(tuple(moved.tolist()),))
+    tg = prepare(body, [m for m, _ in gs.generate_resolved(programs, body)])
+    K = torch.diag(torch.tensor(programs[0].k[0], dtype=torch.float64)).expand(4, 7, 7).clone()
+    basis = FieldBasis(torch.stack([moved, eta, eta, eta]), K, "diag")
+    weights = MotionWeights.zeros(4, tg.duration, tg.names)
+    own = torch.eye(4, dtype=torch.bool)
+    torque.solve_weights(basis, weights, tg, support=torch.cat([own, own], 1))
+    return basis, weights, tg, own
+
+
+def test_copies_that_differ_along_an_unexcited_direction_are_one_field():
+    basis, weights, tg, own = _copies(SOFT)
+    assert float((basis.eta[0] - basis.eta[1]).detach().norm()) > 5 * config.MergeSection().distance
+    s = select.select(basis, weights, tg, own)
+    assert len(s.kept) == 1 and not s.unserved
+    assert all(c <= t for c, t in zip(s.costs, s.tolerance))
+    dropped = ({0, 1} - set(s.kept)).pop()
+    assert [s.kept[0], dropped] in s.merged
+
+
+def test_fields_that_differ_where_the_motions_look_are_not_merged():
+    basis, weights, tg, own = _copies(STIFF)
+    s = select.select(basis, weights, tg, own)
+    assert sorted(s.kept) == [0, 1] and not s.unserved
+    assert sorted(s.merged) == [[1, 2], [1, 3]]              # the exact copies only
+
+
+def test_the_forward_path_never_costs_more_with_more_fields():
+    basis, weights, tg, own = _copies(STIFF)
+    path = select.select(basis, weights, tg, own).path
+    costs, served = [p[1] for p in path], [p[2] for p in path]
+    assert [p[0] for p in path] == list(range(1, len(path) + 1))
+    assert all(b <= a * (1 + 1e-9) for a, b in zip(costs, costs[1:]))
+    assert served == sorted(served) and served[-1] == tg.N
+
+
+@pytest.mark.slow
+def test_a_planted_library_of_three_fields_in_twelve_motions_gives_back_three(tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    from tflearn.io import basis as basis_io
+    from tflearn.motions.motion import save
+    for motion, generating in gs.generate_resolved(gs.random_gestures(12, seed=5, library=3)):
+        save(motion, data / f"{motion.name}.npz")
+        basis_io.save(generating, data / f"{motion.name}.json")
+    cfg = config.load("configs/gestures.yaml", [f"data={data}", f"out={tmp_path / 'run'}",
+                                                 "log.tensorboard=false", "log.progress=false"])
+    metrics = run(cfg)
+    assert metrics["overall"]["M"] == 3
+    assert all(m["success"] for m in metrics["motions"].values())
+    assert metrics["identity"]["matched"] == metrics["identity"]["G"] == 3
+    chosen = metrics["history"]["pool"]["selection"]
+    assert chosen["kept"] == 3 and chosen["pooled"] > 3
+    assert (tmp_path / "run" / "knee.png").stat().st_size > 0

@@ -1,0 +1,238 @@
+"""Choosing the shared basis among pooled candidate fields: a simultaneous sparse
+approximation with non-negative groups, judged motion by motion.
+
+Every motion fitted alone brings its own fields; motions made by a few shared fields
+bring many copies of each, which differ along the directions their motions hardly
+excite. Which copy serves a motion is a question for the motion, not for the fields'
+coordinates: with the candidates fixed, motion j's relative torque cost over a subset S
+of them is the non-negative least-squares optimum
+
+    C_j(S) = min_{x ≥ 0 on the columns of S} 1 − 2 h_jᵀx + xᵀG_j x
+
+(G_j, h_j the normal equations of :func:`~.torque.normal_equations`: each field a group
+of 2 + P columns, its step, pulse and window weights). Field k *substitutes* field i for
+motion j when C_j with k in place of i stays within the motion's tolerance — a distance
+in the metric G_j of the directions motion j excites, so copies that differ only where
+no motion looks are one field, and fields that differ where a motion looks are not.
+
+A subset S *serves* motion j when C_j(S) ≤ τ_j = c_j + δ, c_j the cost of its own fit
+and δ the tolerance (``SelectOptions.tol``). :func:`select` finds a small S serving
+every motion: greedy forward selection — the candidate that removes the most excess
+Σ_j max(C_j − τ_j, 0) joins, every motion's weights re-solved exactly (S-OMP's rule with
+NNLS refits in place of projections, Tropp, Gilbert & Strauss 2006; each candidate a
+group of columns shared by all motions, as in group-sparse NNLS) — then backward
+pruning: a chosen field whose every motion is still served without it leaves. The
+forward path gives each size's summed cost and count served (the knee of
+:class:`Selection`). A motion sees only the candidates whose Gaussian reaches
+``SelectOptions.reach`` on its path (and its own), so the cost grows with the motions,
+not with their product with the candidates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import torch
+
+from ..model.fields import FieldBasis
+from ..model.weights import MotionWeights
+from .nnls import nnls
+from .targets import Targets
+from .torque import columns, normal_equations, torque_costs
+
+__all__ = ["SelectOptions", "Selection", "select"]
+
+
+@dataclass(frozen=True)
+class SelectOptions:
+    """Settings of :func:`select`. tol: δ, the relative torque cost a motion may gain over
+    its own fit's; reach: a candidate is one of motion j's when its Gaussian
+    exp(−½ dᵀKd) reaches this at one of its samples (or it is one of its own); beyond: the
+    candidates added after every motion is served, for the knee (:attr:`Selection.path`)."""
+
+    tol: float = 1e-4
+    reach: float = 1e-4
+    beyond: int = 2
+
+
+@dataclass
+class Selection:
+    """What :func:`select` chose: ``kept``, the candidates kept (indices, in the order
+    they joined); ``path``, per size m = 1, 2, … of the forward selection (first m
+    candidates chosen, weights re-solved), the summed cost Σ_j C_j and the count of
+    motions served ([m, cost, served]); ``pruned``, the chosen candidates pruned again;
+    ``unserved``, the motions no subset serves within tolerance (their own candidates
+    were out of reach of one another: never, when ``reach`` keeps their own); ``costs``,
+    each motion's C_j on ``kept``; ``tolerance``, each motion's τ_j; ``candidates``,
+    each motion's candidates (indices); ``merged``, [kept, dropped] pairs: each dropped
+    candidate that was a motion's own, with the nearest kept field (Euclidean centre) that
+    its motion uses instead."""
+
+    kept: list
+    path: list
+    pruned: list = field(default_factory=list)
+    unserved: list = field(default_factory=list)
+    costs: list = field(default_factory=list)
+    tolerance: list = field(default_factory=list)
+    candidates: list = field(default_factory=list)
+    merged: list = field(default_factory=list)
+
+
+class _Motion:
+    """Motion j's normal equations over its candidates (``fields``, global indices, their
+    groups of 2 + P columns) and its cost on the current subset."""
+
+    def __init__(self, fields: list, G: torch.Tensor, h: torch.Tensor, P: int, tau: float):
+        self.fields, self.G, self.h, self.P, self.tau = fields, G, h, P, tau
+        self.local = {f: i for i, f in enumerate(fields)}
+        self.cost = 1.0                                  # C_j(∅): no torque at all
+
+    def costs(self, subsets: list) -> torch.Tensor:
+        """C_j of each subset (lists of global candidate indices, all the same size)."""
+        return self.solve(subsets)[0]
+
+    def solve(self, subsets: list) -> tuple:
+        """(C_j of each subset (B), whether each field of a subset has a weight > 0 (B×k))."""
+        if not subsets[0]:
+            B = len(subsets)
+            return torch.ones(B, dtype=self.G.dtype), torch.zeros(B, 0, dtype=torch.bool)
+        m, k = len(self.fields), len(subsets[0])
+        idx = torch.stack([columns([self.local[f] for f in s], m, self.P) for s in subsets])
+        G = self.G[idx[:, :, None], idx[:, None, :]]
+        h = self.h[idx]
+        x = nnls(G, h).x
+        cost = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).flatten()
+        weight = x[:, :k] + x[:, k:2 * k] + x[:, 2 * k:].unflatten(-1, (k, self.P)).sum(-1)
+        return cost, weight > 0
+
+    def excess(self, cost: float) -> float:
+        return max(cost - self.tau, 0.0)
+
+
+def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
+             opts: SelectOptions, tolerance: Optional[list]) -> list:
+    """Each motion's :class:`_Motion`: its candidates (reach or its own, ``own`` N×M
+    bools) and their normal equations; τ_j as given, or c_j + δ from its own fit's cost
+    c_j on ``weights``."""
+    out = []
+    if tolerance is None:
+        tolerance = (torque_costs(basis, weights, tg) + opts.tol).tolist()
+    for j in range(tg.N):
+        q = tg.q[j][tg.mask[j]]
+        near = (basis.gaussians(q) >= opts.reach).any(0) | own[j]
+        fields = near.nonzero().flatten().tolist()
+        sub = weights.select_motions([j]).select_fields(fields)
+        G, h = normal_equations(basis.select(fields), sub, tg.select([j], trim=True))
+        out.append(_Motion(fields, G[0], h[0], weights.P, tolerance[j]))
+    return out
+
+
+@torch.no_grad()
+def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
+           options: Optional[SelectOptions] = None, progress=None,
+           tolerance: Optional[list] = None) -> Selection:
+    """The fewest candidates of ``basis`` found greedily that serve every motion (module
+    docstring). ``weights`` hold each motion's own fit on its own candidates (``own``,
+    N×M bools), giving c_j; they are left unchanged. ``tolerance``: each motion's τ_j
+    instead of c_j + δ (a selection among refined fields keeps the first one's bar).
+    ``progress(m)``: called as each candidate joins."""
+    opts = options or SelectOptions()
+    motions = _motions(basis, weights, tg, own, opts, tolerance)
+    users = [[] for _ in range(basis.M)]
+    for j, mo in enumerate(motions):
+        for f in mo.fields:
+            users[f].append(j)
+    chosen, path = [], []
+    trials: dict = {}                                 # j -> {candidate: C_j(S_j ∪ {candidate})}
+    served_all = None
+    while len(chosen) < basis.M:
+        need = [j for j, mo in enumerate(motions) if mo.excess(mo.cost) > 0]
+        if served_all is None and not need:
+            served_all = len(chosen)
+        if served_all is not None and len(chosen) >= served_all + opts.beyond:
+            break
+        gain = torch.zeros(basis.M, dtype=torch.float64)      # excess removed
+        fit = torch.zeros(basis.M, dtype=torch.float64)       # cost removed
+        for j in (need or range(len(motions))):
+            mo = motions[j]
+            if j not in trials:
+                mine = [f for f in chosen if f in mo.local]
+                free = [f for f in mo.fields if f not in chosen]
+                trials[j] = dict(zip(free, mo.costs([mine + [f] for f in free]).tolist())) if free else {}
+            for f, c in trials[j].items():
+                gain[f] += (mo.excess(mo.cost) - mo.excess(c)) if need else (mo.cost - c)
+                fit[f] += mo.cost - c
+        best = _best(gain, fit, chosen)
+        if best is None:
+            break
+        chosen.append(best)
+        for j in users[best]:
+            mo = motions[j]
+            mo.cost = trials[j][best] if j in trials and best in trials[j] else float(
+                mo.costs([[f for f in chosen if f in mo.local]])[0])
+            trials.pop(j, None)
+        path.append([len(chosen), sum(mo.cost for mo in motions),
+                     sum(mo.excess(mo.cost) == 0 for mo in motions)])
+        if progress:
+            progress(len(chosen))
+    if served_all is None:
+        served_all = len(chosen)
+    kept = chosen[:served_all]
+    for mo in motions:                                # costs on the chosen set, not beyond
+        mine = [f for f in kept if f in mo.local]
+        mo.cost = float(mo.costs([mine])[0])
+    kept, pruned = _prune(kept, motions, users)
+    return Selection(kept=kept, path=path, pruned=pruned,
+                     unserved=[j for j, mo in enumerate(motions) if mo.excess(mo.cost) > 0],
+                     costs=[mo.cost for mo in motions], tolerance=[mo.tau for mo in motions],
+                     candidates=[mo.fields for mo in motions],
+                     merged=_merged(basis, kept, motions, own))
+
+
+def _merged(basis: FieldBasis, kept: list, motions: list, own: torch.Tensor) -> list:
+    """[kept, dropped] pairs: each own field of a motion that was not kept, with the
+    kept field nearest to it (Euclidean centre) among those its motion now uses."""
+    eta, pairs = basis.eta.detach(), {}
+    for j, mo in enumerate(motions):
+        mine = [f for f in kept if f in mo.local]
+        used = [f for f, u in zip(mine, mo.solve([mine])[1][0].tolist()) if u] if mine else []
+        for f in own[j].nonzero().flatten().tolist():
+            if f not in kept and f not in pairs and used:
+                pairs[f] = min(used, key=lambda g: float((eta[g] - eta[f]).norm()))
+    return sorted([k, f] for f, k in pairs.items())
+
+
+def _best(gain: torch.Tensor, fit: torch.Tensor, chosen: list) -> Optional[int]:
+    """The candidate that removes the most excess (``gain``) and, of those that remove
+    as much (copies that serve the same motions equally), the one that fits them best
+    (``fit``: the most cost removed); None when none removes any."""
+    gain = gain.clone()
+    if chosen:
+        gain[chosen] = -1.0
+    top = float(gain.max())
+    if top <= 0:
+        return None
+    tied = (gain >= top * (1 - 1e-9)).nonzero().flatten()
+    return int(tied[torch.argmax(fit[tied])])
+
+
+def _prune(kept: list, motions: list, users: list) -> tuple:
+    """Backward pruning: each kept candidate, the one fewest motions can see first,
+    leaves when every motion it reaches stays served (or, if not served, no worse)
+    without it. Returns (kept, pruned)."""
+    pruned = []
+    for f in sorted(kept, key=lambda f: (len(users[f]), -kept.index(f))):
+        rest = [g for g in kept if g != f and g not in pruned]
+        new = {}
+        for j in users[f]:
+            mo = motions[j]
+            c = float(mo.costs([[g for g in rest if g in mo.local]])[0])
+            if mo.excess(c) > mo.excess(mo.cost) + 1e-15 * max(mo.cost, 1e-300) or (
+                    mo.excess(mo.cost) > 0 and c > mo.cost):
+                break
+            new[j] = c
+        else:
+            pruned.append(f)
+            for j, c in new.items():
+                motions[j].cost = c
+    return [f for f in kept if f not in pruned], pruned
