@@ -38,16 +38,15 @@ def run(ctx: RunContext, state: RunState) -> None:
     basis, weights = search.pool(tg, state.fits, ctx.template())
     ends = torch.tensor([len(f.eta) for f in state.fits]).cumsum(0).tolist()
     own = [[lo <= i < hi for i in range(basis.M)] for lo, hi in zip([0] + ends, ends)]
+    chosen = tolerance = None
     if ctx.cfg.solver.select.enabled:
-        basis, weights, merged, chosen = _select(ctx, state, basis, weights, own)
+        basis, weights, merged, chosen, tolerance = _select(ctx, state, basis, weights, own)
     else:
         state.support = own if c.sharing == "own" else None
         basis, weights, merged = _merge(ctx, state, basis, weights)
-        chosen = None
     dropped = chosen is not None and chosen["kept"] < chosen["pooled"]
     if merged or dropped or ctx.variable_phases:    # other motions' phases: default
         ctx.em(basis, weights, tg, state, tag="torque_cost/pool", support=state.support, min_gain=c.min_gain)
-    tolerance = chosen.pop("tolerance") if chosen else None
     if dropped:
         basis, weights = _refined(ctx, state, basis, weights, chosen, tolerance)
     cost = float(torque.solve_weights(basis, weights, tg, weight_support(state.support, weights.P)).sum())
@@ -76,14 +75,13 @@ def run(ctx: RunContext, state: RunState) -> None:
 
 def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tuple:
     """The fewest pooled fields that serve every motion (:func:`~tflearn.fit.select.select`):
-    (basis, weights on them, merged pairs [kept, dropped] — each dropped field with the
-    kept one that serves most of its motions —, the selection's record for metrics.json).
-    With ``sharing: own`` a motion may use the chosen fields among its candidates."""
-    o = ctx.cfg.solver.select
+    (basis, weights on them, merged pairs [kept, dropped] — each dropped own field with
+    the nearest kept one its motion uses —, the selection's record for metrics.json, each
+    motion's bar τ_j). With ``sharing: own`` a motion may use the chosen fields among its
+    candidates."""
     pooled = basis.M
     ctx.log.busy(pooled=pooled, choosing="fields")
-    sel = select.select(basis, weights, ctx.tg, torch.tensor(own),
-                        select.SelectOptions(tol=o.tol, reach=o.reach),
+    sel = select.select(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
                         progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m))
     weights = weights.select_fields(sel.kept)
     state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
@@ -92,8 +90,12 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
               "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved]}
     if ctx.log.writer is not None:
         ctx.log.figure("model/knee", knee(sel.path, len(sel.kept), ctx.tg.N), state.iteration)
-    record["tolerance"] = sel.tolerance
-    return basis.select(sel.kept), weights, sel.merged, record
+    return basis.select(sel.kept), weights, sel.merged, record, sel.tolerance
+
+
+def _options(ctx: RunContext) -> select.SelectOptions:
+    o = ctx.cfg.solver.select
+    return select.SelectOptions(tol=o.tol, reach=o.reach)
 
 
 def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tolerance: list) -> tuple:
@@ -102,9 +104,7 @@ def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tol
     motions may now be served by a refined field); if fewer remain, EM again. Returns
     (basis, weights); ``chosen`` records the count (``refined``)."""
     used = weights.used() | torch.tensor(state.support or [[False] * basis.M] * ctx.tg.N)
-    o = ctx.cfg.solver.select
-    sel = select.select(basis, weights, ctx.tg, used, select.SelectOptions(tol=o.tol, reach=o.reach),
-                        tolerance=tolerance)
+    sel = select.select(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance)
     chosen["refined"] = len(sel.kept)
     if len(sel.kept) == basis.M:
         return basis, weights
