@@ -52,6 +52,23 @@ def test_fields_controller_is_its_program(gesture):
         C.build("pd", exact)
 
 
+def test_fields_controller_keeps_the_fields_damping(gesture):
+    """Damped fields (ζ > 0) under `fields` are damped as in the program's own simulation:
+    the controller passes the velocity on (a controller that dropped it left a keyframe
+    run's fields 0.15–0.49 rad off the path its training reproduced)."""
+    body, motion, program, exact = gesture
+    b = program.basis
+    damped = FieldProgram(type(b)(b.eta.detach(), b.K().detach(), b.kind, b.blocks, damping=0.2),
+                          program.weights)
+    q0, v0 = _start(exact)
+    r = P.respond(body, C.build("fields", exact, damped), P.Perturbation(), q0, v0, motion.t, OPT)
+    with torch.no_grad():
+        ref = simulate(body, damped, q0[:, None], v0[:, None], motion.t, OPT, track_work=True)
+        free = simulate(body, program, q0[:, None], v0[:, None], motion.t, OPT, track_work=True)
+    assert torch.equal(r.q, ref.q[:, 0])
+    assert float((ref.q - free.q).abs().max()) > 1e-3          # the damping matters here
+
+
 def _pair(body, ctrl, q0, v0, t, push=PUSH):
     """(unperturbed, pushed) responses of one controller, as one batch of two."""
     zero = P.Push(tuple(np.stack([np.zeros(3), push.force])), push.onset, push.duration)

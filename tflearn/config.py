@@ -187,14 +187,27 @@ class SlsqpSection(Section):
 
 class Layout(Section):
     # the fields of a spanning layout (tflearn.fit.layout), method layout's and rescue's.
-    # cross: 2n fields at ν̄ ± radius e_k | simplex: n + 1 at a regular simplex's vertices.
-    # The defaults carry recorded, keyframed and reaching motion (docs/model.md)
-    shape: Literal["cross", "simplex"] = "simplex"
+    # cross: 2n fields at ν̄ ± radius e_k | simplex: n + 1 at a regular simplex's vertices |
+    # pairs: convergent antagonist pairs, 2n fields each pulling one coordinate, centres
+    # within joint space (configs/convergent.yaml). The defaults carry recorded, keyframed
+    # and reaching motion (docs/model.md)
+    shape: Literal["cross", "simplex", "pairs"] = "simplex"
     radius: float = Field(16.0, gt=0, allow_inf_nan=False)    # centres at ν̄ + radius u_i (rad)
     stiffness: float = Field(0.0625, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
 
 
 class LayoutSection(Layout):                    # method layout: fields spanning joint space
+    # the stiffness the weights give about the path (tflearn.fit.impedance): the closed
+    # loop's natural frequency ω (rad/s; 0: torques only) and the deviation δ (rad) at
+    # which a stiffness error weighs as much as a torque error
+    frequency: float = Field(0.0, ge=0, allow_inf_nan=False)
+    deviation: float = Field(0.1, gt=0, allow_inf_nan=False)
+
+    def impedance(self):
+        """These settings as :class:`tflearn.fit.impedance.Impedance`."""
+        from .fit.impedance import Impedance
+        return Impedance(frequency=self.frequency, deviation=self.deviation)
+
     @model_validator(mode="before")
     @classmethod
     def _moved(cls, doc):

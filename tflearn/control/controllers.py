@@ -159,15 +159,16 @@ def _pd_high(target, program, options):
 
 
 class OneMotion(torch.nn.Module):
-    """A one-motion :class:`~tflearn.model.program.FieldProgram` on ν (...×nv) without its motion
-    dimension: τ = program(t, ν[..., None, :])[..., 0, :]."""
+    """A one-motion :class:`~tflearn.model.program.FieldProgram` on ν, v (...×nv) without its
+    motion dimension: τ = program(t, ν[..., None, :], v[..., None, :])[..., 0, :] (v for the
+    fields' damping)."""
 
     def __init__(self, program: FieldProgram):
         super().__init__()
         self.program = program
 
     def forward(self, t, q, v):
-        return self.program(t, q.unsqueeze(-2))[..., 0, :]
+        return self.program(t, q.unsqueeze(-2), v.unsqueeze(-2))[..., 0, :]
 
 
 def _fields(target, program, options):

@@ -6,6 +6,8 @@ straight-line hand reaches.
   out, as a motion from and to rest starts and stops; C⁴ between). Ball joints are
   splined on their sign-aligned unit quaternions, renormalised, hinges on their angles;
   the result is a :class:`~tflearn.motions.motion.Motion` sampled at ``rate``.
+* :func:`random_keyframes` — such animations through random postures (seeded), the
+  test data of motion no field made.
 * :func:`straight_reach` — the hand tip moves along the straight segment p₀ → p₁ with the
   minimum-jerk timing s(u) = 10u³ − 15u⁴ + 6u⁵; the coordinates come from damped
   least-squares inverse kinematics, each sample started from the previous one:
@@ -62,6 +64,26 @@ def keyframe_motion(name: str, body: Body, keys, times, rate: float = 100.0) -> 
         elif link.dof:
             parts.append(torch.from_numpy(_eased_spline(times, keys[:, s].numpy(), t)))
     return Motion(name, torch.from_numpy(t - t[0]), torch.cat(parts, dim=-1), body=body)
+
+
+def random_keyframes(body: Body, n: int, seed: int, keys: int = 3, spread: float = 0.8,
+                     durations: tuple = (0.6, 1.2), rate: float = 100.0) -> list:
+    """``n`` eased keyframe animations (:func:`keyframe_motion`) named ``keys{seed}_{i}``,
+    each through ``keys`` random postures: every coordinate uniform in ±``spread`` rad
+    about rest, hinges flexed (uniform in [−2 spread − 0.2, −0.2]: the preset arm's elbow
+    bends that way), each segment's duration uniform in ``durations`` (s)."""
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for i in range(n):
+        q = (2 * torch.rand(keys, body.nv, generator=g, dtype=F64) - 1) * spread
+        for k, link in enumerate(body.links):
+            if link.joint == "hinge":
+                q[:, body.slice(k)] = -0.2 - 2 * spread * torch.rand(keys, 1, generator=g, dtype=F64)
+        lo, hi = durations
+        steps = lo + (hi - lo) * torch.rand(keys - 1, generator=g, dtype=F64)
+        times = np.concatenate([[0.0], np.cumsum(steps.numpy())])
+        out.append(keyframe_motion(f"keys{seed}_{i}", body, q, times, rate))
+    return out
 
 
 def minimum_jerk(u: torch.Tensor) -> torch.Tensor:

@@ -67,8 +67,24 @@ def _simplex(n: int) -> tuple:
     return u, -n * u
 
 
+def _pairs(n: int) -> tuple:
+    """±e_k (2n×n), one antagonist pair per coordinate, and the box ‖x‖∞ ≤ 1's 2n facets
+    ±e_k: with :data:`PAIR_COUPLING` each field pulls one coordinate only, so every
+    torque is theirs inside the box, not only inside the ℓ1 ball of ``cross``."""
+    eye = torch.eye(n, dtype=torch.float64)
+    u = torch.cat([eye, -eye])
+    return u, u
+
+
 #: Layout shapes: name → n → (unit directions u (M×n), facets A (F×n) of conv(u) = {x: A x ≤ 1}).
-SHAPES = {"cross": _cross, "simplex": _simplex}
+SHAPES = {"cross": _cross, "simplex": _simplex, "pairs": _pairs}
+
+#: A ``pairs`` field's stiffness on the coordinates it does not pull, relative to its own.
+PAIR_COUPLING = 4e-3
+
+#: The largest |η| of a joint's block that a convergent (``pairs``) centre may have: a
+#: rotation vector's angle or a hinge's angle below π, a posture the joint can hold.
+JOINT_LIMIT = 0.95 * math.pi
 
 
 def reach(shape: str, x: torch.Tensor) -> torch.Tensor:
@@ -93,6 +109,8 @@ def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     if shape not in SHAPES:
         raise ValueError(f"spanning_basis: unknown shape {shape!r}; one of {sorted(SHAPES)}")
     real = tg.mask.unsqueeze(-1).to(tg.q.dtype)
+    if shape == "pairs":
+        return pairs_basis(body, tg, template, radius, stiffness)
     centre = (tg.q * real).sum((0, 1)) / real.sum((0, 1))                      # n
     samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)                    # N×1
     inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()      # n
@@ -107,3 +125,47 @@ def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     n = centre.shape[0]
     K = (stiffness * torch.diag(inertia)).expand(len(u), n, n).clone()
     return template.like(centre + radius * u, K)
+
+
+def pairs_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
+                stiffness: float) -> FieldBasis:
+    """Convergent antagonist pairs: for each coordinate k two fields at c ± r_k e_k that
+    pull that coordinate only (K_i = κ diag(m̄) ⊙ (e_k + :data:`PAIR_COUPLING` (1 − e_k))),
+    c the middle of the motions' range of each coordinate, r_k ≤ ``radius`` the largest
+    that keeps the centre's joint block within :data:`JOINT_LIMIT` (a posture the joint
+    can hold). Every torque at ν is the pairs' where c − r_k⁻ < ν_k < c + r_k⁺ for every
+    k; the sum of a pair, w⁺κm̄_k(c + r⁺ − ν_k) + w⁻κm̄_k(c − r⁻ − ν_k), is an
+    equilibrium-point controller of coordinate k, its co-activation w⁺ + w⁻ the
+    coordinate's stiffness (:mod:`.impedance` chooses it). Warns when a motion leaves the
+    box."""
+    real = tg.mask.unsqueeze(-1)
+    hi = torch.where(real, tg.q, -math.inf).amax((0, 1))
+    lo = torch.where(real, tg.q, math.inf).amin((0, 1))
+    centre, n = 0.5 * (hi + lo), body.nv
+    u, _ = _pairs(n)
+    r = torch.stack([_within_joints(body, centre, ui, radius) for ui in u])          # 2n
+    short = [k for k in range(n) if hi[k] - centre[k] >= r[k] or centre[k] - lo[k] >= r[n + k]]
+    if short:
+        warnings.warn(f"layout: the motions reach coordinate(s) {short} beyond the pairs' centres "
+                      f"(radius {radius:g} rad about the middle of their range, centres held "
+                      f"within {JOINT_LIMIT:.2f} rad of each joint's rest), where those fields no "
+                      f"longer push every way", stacklevel=3)
+    samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)
+    inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()
+    gain = u.abs() + PAIR_COUPLING * (1 - u.abs())
+    return template.like(centre + r[:, None] * u, torch.diag_embed(stiffness * inertia * gain))
+
+
+def _within_joints(body: Body, centre: torch.Tensor, u: torch.Tensor, radius: float) -> torch.Tensor:
+    """The largest r ≤ ``radius`` with every joint block of centre + r u within
+    :data:`JOINT_LIMIT` (0 where the centre itself is not): per block, the positive root
+    of |c + r u|² = L², r = −c·u + √((c·u)² − |c|² + L²)."""
+    r = torch.tensor(float(radius), dtype=torch.float64)
+    for i in range(len(body.links)):
+        c, w = centre[body.slice(i)], u[body.slice(i)]
+        cu, uu = (c * w).sum(), (w * w).sum()
+        if uu == 0:
+            continue
+        disc = (cu ** 2 - uu * ((c * c).sum() - JOINT_LIMIT ** 2)).clamp_min(0)
+        r = torch.minimum(r, ((-cu + disc.sqrt()) / uu).clamp_min(0))
+    return r

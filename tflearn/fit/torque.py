@@ -116,7 +116,7 @@ def _solve_weights(basis, weights, tg, support, ridge):
     if support is not None and len(fields := _fields_used(support, basis.M)) < basis.M:
         return _solve_on(fields, basis, weights, tg, support, ridge)
     G, h = normal_equations(basis, weights, tg)
-    A = _with_ridge(G, ridge)
+    A = with_ridge(G, ridge)
     if support is None:
         sol = nnls(A, h)
         x = sol.x
@@ -161,7 +161,7 @@ def columns(fields: list, M: int, P: int) -> torch.Tensor:
     return torch.cat([i, M + i, 2 * M + (P * i[:, None] + torch.arange(P)).flatten()])
 
 
-def _with_ridge(G: torch.Tensor, ridge: float) -> torch.Tensor:
+def with_ridge(G: torch.Tensor, ridge: float) -> torch.Tensor:
     """G + λ ḡ I (…×X×X), ḡ the mean of G's diagonal; G itself when λ = 0."""
     if not ridge:
         return G

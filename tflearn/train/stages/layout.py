@@ -1,12 +1,13 @@
 """Stage ``layout`` (``solver.method: layout``, in place of ``each``, ``pool`` and
 ``reduce``) — the spanning fields of :func:`tflearn.fit.layout.spanning_basis` around all
 the motions (``solver.layout``), every motion's weights on its ``model.windows``
-sub-movement windows by NNLS (``solver.ridge``), the model scored by simulation; path
-matching follows. One unit, one iteration.
+sub-movement windows by NNLS (``solver.ridge``; with ``solver.layout.frequency`` the
+stiffness about the path asked too, :mod:`tflearn.fit.impedance`), the model scored by
+simulation; path matching follows. One unit, one iteration.
 """
 from __future__ import annotations
 
-from ...fit import torque
+from ...fit import impedance
 from ...model.program import model_state
 from ..context import RunContext
 from ..models import layout_model
@@ -20,7 +21,8 @@ def run(ctx: RunContext, state: RunState) -> None:
     tg = ctx.tg
     ctx.log.stage(NAME, 1)
     basis, weights = layout_model(ctx.cfg, ctx.body, tg)
-    cost = float(torque.solve_weights(basis, weights, tg, ridge=ctx.cfg.solver.ridge).sum())
+    c = ctx.cfg.solver
+    cost = float(impedance.solve_weights(ctx.body, basis, weights, tg, c.layout.impedance(), ridge=c.ridge).sum())
     scores, ok = ctx.check(basis, weights, tg)
     step = ctx.tick(state)
     ctx.log.scalar("torque_cost/layout", cost, step)

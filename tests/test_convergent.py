@@ -1,0 +1,138 @@
+"""Convergent fields for motion no field made: antagonist pairs inside joint space
+(tflearn.fit.layout ``pairs``) and weights that also give a stiffness about the path
+(tflearn.fit.impedance).
+
+The field Jacobian's closed form against autograd; the stiffness design against the
+Jacobian of the program's torque; the pairs' centres inside joint space wherever the
+motions are; and on eased keyframe animations through random postures, the stiffness
+asked is the stiffness given, and with it the animation is reproduced by one simulation
+of the NNLS weights, where torque matching alone leaves the limb off its path.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+from torch.func import jacrev
+
+from tflearn.data.keyframes import keyframe_motion, random_keyframes
+from tflearn.fit import impedance, layout, targets, torque
+from tflearn.metrics import score
+from tflearn.model.fields import FieldBasis
+from tflearn.model.program import FieldProgram
+from tflearn.model.weights import MotionWeights
+from tflearn.physics import body as tb
+from tflearn.simulation.simulate import SimOptions
+
+DT = torch.float64
+
+
+@pytest.mark.parametrize("kind", ["diag", "full"])
+@pytest.mark.parametrize("damping", [0.0, 0.3])
+def test_field_jacobian_is_autograds(kind, damping):
+    """∂χ_i/∂ν = −g (K − u (K d)ᵀ) equals autograd's Jacobian of the field (1e-12)."""
+    g = torch.Generator().manual_seed(3)
+    n, M = 7, 4
+    A = torch.randn(M, n, n, generator=g, dtype=DT)
+    K = A @ A.transpose(-1, -2) / n + 0.3 * torch.eye(n, dtype=DT)
+    if kind == "diag":
+        K = torch.diag_embed(torch.diagonal(K, dim1=-2, dim2=-1))
+    basis = FieldBasis(torch.randn(M, n, generator=g, dtype=DT), K, kind, [3, 1, 3], damping)
+    q, v = torch.randn(5, n, generator=g, dtype=DT), torch.randn(5, n, generator=g, dtype=DT)
+    want = torch.stack([jacrev(lambda x: basis(x, vi))(qi) for qi, vi in zip(q, v)])   # 5×M×n×n
+    got = impedance.field_jacobians(basis, q, v).detach()
+    assert float((got - want.detach()).abs().max()) < 1e-12
+
+
+@pytest.fixture(scope="module")
+def keyframes():
+    """(body, targets) of three eased three-key animations through random postures."""
+    body = tb.arm()
+    return body, targets.prepare(body, random_keyframes(body, 3, seed=11))
+
+
+def _pairs(body, tg, windows=16, damping=0.1):
+    tmpl = FieldBasis.empty(body.nv, "diag", body.blocks, damping)
+    basis = layout.spanning_basis(body, tg, tmpl, 2.0, 0.25, "pairs")
+    return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names, targets.submovement_windows(tg, windows))
+
+
+def test_stiffness_design_is_the_programs_jacobian(keyframes):
+    """J_j(t) = D_j(t) x_j is the Jacobian in ν of the program's torque at the path's
+    samples (velocities held), for random weights."""
+    body, tg = keyframes
+    basis, weights = _pairs(body, tg, windows=4)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(tg.N, weights.vector().shape[-1], generator=g, dtype=DT)
+    with torch.no_grad():
+        weights.set_vector(x)
+    D = impedance.stiffness_design(basis, weights, tg)
+    J = (D * x[:, None, None, None, :]).sum(-1).detach()
+    program = FieldProgram(basis, weights)
+    for j, k in [(0, 7), (1, 60), (2, 101)]:
+        t, q, v = tg.t[j, k], tg.q[:, k].clone(), tg.v[:, k]
+
+        def tau(qj):
+            return program(t, torch.cat([q[:j], qj[None], q[j + 1:]]), v)[j]
+        want = jacrev(tau)(q[j]).detach()
+        assert float((J[j, k] - want).abs().max()) <= 1e-10 * float(want.abs().max())
+
+
+def test_pairs_centres_stay_inside_joint_space():
+    """Every pair's centre has each joint block within JOINT_LIMIT, also for a motion
+    whose shoulder turns to 3.05 rad (beyond the limit: the layout warns that it leaves
+    the box), and without a warning for motions of an ordinary range."""
+    body = tb.arm()
+    keys = torch.zeros(3, body.nv, dtype=DT)
+    keys[:, 3] = -0.5
+    keys[1, 0], keys[2, 0] = 1.5, 3.05
+    tg = targets.prepare(body, [keyframe_motion("far", body, keys, [0.0, 0.8, 1.6])])
+    with pytest.warns(UserWarning, match="beyond the pairs' centres"):
+        basis = layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, "diag", body.blocks), 3.0,
+                                      0.25, "pairs")
+    for i in range(len(body.links)):
+        norms = basis.eta[:, body.slice(i)].detach().norm(dim=-1)
+        assert float(norms.max()) <= layout.JOINT_LIMIT + 1e-12
+    tg = targets.prepare(body, random_keyframes(body, 2, seed=5))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        basis = layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, "diag", body.blocks), 2.0,
+                                      0.25, "pairs")
+    inside = [(basis.eta[:, body.slice(i)].norm(dim=-1) < math.pi).all() for i in range(len(body.links))]
+    assert all(inside)
+
+
+def test_the_stiffness_asked_is_given(keyframes):
+    """With ω = 10 rad/s asked, the fields' stiffness about each path is of that order
+    (median √λ_min(M⁻¹K_s) within a factor of 2), where torque matching alone gives far
+    less; the torque cost stays a fit."""
+    body, tg = keyframes
+    asked = impedance.Impedance(frequency=10.0, deviation=0.1)
+    basis, weights = _pairs(body, tg)
+    costs = impedance.solve_weights(body, basis, weights, tg, asked)
+    held = impedance.path_stiffness(body, basis, weights, tg)
+    basis0, weights0 = _pairs(body, tg)
+    torque.solve_weights(basis0, weights0, tg)
+    loose = impedance.path_stiffness(body, basis0, weights0, tg)
+    assert bool(((held > 5.0) & (held < 20.0)).all()), held
+    assert bool((loose < 0.5 * held).all()), (loose, held)
+    assert float(costs.max()) < 0.5
+
+
+@pytest.mark.slow
+def test_held_keyframes_are_reproduced_by_one_simulation(keyframes):
+    """Eased keyframe animations through random postures: the NNLS weights with the
+    stiffness asked reproduce every one in a single simulation (joint RMSE ≤ 0.03 rad,
+    hand ≤ 2 cm), no path matching; torque matching alone on the same fields does not."""
+    body, tg = keyframes
+    opt = SimOptions(rtol=1e-7, atol=1e-9)
+    basis, weights = _pairs(body, tg)
+    impedance.solve_weights(body, basis, weights, tg, impedance.Impedance(10.0, 0.1))
+    held = score(body, basis, weights, tg, opt)
+    assert max(held.rmse) <= 0.03 and max(held.tip) <= 0.02, (held.rmse, held.tip)
+    basis0, weights0 = _pairs(body, tg)
+    torque.solve_weights(basis0, weights0, tg)
+    loose = score(body, basis0, weights0, tg, opt)
+    assert max(loose.rmse) > 0.03, loose.rmse

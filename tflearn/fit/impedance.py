@@ -1,0 +1,143 @@
+"""Impedance about the path: weights whose fields also hold the limb on it.
+
+Torque matching (:mod:`.torque`) asks the fields' sum for the inverse-dynamics torque
+T_j(t) at each posture of the path and nothing about what it does off the path. Many
+programs give that torque; the one wanted is the one that *holds* the limb there, whose
+field sum pulls a limb pushed off the path back onto it. To first order about the path,
+
+    F_j(ν_t + e, v_t) ≈ F_j(ν_t, v_t) + J_j(t) e,     J_j(t) = Σ_c x_c s_c(t) ∂χ_{i(c)}/∂ν,
+
+(s_c the column's time profile: step ψ, pulse φ or window), so −J_j is the stiffness the
+fields add about the path; it is linear in the weights, like the torque. This module asks
+for a stiffness target as well,
+
+    −J_j(t) ≈ ω² M(ν_t),
+
+a closed loop whose every coordinate has natural frequency ω about the path (M the
+joint-space inertia): the squared residual Σ_t w_t ‖δ (J_j(t) + ω² M(ν_t))‖²_F / S_j, with
+δ (rad) the deviation at which a stiffness error counts as much as a torque error, is
+added to the relative torque cost C_j and one NNLS solves both. Where the torque leaves
+the weights free (opposing fields whose torques cancel along the path) the solve takes
+the co-contraction that gives this stiffness; with the fields' damping ratio ζ the same
+weights give damping ζ K about the path.
+
+The field Jacobian has a closed form. With d = ν − η, u = K(d + ζ v) and g = exp(−½ dᵀKd),
+χ = −u g and ∂g/∂ν = −g K d, so
+
+    ∂χ/∂ν = −g (K − u (K d)ᵀ)         (n×n per field):
+
+a field is convergent (−∂χ/∂ν positive definite, at rest) where dᵀKd < 1, inside the
+inflection of its Gaussian, and pushes the limb away from the path beyond it. Fields far
+from the limb (a spanning layout's, :mod:`.layout`) are mostly beyond it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from ..model.fields import FieldBasis
+from ..model.weights import MotionWeights
+from ..physics import dynamics
+from ..physics.body import Body
+from . import torque
+from .nnls import nnls, warn_unconverged
+from .targets import Targets, chunks
+
+__all__ = ["Impedance", "field_jacobians", "stiffness_design", "stiffness_equations", "solve_weights",
+           "path_stiffness"]
+
+
+@dataclass(frozen=True)
+class Impedance:
+    """The stiffness asked of the fields about the path: natural frequency ``frequency``
+    ω (rad/s; 0: torques only) and the deviation ``deviation`` δ (rad) at which a
+    stiffness error weighs as much as a torque error."""
+
+    frequency: float = 0.0
+    deviation: float = 0.1
+
+
+def field_jacobians(basis: FieldBasis, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """∂χ_i/∂ν at (q, v) (...×n each) for every field: (...×M×n×n), row k the derivative of
+    torque coordinate k (module docstring; the damping term ζ K v included when v is given)."""
+    K = basis.K()                                                   # M×n×n
+    d = q.unsqueeze(-2) - basis.eta                                 # ...×M×n
+    Kd = torch.einsum("mij,...mj->...mi", K, d)
+    g = torch.exp(-0.5 * (d * Kd).sum(-1))[..., None, None]
+    u = Kd if v is None or not basis.damping else Kd + basis.damping * torch.einsum(
+        "mij,...j->...mi", K, v)
+    return -g * (K - u.unsqueeze(-1) * Kd.unsqueeze(-2))
+
+
+def stiffness_design(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
+    """D (N×T×n×n×X): J_j(t) = D_j(t) x_j, the Jacobian of the field sum in the weights'
+    columns (:func:`~.torque.design`'s order: steps, pulses, windows field by field)."""
+    J = field_jacobians(basis, tg.q, tg.v).permute(0, 1, 3, 4, 2)     # N×T×n×n×M
+    psi, phi = weights.profiles_per_motion(tg.t)                      # N×T×M
+    cols = [psi[:, :, None, None] * J, phi[:, :, None, None] * J]
+    if weights.P:
+        win = weights.windows_per_motion(tg.t)                        # N×T×P
+        cols.append((J.unsqueeze(-1) * win[:, :, None, None, None, :]).flatten(-2))
+    return torch.cat(cols, dim=-1)
+
+
+def stiffness_equations(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
+                        impedance: Impedance) -> tuple:
+    """(G_s N×X×X, h_s N×X): the stiffness residual's normal equations, to add to the
+    torque cost's (G, h) — the residual is ‖A x + B‖² = const − 2 h_sᵀx + xᵀG_s x with
+    A = δ s ⊙ D, B = δ s ⊙ ω²M, s = √(w_t / S_j), G_s = AᵀA, h_s = −AᵀB. Rows of torque
+    coordinate k weighted by the cost's ω_k, as the torque residuals are."""
+    D = stiffness_design(basis, weights, tg)
+    target = impedance.frequency ** 2 * dynamics.mass_matrix(body, tg.q)      # N×T×n×n
+    scale = (tg.wt / tg.torque_scale()[:, None]).sqrt() * impedance.deviation  # N×T
+    rows = scale[:, :, None, None]
+    if tg.coord_weight is not None:
+        rows = rows * tg.coord_weight.sqrt()[:, None, :, None]
+    A = (rows.unsqueeze(-1) * D).reshape(tg.N, -1, D.shape[-1])
+    B = (rows * target).reshape(tg.N, -1)
+    At = A.transpose(-1, -2)
+    return At @ A, -(At @ B.unsqueeze(-1)).squeeze(-1)
+
+
+@torch.no_grad()
+def solve_weights(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,
+                  impedance: Impedance, ridge: float = 0.0) -> torch.Tensor:
+    """Every motion's (a, b, c) by one NNLS on C_j plus the stiffness residual (module
+    docstring; ``ridge`` as :func:`~.torque.solve_weights`'); returns the torque costs C_j
+    (N) of the weights found. With ``impedance.frequency`` 0 this is
+    :func:`~.torque.solve_weights`."""
+    if not impedance.frequency:
+        return torque.solve_weights(basis, weights, tg, ridge=ridge)
+    X = weights.a_raw.shape[1] * (2 + weights.P)
+    costs, keys = torch.empty(tg.N, dtype=torch.float64), ("a_raw", "b_raw", "c_raw")
+    for idx in chunks(tg, X * tg.tau.shape[-1]):
+        sub, part = weights.select_motions(idx), tg.select(idx, trim=True)
+        G, h = torque.normal_equations(basis, sub, part)
+        Gs, hs = stiffness_equations(body, basis, sub, part, impedance)
+        sol = nnls(torque.with_ridge(G + Gs, ridge), h + hs)
+        warn_unconverged(sol, part.names, "impedance.solve_weights")
+        x = sol.x
+        sub.set_vector(x)
+        costs[idx] = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+        weights.set_flat(keys, sub.flat(keys), idx)
+    return costs
+
+
+@torch.no_grad()
+def path_stiffness(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
+    """The stiffness the fields give about each motion's path, as a natural frequency:
+    per motion (N), the median over its samples of √λ_min(M⁻¹ K_s) (rad/s; 0 where the
+    sum pushes off the path), K_s = −sym J_j(t) the symmetric part of the Jacobian."""
+    out = torch.zeros(tg.N, dtype=torch.float64)
+    x = weights.vector()
+    for j in range(tg.N):
+        part = tg.select([j], trim=True)
+        J = (stiffness_design(basis, weights.select_motions([j]), part) * x[j]).sum(-1)[0]
+        Ks = -0.5 * (J + J.transpose(-1, -2))
+        L = torch.linalg.cholesky(dynamics.mass_matrix(body, part.q[0]))
+        Linv = torch.linalg.inv(L)
+        lam = torch.linalg.eigvalsh(Linv @ Ks @ Linv.transpose(-1, -2))[..., 0]
+        out[j] = lam[part.mask[0]].clamp_min(0).sqrt().median()
+    return out
