@@ -41,7 +41,7 @@ def test_field_jacobian_is_autograds(kind, damping):
         K = torch.diag_embed(torch.diagonal(K, dim1=-2, dim2=-1))
     basis = FieldBasis(torch.randn(M, n, generator=g, dtype=DT), K, kind, [3, 1, 3], damping)
     q, v = torch.randn(5, n, generator=g, dtype=DT), torch.randn(5, n, generator=g, dtype=DT)
-    want = torch.stack([jacrev(lambda x: basis(x, vi))(qi) for qi, vi in zip(q, v)])   # 5×M×n×n
+    want = torch.stack([jacrev(lambda x, vi=vi: basis(x, vi))(qi) for qi, vi in zip(q, v)])   # 5×M×n×n
     got = impedance.field_jacobians(basis, q, v).detach()
     assert float((got - want.detach()).abs().max()) < 1e-12
 
@@ -56,7 +56,8 @@ def keyframes():
 def _pairs(body, tg, windows=16, damping=0.1):
     tmpl = FieldBasis.empty(body.nv, "diag", body.blocks, damping)
     basis = layout.spanning_basis(body, tg, tmpl, 2.0, 0.25, "pairs")
-    return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names, targets.submovement_windows(tg, windows))
+    windows = targets.submovement_windows(tg, windows)
+    return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names, windows)
 
 
 def test_stiffness_design_is_the_programs_jacobian(keyframes):
@@ -74,7 +75,7 @@ def test_stiffness_design_is_the_programs_jacobian(keyframes):
     for j, k in [(0, 7), (1, 60), (2, 101)]:
         t, q, v = tg.t[j, k], tg.q[:, k].clone(), tg.v[:, k]
 
-        def tau(qj):
+        def tau(qj, t=t, q=q, v=v, j=j):
             return program(t, torch.cat([q[:j], qj[None], q[j + 1:]]), v)[j]
         want = jacrev(tau)(q[j]).detach()
         assert float((J[j, k] - want).abs().max()) <= 1e-10 * float(want.abs().max())

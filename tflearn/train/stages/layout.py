@@ -22,7 +22,8 @@ def run(ctx: RunContext, state: RunState) -> None:
     ctx.log.stage(NAME, 1)
     basis, weights = layout_model(ctx.cfg, ctx.body, tg)
     c = ctx.cfg.solver
-    cost = float(impedance.solve_weights(ctx.body, basis, weights, tg, c.layout.impedance(), ridge=c.ridge).sum())
+    costs = impedance.solve_weights(ctx.body, basis, weights, tg, c.layout.impedance(), ridge=c.ridge)
+    cost = float(costs.sum())
     scores, ok = ctx.check(basis, weights, tg)
     step = ctx.tick(state)
     ctx.log.scalar("torque_cost/layout", cost, step)
