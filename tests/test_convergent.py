@@ -137,3 +137,35 @@ def test_held_keyframes_are_reproduced_by_one_simulation(keyframes):
     torque.solve_weights(basis0, weights0, tg)
     loose = score(body, basis0, weights0, tg, opt)
     assert max(loose.rmse) > 0.03, loose.rmse
+
+
+def test_one_fields_equilibrium_is_its_centre():
+    """A motion one field made (come_here) gives back its field's equilibrium: wherever the
+    field is active, the equilibrium of the program is the field's centre η (1e-9 rad)."""
+    from tflearn.data import gestures
+    (motion, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
+    tg = targets.prepare(lb.body, [motion])
+    nu, found = impedance.equilibria(lb.basis, lb.weights, tg)
+    active = lb.weights.activation_at(tg.t.transpose(0, 1)).transpose(0, 1)[..., 0] > 1e-6
+    assert bool(found[active & tg.mask].all())
+    assert float((nu[found] - lb.basis.eta[0].detach()).abs().max()) < 1e-9
+
+
+def test_held_equilibrium_stays_near_the_path(keyframes):
+    """The held weights' equilibrium trajectory is a stable posture at every sample, inside
+    joint space and near the limb (the stiffness ω²M makes the offset K⁻¹τ small): closer
+    than the equilibrium of torque matching alone on the same fields."""
+    body, tg = keyframes
+    basis, weights = _pairs(body, tg)
+    impedance.solve_weights(body, basis, weights, tg, impedance.Impedance(10.0, 0.1))
+    nu, found = impedance.equilibria(basis, weights, tg)
+    basis0, weights0 = _pairs(body, tg)
+    torque.solve_weights(basis0, weights0, tg)
+    nu0, found0 = impedance.equilibria(basis0, weights0, tg)
+    real = tg.mask & (tg.wt > 0)
+    assert bool(found[real].all())
+    off = (nu - tg.q).norm(dim=-1)[real]
+    off0 = torch.where(found0, (nu0 - tg.q).norm(dim=-1), torch.inf)[real]
+    assert float(off.median()) < 0.5 * float(off0.median()), (off.median(), off0.median())
+    for i in range(len(body.links)):
+        assert float(nu[..., body.slice(i)][real].norm(dim=-1).max()) < math.pi

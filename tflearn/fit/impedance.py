@@ -46,7 +46,7 @@ from .nnls import nnls, warn_unconverged
 from .targets import Targets, chunks
 
 __all__ = ["Impedance", "field_jacobians", "stiffness_design", "stiffness_equations", "solve_weights",
-           "path_stiffness"]
+           "path_stiffness", "equilibria"]
 
 
 @dataclass(frozen=True)
@@ -141,3 +141,37 @@ def path_stiffness(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
         lam = torch.linalg.eigvalsh(Linv @ Ks @ Linv.transpose(-1, -2))[..., 0]
         out[j] = lam[part.mask[0]].clamp_min(0).sqrt().median()
     return out
+
+
+@torch.no_grad()
+def equilibria(basis: FieldBasis, weights: MotionWeights, tg: Targets, iterations: int = 50,
+               tol: float = 1e-9, max_step: float = 0.25) -> tuple:
+    """The equilibrium trajectory: at each sample the posture ν*(t) at which the fields'
+    sum at rest vanishes, Σ_i w_i(t) χ_i(ν*, 0) = 0 (w_i(t) the motion's activations), the
+    posture the program pulls the limb towards at that instant. From the path's own
+    posture ν_t: Newton's steps ν ← ν − J(ν)⁻¹ F(ν), J = Σ_i w_i ∂χ_i/∂ν
+    (:func:`field_jacobians`), where the sum is convergent there (−J positive definite),
+    else a step along the force, F / Σ_i w_i ‖K_i‖ (downhill on the fields' potential
+    −Σ w_i g_i: beyond a Gaussian's inflection Newton would climb away to the spurious
+    zero at infinity); each step at most ``max_step`` rad. Returns (ν* N×T×n,
+    found N×T bool: ‖F(ν*)‖ ≤ tol · Σ_i w_i ‖K_i‖ and −J(ν*) positive definite, a stable
+    equilibrium; False where no field is active)."""
+    w = weights.activation_at(tg.t.transpose(0, 1)).transpose(0, 1).detach()    # N×T×M
+    K = basis.K().detach()
+    scale = (w * torch.linalg.matrix_norm(K, ord=2)).sum(-1)                     # N×T
+    nu = tg.q.clone()
+    for _ in range(iterations):
+        F = (w.unsqueeze(-1) * basis(nu).detach()).sum(-2)                        # N×T×n
+        J = (w[..., None, None] * field_jacobians(basis, nu).detach()).sum(-3)   # N×T×n×n
+        convergent = torch.linalg.eigvalsh(-0.5 * (J + J.transpose(-1, -2)))[..., :1] > 0
+        newton = torch.linalg.lstsq(J, -F.unsqueeze(-1)).solution.squeeze(-1)
+        step = torch.where(convergent, newton, F / scale.clamp_min(1e-300).unsqueeze(-1))
+        size = step.norm(dim=-1, keepdim=True)
+        nu = nu + step * (max_step / size).clamp(max=1.0)
+        if bool((size < 1e-13).all()):
+            break
+    F = (w.unsqueeze(-1) * basis(nu).detach()).sum(-2)
+    J = (w[..., None, None] * field_jacobians(basis, nu).detach()).sum(-3)
+    stable = torch.linalg.eigvalsh(-0.5 * (J + J.transpose(-1, -2)))[..., 0] > 0
+    found = (F.norm(dim=-1) <= tol * scale) & stable & (scale > 0) & tg.mask
+    return nu, found
