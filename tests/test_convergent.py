@@ -169,3 +169,25 @@ def test_held_equilibrium_stays_near_the_path(keyframes):
     assert float(off.median()) < 0.5 * float(off0.median()), (off.median(), off0.median())
     for i in range(len(body.links)):
         assert float(nu[..., body.slice(i)][real].norm(dim=-1).max()) < math.pi
+
+
+def test_sparsity_keeps_fewer_weights_unshrunk(keyframes):
+    """With ``sparsity`` the ℓ1 term leaves fewer non-zero weights (under 70% of the plain
+    solve's), and those are solved again without it: on them the gradient of the plain
+    cost vanishes (to the NNLS tolerance), against the ℓ1 term λ√A_cc that shrunk weights
+    would be left with."""
+    body, tg = keyframes
+    plain, sparse = impedance.Impedance(10.0, 0.1), impedance.Impedance(10.0, 0.1, sparsity=0.01)
+    basis, weights = _pairs(body, tg)
+    impedance.solve_weights(body, basis, weights, tg, plain)
+    full = (weights.vector() > 0).sum(-1)
+    impedance.solve_weights(body, basis, weights, tg, sparse)
+    x = weights.vector().detach()
+    on = x > 0
+    assert bool((on.sum(-1) < 0.7 * full).all()), (on.sum(-1), full)
+    G, h = torque.normal_equations(basis, weights, tg)
+    Gs, hs = impedance.stiffness_equations(body, basis, weights, tg, plain)
+    grad = ((G + Gs) @ x.unsqueeze(-1)).squeeze(-1) - (h + hs)
+    l1 = 0.01 * torch.diagonal(G + Gs, dim1=-2, dim2=-1).sqrt()
+    ratio = (grad.abs() / l1)[on]                 # 1 for every weight the ℓ1 term shrank
+    assert float(ratio.median()) <= 1e-4 and float(ratio.max()) <= 0.25

@@ -202,11 +202,14 @@ class LayoutSection(Layout):                    # method layout: fields spanning
     # which a stiffness error weighs as much as a torque error
     frequency: float = Field(0.0, ge=0, allow_inf_nan=False)
     deviation: float = Field(0.1, gt=0, allow_inf_nan=False)
+    # λ of an ℓ1 term that first sets the least useful weights to 0 (then the others are
+    # solved again without it; 0: off): fewer numbers per motion
+    sparsity: float = Field(0.0, ge=0, allow_inf_nan=False)
 
     def impedance(self):
         """These settings as :class:`tflearn.fit.impedance.Impedance`."""
         from .fit.impedance import Impedance
-        return Impedance(frequency=self.frequency, deviation=self.deviation)
+        return Impedance(frequency=self.frequency, deviation=self.deviation, sparsity=self.sparsity)
 
     @model_validator(mode="before")
     @classmethod

@@ -53,10 +53,14 @@ __all__ = ["Impedance", "field_jacobians", "stiffness_design", "stiffness_equati
 class Impedance:
     """The stiffness asked of the fields about the path: natural frequency ``frequency``
     ω (rad/s; 0: torques only) and the deviation ``deviation`` δ (rad) at which a
-    stiffness error weighs as much as a torque error."""
+    stiffness error weighs as much as a torque error; ``sparsity`` λ ≥ 0 (0: off) first
+    adds λ Σ_c √A_cc x_c to the cost (A its normal matrix: an ℓ1 term on the scaled
+    weights, which sets the least useful to 0), then solves again without it on the weights
+    that term left non-zero (so that the kept ones are not shrunk)."""
 
     frequency: float = 0.0
     deviation: float = 0.1
+    sparsity: float = 0.0
 
 
 def field_jacobians(basis: FieldBasis, q: torch.Tensor, v: Optional[torch.Tensor] = None) -> torch.Tensor:
@@ -116,13 +120,26 @@ def solve_weights(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Tar
         sub, part = weights.select_motions(idx), tg.select(idx, trim=True)
         G, h = torque.normal_equations(basis, sub, part)
         Gs, hs = stiffness_equations(body, basis, sub, part, impedance)
-        sol = nnls(torque.with_ridge(G + Gs, ridge), h + hs)
-        warn_unconverged(sol, part.names, "impedance.solve_weights")
-        x = sol.x
+        x = _solve(torque.with_ridge(G + Gs, ridge), h + hs, impedance.sparsity, part.names)
         sub.set_vector(x)
         costs[idx] = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
         weights.set_flat(keys, sub.flat(keys), idx)
     return costs
+
+
+def _solve(A: torch.Tensor, b: torch.Tensor, sparsity: float, names: list) -> torch.Tensor:
+    """argmin_{x ≥ 0} xᵀAx − 2bᵀx (N×X), with ``sparsity`` (:class:`Impedance`) first
+    choosing the non-zero weights."""
+    if sparsity:
+        sol = nnls(A, b - sparsity * torch.diagonal(A, dim1=-2, dim2=-1).sqrt())
+        warn_unconverged(sol, names, "impedance.solve_weights (sparsity)")
+        on = sol.x > 0
+        both = on.unsqueeze(-1) & on.unsqueeze(-2)
+        A = torch.where(both, A, torch.zeros_like(A)) + torch.diag_embed((~on).to(A.dtype))
+        b = torch.where(on, b, -torch.ones_like(b))
+    sol = nnls(A, b)
+    warn_unconverged(sol, names, "impedance.solve_weights")
+    return sol.x
 
 
 @torch.no_grad()
