@@ -336,14 +336,17 @@ def test_summarize_has_a_units_block():
     tg = prepare(tb.arm(), [m])
     s = metrics.Scores([0.01], [0.005], [0.02], tg.q.clone(), [None])
     growth = Growth(torch.tensor([[1.0, 2.0]]), torch.tensor([2.5]), torch.tensor([0.75]))
-    doc = metrics.summarize(s, [True], tg, 3, 1.5, growth)
+    doc = metrics.summarize(s, [True], tg, 3, 1.5, growth, torch.tensor([4.0]))
     assert doc["units"] == {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
                             "wall_time_s": "s", "torque_resolution": "fraction", "growth_rate": "1/s",
-                            "growth_efolds": "e-folds (natural log of an error's growth factor)"}
+                            "growth_efolds": "e-folds (natural log of an error's growth factor)",
+                            "path_stiffness":
+                                "rad/s (natural frequency of the fields' stiffness about the path)"}
     assert doc["motions"]["come_here"] == {"rmse": 0.01, "tip": 0.005, "torque_rel_rms": 0.02,
-                                           "growth_rate": 2.5, "growth_efolds": 0.75, "success": True}
+                                           "growth_rate": 2.5, "growth_efolds": 0.75, "path_stiffness": 4.0,
+                                           "success": True}
     assert set(doc["overall"]) == {"rmse", "tip", "torque_rel_rms", "growth_rate", "growth_efolds",
-                                   "success", "M", "wall_time_s"}
+                                   "path_stiffness", "success", "M", "wall_time_s"}
     doc["units"]["tip"] = "cm"
     assert metrics.UNITS["tip"] == "m"         # a copy per document
 

@@ -14,7 +14,7 @@ from . import config as config_mod
 from . import synthesis
 from .config import Config
 from .data.loading import check_resolution, load_motions, named_motions, torsos
-from .fit import stability
+from .fit import impedance, stability
 from .fit.shooting import ShootingOptions
 from .fit.targets import Targets, prepare, submovement_windows
 from .fit.torque import DivergenceWarning, solve_weights
@@ -100,7 +100,8 @@ def evaluate_run(run, data=None, out=None) -> dict:
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
-        summary = summarize(s, ok, tg, lb.basis.M, 0.0, stability.growth(lb.body, lb.basis, weights, tg))
+        summary = summarize(s, ok, tg, lb.basis.M, 0.0, stability.growth(lb.body, lb.basis, weights, tg),
+                            impedance.path_stiffness(lb.body, lb.basis, weights, tg))
         for j, (name, row) in enumerate(summary["motions"].items()):
             row["synthesized"] = synth
             row["torque_resolution"] = resolution[name]

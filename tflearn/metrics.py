@@ -191,7 +191,8 @@ def _scores(body, basis, weights, tg, q_sim, failure) -> Scores:
 #: (the keys stay unit-free; people read tip errors in cm, as 100 × tip).
 UNITS = {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
          "wall_time_s": "s", "torque_resolution": "fraction", "growth_rate": "1/s",
-         "growth_efolds": "e-folds (natural log of an error's growth factor)"}
+         "growth_efolds": "e-folds (natural log of an error's growth factor)",
+         "path_stiffness": "rad/s (natural frequency of the fields' stiffness about the path)"}
 
 
 def pooled_rmse(rmse: list, counts: list) -> float:
@@ -200,22 +201,26 @@ def pooled_rmse(rmse: list, counts: list) -> float:
     return math.sqrt(sum(r * r * c for r, c in zip(rmse, counts)) / sum(counts))
 
 
-def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float, growth: Growth) -> dict:
+def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float, growth: Growth,
+              stiffness: torch.Tensor) -> dict:
     """metrics.json's content: per motion and overall joint RMSE (rad), maximum tip error
     (m), relative RMS torque error, the local error growth along the path (``growth``,
-    :mod:`tflearn.fit.stability`: peak rate, e-folds), success, and the failure of a
-    failed simulation, and the units of these numbers (:data:`UNITS`). The overall RMSE
-    is over all samples of all motions; the overall growth the largest."""
+    :mod:`tflearn.fit.stability`: peak rate, e-folds), the fields' stiffness about the
+    path (``stiffness`` N, :func:`tflearn.fit.impedance.path_stiffness`: 0 where they push
+    the limb off it), success, and the failure of a failed simulation, and the units of
+    these numbers (:data:`UNITS`). The overall RMSE is over all samples of all motions;
+    the overall growth the largest, the overall stiffness the least."""
     per = {}
-    peak, efolds = growth.peak.tolist(), growth.efolds.tolist()
+    peak, efolds, held = growth.peak.tolist(), growth.efolds.tolist(), stiffness.tolist()
     for j, name in enumerate(tg.names):
         per[name] = {"rmse": scores.rmse[j], "tip": scores.tip[j],
                      "torque_rel_rms": scores.torque[j], "growth_rate": peak[j],
-                     "growth_efolds": efolds[j], "success": ok[j]}
+                     "growth_efolds": efolds[j], "path_stiffness": held[j], "success": ok[j]}
         if scores.failure[j]:
             per[name]["failure"] = scores.failure[j]
     return {"motions": per,
             "overall": {"rmse": pooled_rmse(scores.rmse, tg.mask.sum(-1).tolist()), "tip": max(scores.tip),
                         "torque_rel_rms": max(scores.torque), "growth_rate": max(peak),
-                        "growth_efolds": max(efolds), "success": all(ok), "M": M, "wall_time_s": wall},
+                        "growth_efolds": max(efolds), "path_stiffness": min(held), "success": all(ok),
+                        "M": M, "wall_time_s": wall},
             "units": dict(UNITS)}

@@ -17,7 +17,7 @@ from typing import Optional
 from .. import config as config_mod
 from .. import parallel
 from ..data.loading import generating_bases
-from ..fit import identity, stability
+from ..fit import identity, impedance, stability
 from ..fit.targets import Targets
 from ..io import basis as basis_io
 from ..io.files import write_text
@@ -38,7 +38,8 @@ def finish(ctx: RunContext, state: RunState) -> dict:
         ctx.log.model(basis, weights, step)
     lb = basis_io.LearnedBasis(ctx.body, basis, weights, tg.q0, tg.qd0, tg.rate)
     metrics = summarize(scores, ok, tg, basis.M, ctx.checkpoints.elapsed(state),
-                        stability.growth(ctx.body, basis, weights, tg))
+                        stability.growth(ctx.body, basis, weights, tg),
+                        impedance.path_stiffness(ctx.body, basis, weights, tg))
     for name, eps in zip(tg.names, ctx.resolution):
         metrics["motions"][name]["torque_resolution"] = eps
     metrics["overall"]["simulations"] = ctx.checkpoints.simulations(state)
