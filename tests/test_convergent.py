@@ -191,3 +191,20 @@ def test_sparsity_keeps_fewer_weights_unshrunk(keyframes):
     l1 = 0.01 * torch.diagonal(G + Gs, dim1=-2, dim2=-1).sqrt()
     ratio = (grad.abs() / l1)[on]                 # 1 for every weight the ℓ1 term shrank
     assert float(ratio.median()) <= 1e-4 and float(ratio.max()) <= 0.25
+
+
+def test_held_out_synthesis_asks_the_runs_stiffness(keyframes):
+    """`evaluate`'s synthesis on a frozen pairs basis solves new motions' weights with the
+    stiffness the run asked (``held``): they are held about their paths as trained ones
+    are, where the torques alone leave them far softer."""
+    from tflearn.evaluate import synthesize
+    from tflearn.io.basis import LearnedBasis
+    body, tg = keyframes
+    basis, weights = _pairs(body, tg.select([0]))
+    lb = LearnedBasis(body, basis, weights, tg.q0[:1], tg.qd0[:1], torch.full((1,), 100.0, dtype=DT))
+    new = tg.select([1, 2])
+    held = synthesize(lb, new, shooting=None, held=impedance.Impedance(10.0, 0.1))
+    loose = synthesize(lb, new, shooting=None)
+    stiff = impedance.path_stiffness(body, basis, held, new)
+    soft = impedance.path_stiffness(body, basis, loose, new)
+    assert bool((stiff > 5.0).all()) and bool((soft < 0.5 * stiff).all()), (stiff, soft)

@@ -17,7 +17,7 @@ from .data.loading import check_resolution, load_motions, named_motions, torsos
 from .fit import impedance, stability
 from .fit.shooting import ShootingOptions
 from .fit.targets import Targets, prepare, submovement_windows
-from .fit.torque import DivergenceWarning, solve_weights
+from .fit.torque import DivergenceWarning
 from .io import basis as basis_io
 from .io.files import write_text
 from .metrics import UNITS, pooled_rmse, score, summarize
@@ -38,10 +38,12 @@ def run_config(run) -> tuple:
 def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
                shooting: Optional[ShootingOptions] = ShootingOptions(),
                options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02), *,
-               ridge: float = 0.0) -> MotionWeights:
+               ridge: float = 0.0, held: impedance.Impedance = impedance.Impedance()) -> MotionWeights:
     """Held-out synthesis (:mod:`tflearn.synthesis`): with the basis frozen, fit new
     motions' weights by NNLS on their torques (exact, or with a ``ridge``:
-    :func:`~tflearn.fit.torque.solve_weights`); the motions that this does not reproduce
+    :func:`~tflearn.fit.torque.solve_weights`; with ``held``, also on the stiffness about
+    the path that a run of ``solver.layout.frequency`` asked: :mod:`tflearn.fit.impedance`);
+    the motions that this does not reproduce
     (joint RMSE ≤ ``success[0]`` rad and hand-tip error ≤ ``success[1]`` m, as in
     training) then get their weights (and with ``shooting.phases`` their activation
     timing) by multiple-shooting path matching (None: NNLS only). A motion that is still
@@ -54,7 +56,7 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     their data (:func:`submovement_windows`)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P))
-    solve_weights(lb.basis, weights, tg, ridge=ridge)
+    impedance.solve_weights(lb.body, lb.basis, weights, tg, held, ridge=ridge)
     if shooting is None or not shooting.iterations:
         return weights
     nearest = partial(synthesis.nearest_programs, lb.basis, lb.weights)
@@ -95,8 +97,9 @@ def evaluate_run(run, data=None, out=None) -> dict:
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
                      base=torsos(source, group, cfg.torso))
         shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
+        held = cfg.solver.layout.impedance() if cfg.solver.method == "layout" else impedance.Impedance()
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip),
-                               ridge=cfg.solver.ridge) if synth
+                               ridge=cfg.solver.ridge, held=held) if synth
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
