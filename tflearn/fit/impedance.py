@@ -79,12 +79,7 @@ def stiffness_design(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> 
     """D (N×T×n×n×X): J_j(t) = D_j(t) x_j, the Jacobian of the field sum in the weights'
     columns (:func:`~.torque.design`'s order: steps, pulses, windows field by field)."""
     J = field_jacobians(basis, tg.q, tg.v).permute(0, 1, 3, 4, 2)     # N×T×n×n×M
-    psi, phi = weights.profiles_per_motion(tg.t)                      # N×T×M
-    cols = [psi[:, :, None, None] * J, phi[:, :, None, None] * J]
-    if weights.P:
-        win = weights.windows_per_motion(tg.t)                        # N×T×P
-        cols.append((J.unsqueeze(-1) * win[:, :, None, None, None, :]).flatten(-2))
-    return torch.cat(cols, dim=-1)
+    return torque.profile_columns(J, weights, tg.t)
 
 
 def stiffness_equations(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets,

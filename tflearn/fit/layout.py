@@ -108,9 +108,9 @@ def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
                          "it needs model.stiffness diag, block or full, not scalar")
     if shape not in SHAPES:
         raise ValueError(f"spanning_basis: unknown shape {shape!r}; one of {sorted(SHAPES)}")
-    real = tg.mask.unsqueeze(-1).to(tg.q.dtype)
     if shape == "pairs":
         return pairs_basis(body, tg, template, radius, stiffness)
+    real = tg.mask.unsqueeze(-1).to(tg.q.dtype)
     centre = (tg.q * real).sum((0, 1)) / real.sum((0, 1))                      # n
     samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)                    # N×1
     inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()      # n

@@ -57,11 +57,20 @@ def design(basis: FieldBasis, weights: MotionWeights, tg: Targets,
     chi = basis(tg.q, tg.v).transpose(-1, -2)                          # N×T×n×M
     if scale is not None:
         chi = scale.unsqueeze(-1) * chi
-    psi, phi = weights.profiles_per_motion(tg.t)                       # N×T×M
-    cols = [psi.unsqueeze(-2) * chi, phi.unsqueeze(-2) * chi]
+    return profile_columns(chi, weights, tg.t)
+
+
+def profile_columns(x: torch.Tensor, weights: MotionWeights, t: torch.Tensor) -> torch.Tensor:
+    """x (N×T×…×M, one entry per field at each sample) times each field's time profiles:
+    (N×T×…×M(2+P)), the columns of the step weights, the pulse weights and the P window
+    weights field by field (:func:`design`'s order), at each motion's times t (N×T)."""
+    extra = (1,) * (x.dim() - 3)
+    psi, phi = weights.profiles_per_motion(t)                          # N×T×M
+    N, T, M = psi.shape
+    cols = [psi.view(N, T, *extra, M) * x, phi.view(N, T, *extra, M) * x]
     if weights.P:
-        win = weights.windows_per_motion(tg.t)                         # N×T×P
-        cols.append((chi.unsqueeze(-1) * win[..., None, None, :]).flatten(-2))
+        win = weights.windows_per_motion(t)                            # N×T×P
+        cols.append((x.unsqueeze(-1) * win.view(N, T, *extra, 1, -1)).flatten(-2))
     return torch.cat(cols, dim=-1)
 
 
