@@ -105,17 +105,20 @@ def solve_weights(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Tar
                   impedance: Impedance, ridge: float = 0.0) -> torch.Tensor:
     """Every motion's (a, b, c) by one NNLS on C_j plus the stiffness residual (module
     docstring; ``ridge`` as :func:`~.torque.solve_weights`'); returns the torque costs C_j
-    (N) of the weights found. With ``impedance.frequency`` 0 this is
+    (N) of the weights found. With ``impedance.frequency`` and ``.sparsity`` 0 this is
     :func:`~.torque.solve_weights`."""
-    if not impedance.frequency:
+    if not impedance.frequency and not impedance.sparsity:
         return torque.solve_weights(basis, weights, tg, ridge=ridge)
     X = weights.a_raw.shape[1] * (2 + weights.P)
     costs, keys = torch.empty(tg.N, dtype=torch.float64), ("a_raw", "b_raw", "c_raw")
     for idx in chunks(tg, X * tg.tau.shape[-1]):
         sub, part = weights.select_motions(idx), tg.select(idx, trim=True)
         G, h = torque.normal_equations(basis, sub, part)
-        Gs, hs = stiffness_equations(body, basis, sub, part, impedance)
-        x = _solve(torque.with_ridge(G + Gs, ridge), h + hs, impedance.sparsity, part.names)
+        A, b = G, h
+        if impedance.frequency:
+            Gs, hs = stiffness_equations(body, basis, sub, part, impedance)
+            A, b = G + Gs, h + hs
+        x = _solve(torque.with_ridge(A, ridge), b, impedance.sparsity, part.names)
         sub.set_vector(x)
         costs[idx] = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
         weights.set_flat(keys, sub.flat(keys), idx)
