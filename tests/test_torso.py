@@ -144,6 +144,30 @@ def test_bases_of_a_batch():
         simulate(body, zero_program, q0, torch.zeros_like(q0), ts, base=bases)
 
 
+
+def test_one_piece_bases_pose_as_the_whole_path():
+    """Bases.at (each member cut to the polynomial piece it is on at its time) gives the
+    poses and base terms of Bases.take at those times, bit for bit, before the path's
+    start, inside it and past its end; paths of different lengths in one batch."""
+    from tflearn.motions.torso import BaseMotion, Bases
+    t = np.linspace(0, 0.5, 51)
+    axis = np.array([1.0, 2.0, -2.0]) / 3.0
+    long = BaseMotion(t, np.array([pin.exp3((0.5 * s + 2 * s ** 2) * axis) for s in t]),
+                      0.5 * t[:, None] ** 2 * np.array([1.0, -2.0, 4.0]) + np.sin(5 * t)[:, None])
+    short = BaseMotion(t[:21], np.array([pin.exp3(s * axis) for s in t[:21]]),
+                       np.cos(3 * t[:21])[:, None] * [1.0, 0.0, 0.5])
+    bases = Bases.of([long, short], start=[0.05, 0.0])
+    idx = torch.tensor([0, 1, 0, 1, 0, 1])
+    times = torch.tensor([-0.1, 0.0, 0.2371, 0.1503, 0.7, 0.4], dtype=DT)
+    whole, cut = bases.take(idx), bases.at(idx, times)
+    assert cut.coef.shape[1] == 1 and whole.coef.shape[1] > 1
+    for a, b in zip(whole.poses(times), cut.poses(times)):
+        assert torch.equal(a, b)
+    g, terms = whole.terms(GRAVITY, times)
+    g2, terms2 = cut.terms(GRAVITY, times)
+    assert torch.equal(g, g2) and all(torch.equal(x, y) for x, y in zip(terms, terms2))
+
+
 def _on_a_torso(rate=200.0, duration=1.2):
     """come_here's program simulated on a torso that turns and sways (gravity on, so the
     base also turns gravity in the arm's frame): (body, basis, weights, motion, its torso

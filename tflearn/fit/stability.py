@@ -66,8 +66,8 @@ def program_jacobians(body: Body, program, tg: Targets, h: float = 1e-6) -> torc
     ys = torch.cat([y + step[:, None, None], y - step[:, None, None]])  # 2D×T×N×D
     t = tg.t.transpose(0, 1).expand(2 * D, -1, -1)                      # 2D×T×N, each motion's own
     base = None
-    if tg.base is not None:
-        base = tg.base.take(torch.arange(tg.N).expand(2 * D, tg.t.shape[1], -1))
+    if tg.base is not None:                                              # each member's piece only
+        base = tg.base.at(torch.arange(tg.N).expand(2 * D, tg.t.shape[1], -1), t)
     f = ArmODE(body, program, base=base, strict=False)(t, ys)
     cols = (f[:D] - f[D:]) / (2 * h)                                   # D(column)×T×N×D(row)
     A = cols.permute(2, 1, 3, 0)                                       # N×T×D×D
