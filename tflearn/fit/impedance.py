@@ -120,7 +120,7 @@ def solve_weights(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Tar
             A, b = G + Gs, h + hs
         x = _solve(torque.with_ridge(A, ridge), b, impedance.sparsity, part.names)
         sub.set_vector(x)
-        costs[idx] = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+        costs[idx] = torque.quadratic_cost(G, h, x)
         weights.set_flat(keys, sub.flat(keys), idx)
     return costs
 

@@ -32,7 +32,7 @@ from ..model.fields import FieldBasis
 from ..model.weights import MotionWeights, step_profile
 from .nnls import nnls
 from .targets import Targets
-from .torque import DivergenceWarning, by_chunks, design, normal_equations
+from .torque import DivergenceWarning, by_chunks, design, normal_equations, quadratic_cost
 
 
 def residual_torques(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
@@ -130,7 +130,7 @@ def score_candidates(basis: FieldBasis, weights: MotionWeights, tg: Targets,
     else:
         G, h = G_nn, h_n
     x = nnls(G, h).x
-    cost = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1))[..., 0, 0]
+    cost = quadratic_cost(G, h, x)
     return cost.sum(-1).transpose(0, 1)                                    # C×S
 
 

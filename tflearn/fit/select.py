@@ -38,7 +38,7 @@ from ..model.fields import FieldBasis
 from ..model.weights import MotionWeights
 from .nnls import nnls
 from .targets import Targets
-from .torque import columns, normal_equations, torque_costs
+from .torque import columns, normal_equations, quadratic_cost, torque_costs
 
 __all__ = ["SelectOptions", "Selection", "select"]
 
@@ -101,7 +101,7 @@ class _Motion:
         G = self.G[idx[:, :, None], idx[:, None, :]]
         h = self.h[idx]
         x = nnls(G, h).x
-        cost = 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).flatten()
+        cost = quadratic_cost(G, h, x)
         weight = x[:, :k] + x[:, k:2 * k] + x[:, 2 * k:].unflatten(-1, (k, self.P)).sum(-1)
         return cost, weight > 0
 

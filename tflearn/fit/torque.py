@@ -135,7 +135,13 @@ def _solve_weights(basis, weights, tg, support, ridge):
         x = torch.zeros_like(h).scatter_(-1, cols, torch.where(pad, 0.0, sol.x))
     warn_unconverged(sol, tg.names, "solve_weights")
     weights.set_vector(x)
-    return 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+    return quadratic_cost(G, h, x)
+
+
+def quadratic_cost(G: torch.Tensor, h: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """C = 1 − 2 hᵀx + xᵀG x (...) of weights x (...×X) on normal equations G (...×X×X),
+    h (...×X): the relative torque cost of x."""
+    return 1 - 2 * (h * x).sum(-1) + (x.unsqueeze(-2) @ G @ x.unsqueeze(-1))[..., 0, 0]
 
 
 def _on_support(G: torch.Tensor, h: torch.Tensor, support: torch.Tensor) -> tuple:
