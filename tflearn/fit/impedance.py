@@ -144,12 +144,17 @@ def _solve(A: torch.Tensor, b: torch.Tensor, sparsity: float, names: list) -> to
 def path_stiffness(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Tensor:
     """The stiffness the fields give about each motion's path, as a natural frequency:
     per motion (N), the median over its samples of √λ_min(M⁻¹ K_s) (rad/s; 0 where the
-    sum pushes off the path), K_s = −sym J_j(t) the symmetric part of the Jacobian."""
+    sum pushes off the path), K_s = −sym J_j(t) the symmetric part of the Jacobian. Each
+    motion on the fields it has a weight on only (every run's metrics have it: its cost
+    follows those fields, not M)."""
     out = torch.zeros(tg.N, dtype=torch.float64)
-    x = weights.vector()
+    used = weights.used()
     for j in range(tg.N):
-        part = tg.select([j], trim=True)
-        J = (stiffness_design(basis, weights.select_motions([j]), part) * x[j]).sum(-1)[0]
+        part, fields = tg.select([j], trim=True), used[j].nonzero().flatten().tolist()
+        if not fields:
+            continue
+        own = weights.select_motions([j]).select_fields(fields)
+        J = (stiffness_design(basis.select(fields), own, part) * own.vector()[0]).sum(-1)[0]
         Ks = -0.5 * (J + J.transpose(-1, -2))
         L = torch.linalg.cholesky(dynamics.mass_matrix(body, part.q[0]))
         Linv = torch.linalg.inv(L)
@@ -174,19 +179,22 @@ def equilibria(basis: FieldBasis, weights: MotionWeights, tg: Targets, iteration
     w = weights.activation_at(tg.t.transpose(0, 1)).transpose(0, 1).detach()    # N×T×M
     K = basis.K().detach()
     scale = (w * torch.linalg.matrix_norm(K, ord=2)).sum(-1)                     # N×T
+
+    def at_rest(nu):
+        """(F N×T×n, J N×T×n×n, −J positive definite N×T) of the sum at rest at ν."""
+        F = (w.unsqueeze(-1) * basis(nu).detach()).sum(-2)
+        J = (w[..., None, None] * field_jacobians(basis, nu).detach()).sum(-3)
+        return F, J, torch.linalg.eigvalsh(-0.5 * (J + J.transpose(-1, -2)))[..., 0] > 0
+
     nu = tg.q.clone()
     for _ in range(iterations):
-        F = (w.unsqueeze(-1) * basis(nu).detach()).sum(-2)                        # N×T×n
-        J = (w[..., None, None] * field_jacobians(basis, nu).detach()).sum(-3)   # N×T×n×n
-        convergent = torch.linalg.eigvalsh(-0.5 * (J + J.transpose(-1, -2)))[..., :1] > 0
+        F, J, convergent = at_rest(nu)
         newton = torch.linalg.lstsq(J, -F.unsqueeze(-1)).solution.squeeze(-1)
-        step = torch.where(convergent, newton, F / scale.clamp_min(1e-300).unsqueeze(-1))
+        step = torch.where(convergent.unsqueeze(-1), newton, F / scale.clamp_min(1e-300).unsqueeze(-1))
         size = step.norm(dim=-1, keepdim=True)
         nu = nu + step * (max_step / size).clamp(max=1.0)
         if bool((size < 1e-13).all()):
             break
-    F = (w.unsqueeze(-1) * basis(nu).detach()).sum(-2)
-    J = (w[..., None, None] * field_jacobians(basis, nu).detach()).sum(-3)
-    stable = torch.linalg.eigvalsh(-0.5 * (J + J.transpose(-1, -2)))[..., 0] > 0
+    F, _, stable = at_rest(nu)
     found = (F.norm(dim=-1) <= tol * scale) & stable & (scale > 0) & tg.mask
     return nu, found

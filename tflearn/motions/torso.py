@@ -124,27 +124,25 @@ class Bases:
         members at fixed times, as error-growth Jacobians are, of long clips)."""
         idx = torch.as_tensor(idx, dtype=torch.long).reshape(-1)
         t = torch.as_tensor(t, dtype=DTYPE).reshape(-1)
-        i = self._piece(self.breaks[idx], self.pieces[idx], self.start[idx] + t)
+        i, _ = self._piece(self.breaks[idx], self.pieces[idx], self.start[idx] + t)
         breaks = torch.stack([self.breaks[idx, i], self.breaks[idx, i + 1]], dim=-1)
         return Bases(breaks, self.coef[idx, i].unsqueeze(1), torch.ones_like(i), self.start[idx].clone())
 
     @staticmethod
     def _piece(breaks, pieces, s):
-        """The piece each member is on at its s (clamped to its path, as :meth:`poses`)."""
+        """(the piece each member is on at its s, that s clamped to the member's path)."""
         rows = torch.arange(len(pieces))
         s = torch.minimum(torch.maximum(s, breaks[:, 0]), breaks[rows, pieces])
         i = (torch.searchsorted(breaks, s[:, None], right=True)[:, 0] - 1).clamp(
             torch.zeros_like(pieces), pieces - 1)
-        return i
+        return i, s
 
     def poses(self, t):
         """(p, ṗ, p̈) (B×7 each: the spline's quaternion XYZW and origin) at each
         member's time t (a scalar or B)."""
         t = torch.as_tensor(t, dtype=DTYPE).detach().expand(self.B)
         rows = torch.arange(self.B)
-        last = self.breaks[rows, self.pieces]
-        s = torch.minimum(torch.maximum(self.start + t, self.breaks[:, 0]), last)
-        i = self._piece(self.breaks, self.pieces, self.start + t)
+        i, s = self._piece(self.breaks, self.pieces, self.start + t)
         u, c = (s - self.breaks[rows, i])[:, None], self.coef[rows, i]           # B×1, B×6×7
         p = pd = pdd = torch.zeros_like(c[:, 0])
         for j in range(DEGREE + 1):                                              # Horner
