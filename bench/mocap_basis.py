@@ -1,5 +1,5 @@
-"""One shared basis over recorded right-arm movements (left arms mirrored): import the
-clips of the mocap folder, cut each clip's busiest window, train configs/mocap.yaml on
+"""One shared basis over recorded arm movements (left arms mirrored): import the clips
+of the mocap folder, each clip's busiest window, train configs/mocap.yaml on
 the windows, and print per window the joint RMSE, the maximum hand-tip error, M and the
 wall time. ``--whole`` learns every clip whole instead, cut into consecutive pieces of
 the window's length (``tflearn bvh import --split``), each piece a motion.
@@ -15,8 +15,9 @@ imports and the ranks train together (docs/parallel.md).
 stops (the table in docs/mocap.md).
 
 The mocap folder defaults to $TFLEARN_MOCAP, else ../shared/data/mocap beside the
-repository. Which arm of each clip moves is listed in ARMS (the data README's
-descriptions); the CMU clip is read at 60 fps (its header says 120; see the README).
+repository. The clips are imported with configs/mocap.yaml's ``bvh`` choices: per clip
+the arm that moves (left ones mirrored), the CMU clip at 60 fps (its header says 120; see
+the data README). ``train configs/mocap.yaml`` alone is the busiest 0.8 s at 50 Hz.
 """
 from __future__ import annotations
 
@@ -35,26 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tflearn import config, parallel, train  # noqa: E402
-from tflearn.mocap import bvh  # noqa: E402
 from tflearn.mocap import clips as mocap  # noqa: E402
-from tflearn.mocap import retarget as rt  # noqa: E402
-from tflearn.motions import motion as motion_mod  # noqa: E402
 from tflearn.physics.body import from_config  # noqa: E402
-
-#: The moving arm of each clip (the others: "right"); left arms are mirrored.
-ARMS = {"dataset-1_respond_normal_001": "left", "dataset-1_punch_normal_001": "left",
-        "dataset-2_wave-left-hand_normal_001": "left"}
-FPS = {"cmu_141_16_wave-hello": 60.0}
-
-
-def busiest_window(m: motion_mod.Motion, seconds: float) -> tuple:
-    """(start, stop) sample indices of the window of ``seconds`` with the largest joint
-    path length Σ|Δν|."""
-    n = int(round(seconds * m.rate)) + 1
-    step = np.linalg.norm(np.diff(m.q.numpy(), axis=0), axis=1)
-    path = np.convolve(step, np.ones(n - 1), mode="valid")
-    i = int(np.argmax(path))
-    return i, i + n
 
 
 def import_table(report: dict) -> str:
@@ -108,43 +91,23 @@ def arguments(description: str) -> argparse.ArgumentParser:
 
 
 def prepare_windows(args) -> tuple:
-    """Import the clips (ARMS, FPS) into OUT/imported and cut each one's busiest window
-    into OUT/windows (with its torso file, in the window's clock, for ``torso=moving``);
-    returns (report, body, windows folder)."""
+    """Import the clips with configs/mocap.yaml's ``bvh`` choices (each clip's arm, the
+    CMU clip's true rate) at --rate: each clip's busiest --window seconds into OUT/windows,
+    or with --whole every clip cut into pieces of that length into OUT/pieces; returns
+    (report, body, folder)."""
     files = sorted(args.mocap.glob("*.bvh"))
     if args.clips:
         files = [f for f in files if any(c in f.stem for c in args.clips)]
     if not files:
         sys.exit(f"{args.mocap}: no .bvh clips" + (f" matching {args.clips}" if args.clips else "")
                  + " (--mocap DIR or $TFLEARN_MOCAP names the mocap folder)")
-    frames = []
-    for f in files:
-        skel = bvh.read(f)
-        if f.stem in FPS:
-            skel = replace(skel, frame_time=1.0 / FPS[f.stem])
-        side = ARMS.get(f.stem, "right")
-        frames.append(rt.arm_frames(skel, side, mirror=side == "left"))
+    options = replace(config.load(ROOT / "configs" / "mocap.yaml").bvh.options(), rate=args.rate,
+                      busiest=None if args.whole else args.window, split=args.window if args.whole else None)
+    folder = args.out / ("pieces" if args.whole else "windows")
     t0 = time.time()
-    if args.whole:                      # every clip, cut into pieces of the window's length
-        windows = args.out / "pieces"
-        report = mocap.import_frames(frames, windows, mocap.ImportOptions(rate=args.rate, split=args.window))
-        print(f"imported {len(frames)} clips as {len(report['clips'])} pieces in {time.time() - t0:.1f} s")
-        return report, from_config(report["body"]), windows
-    imported = args.out / "imported"
-    report = mocap.import_frames(frames, imported, mocap.ImportOptions(rate=args.rate))
-    body = from_config(report["body"])
-    windows = args.out / "windows"
-    (windows / "torso").mkdir(parents=True, exist_ok=True)
-    for c in report["clips"]:
-        m = motion_mod.load(imported / c["file"], body)
-        i, j = busiest_window(m, args.window)
-        w = motion_mod.Motion(m.name, m.t[i:j] - m.t[i], m.q[i:j], m.qd[i:j], body)
-        motion_mod.save(w, windows / c["file"])
-        with np.load(imported / "torso" / c["file"]) as f:          # the torso in the window's clock
-            np.savez(windows / "torso" / c["file"], t=f["t"] - float(m.t[i]), R=f["R"], x=f["x"])
-        c["window_s"] = [float(m.t[i]), float(m.t[j - 1])]
-    print(f"imported {len(frames)} clips in {time.time() - t0:.1f} s")
-    return report, body, windows
+    report = mocap.import_clips(files, folder, options)
+    print(f"imported {len(files)} clips as {len(report['clips'])} motions in {time.time() - t0:.1f} s")
+    return report, from_config(report["body"]), folder
 
 
 def main(argv=None) -> int:

@@ -160,7 +160,9 @@ def test_evaluate_new_motion(run_dir, tmp_path, capsys):
     the run's other motion, so the frozen basis can represent it: the known motion keeps
     its stored weights (its metrics.json figures); the new one is synthesised (flag
     ``synthesized``: NNLS weights on its torques, then 2 path steps) and reproduced as
-    well as in training (measured: rmse 0.0093 → 0.0093, tip 0.87 cm)."""
+    well as in training (measured: rmse 0.0093 → 0.0093, tip 0.87 cm); its program is
+    written beside the metrics as synthesized.json, which ``simulate`` plays."""
+    from tflearn.io import basis as basis_io
     run = run_dir["out"]
     data2 = tmp_path / "data2"
     data2.mkdir()
@@ -182,7 +184,12 @@ def test_evaluate_new_motion(run_dir, tmp_path, capsys):
     for key in ("rmse", "tip"):
         assert abs(row_known[key] - ref["motions"][known][key]) <= 1e-6
         assert row_new[key] <= ref["motions"][other][key] + 1e-3
-    assert row_new["success"]
+    assert row_new["success"] and ev["complete"] is True
+    synth = basis_io.load(tmp_path / "synthesized.json")
+    assert synth.names == ["unseen"] and synth.basis.M == ev["overall"]["M"]
+    assert printed.strip().splitlines()[-1].endswith(f"programs, {tmp_path / 'synthesized.json'}")
+    assert cli.main(["simulate", str(tmp_path / "synthesized.json"), "--motion", "unseen",
+                     "--out", str(tmp_path / "unseen.npz")]) == 0
     # the path steps trade a little torque fit for path (measured 0.0097 against 0.0062
     # in training), but the frozen basis still explains the torques
     assert row_new["torque_rel_rms"] <= 0.05

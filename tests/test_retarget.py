@@ -2,8 +2,10 @@
 clips, mirroring, mapping errors, the shoulder chart and the BVH round trips."""
 from __future__ import annotations
 
+import json
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -107,12 +109,12 @@ def test_missing_joint_and_folder(tmp_path):
         rt.arm_frames(bvh.read(bad), "right", amap)
     (tmp_path / "c_truncated.bvh").write_text(good.read_text()[:300])
     with pytest.warns(rt.BVHWarning) as rec:
-        clips = rt.read_clips([tmp_path], "right")
+        clips = rt.read_clips([tmp_path])
     assert [c.skeleton.name for c in clips] == ["a_good"]
     msgs = sorted(str(w.message) for w in rec)
     assert len(msgs) == 2 and str(bad) in msgs[0] and "c_truncated.bvh: line" in msgs[1]
     with pytest.raises(bvh.BVHError, match="b_noarm.bvh: no built-in arm map"):
-        rt.read_clips([tmp_path], "right", strict=True)
+        rt.read_clips([tmp_path], strict=True)
     from tflearn.errors import InputError
     from tflearn.mocap import clips as mocap
     with pytest.raises(InputError, match="out: no clips to import"):
@@ -181,16 +183,111 @@ def test_round_trips(imported, tmp_path):
     assert bvh.read(tmp_path / "full.bvh").values[:, :30] == pytest.approx(r.frames.skeleton.values[:, :30])
 
 
-def test_mocap_config_loads():
-    """configs/mocap.yaml is a valid train config whose body is the performer's arm."""
-    from pathlib import Path
-
+def test_mocap_config_imports_the_clips(mocap, tmp_path):
+    """configs/mocap.yaml names the clips themselves: the run imports all 14 in one chart,
+    each on the arm that moves (the three left ones mirrored), the CMU clip at its true
+    60 fps, each clip's busiest 0.8 s at 50 Hz (41 samples), with the performer's arm
+    as its body."""
     from tflearn import config
+    from tflearn.mocap import clips as mocap_mod
     from tflearn.physics.body import from_config
-    cfg = config.load(Path(__file__).resolve().parents[1] / "configs" / "mocap.yaml")
+    cfg = config.load(Path(__file__).resolve().parents[1] / "configs" / "mocap.yaml",
+                      [f"data={mocap}", f"out={tmp_path}"])
+    cfg, report = mocap_mod.import_config(cfg)
     body = from_config(cfg.body)
     assert [link.length for link in body.links] == pytest.approx([0.247045, 0.220879, 0.152216])
     assert cfg.success.rmse == 0.05 and cfg.success.tip == 0.03
+    mirrored = sorted(c["clip"] for c in report["clips"] if c["mirrored"])
+    assert mirrored == ["dataset-1_punch_normal_001", "dataset-1_respond_normal_001",
+                        "dataset-2_wave-left-hand_normal_001"]
+    sides = {c["side"] for c in report["clips"] if not c["mirrored"]}
+    assert len(report["clips"]) == 14 and sides == {"right"}
+    fps = {c["clip"]: c["fps"] for c in report["clips"]}
+    assert fps.pop("cmu_141_16_wave-hello") == pytest.approx(60)
+    assert list(fps.values()) == pytest.approx([30] * 13, rel=1e-5)         # 1/0.0333333
+    for c in report["clips"]:
+        assert c["window_s"][1] - c["window_s"][0] == pytest.approx(0.8)
+        assert np.load(Path(cfg.data) / c["file"])["q"].shape == (41, 7)
+
+
+def test_moving_arm(mocap):
+    """``moving``: the arm whose hand travels further relative to the chest — the left on
+    the left-hand wave and the boxer's first punch, the right on the right-hand wave;
+    on the two-handed wave (5.3 m against 5.1 m) the preferred right."""
+    names = {"dataset-2_wave-left-hand_normal_001": "left", "dataset-1_punch_normal_001": "left",
+             "dataset-2_wave-right-hand_normal_001": "right", "dataset-2_wave-both-hands_normal_001": "right"}
+    for name, side in names.items():
+        assert rt.moving_arm(bvh.read(mocap / f"{name}.bvh")) == side, name
+    both = bvh.read(mocap / "dataset-2_wave-both-hands_normal_001.bvh")
+    assert rt.hand_travel(rt.arm_frames(both, "left")) > rt.hand_travel(rt.arm_frames(both, "right"))
+    assert rt.moving_arm(both, prefer="left") == "left"
+
+
+def test_busiest_window():
+    """The busiest window has the largest joint path length of all windows of its length
+    (brute force), on a motion whose burst is at a known time."""
+    from tflearn.mocap.clips import busiest_window
+    from tflearn.motions.motion import Motion
+    from tflearn.physics.body import arm
+    t = np.arange(301) / 100.0
+    q = np.zeros((301, 7))
+    q[:, 3] = -1.0 + 0.8 * np.exp(-((t - 2.1) / 0.15) ** 2) + 0.05 * np.sin(7 * t)
+    m = Motion("burst", t, q, None, arm())
+    start, stop = busiest_window(m, 0.5)
+    assert stop - start == pytest.approx(0.5) and start < 2.1 < stop
+    step = np.abs(np.diff(q[:, 3]))
+    lengths = [step[i:i + 50].sum() for i in range(251)]
+    assert step[round(start * 100):round(stop * 100)].sum() == pytest.approx(max(lengths), rel=1e-12)
+
+
+def test_per_clip_choices_and_one_chart(mocap, tmp_path):
+    """Per-clip choices (``--arm moving``, ``--arm CLIP=SIDE``, ``--fps CLIP=F``) bring
+    every clip onto one model arm; an import into a folder holding other clips in another
+    chart is refused, ``--like`` adds them in its chart (the earlier clips' files
+    untouched), and a clip imported again replaces its files (pieces of a whole clip
+    removed); a folder of motions in another body is refused by ``import_like``."""
+    from tflearn import cli, config
+    from tflearn.errors import InputError
+    from tflearn.mocap import clips as mocap_mod
+    left, right = (mocap / f"dataset-2_wave-{s}-hand_normal_001.bvh" for s in ("left", "right"))
+    out = tmp_path / "one"
+    assert cli.main(["bvh", "import", str(left), str(right), "--arm", "moving", "--fps",
+                     f"{right.stem}=60", "--rate", "50", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    got = {c["clip"]: (c["side"], c["mirrored"], round(c["fps"], 3)) for c in report["clips"]}
+    assert got == {left.stem: ("left", True, 30.0), right.stem: ("right", False, 60.0)}
+    opts = mocap_mod.ImportOptions(side="left", clips={right.stem: {"arm": "right"}})
+    assert opts.model_side == "right" and mocap_mod.ImportOptions(side="left").model_side == "left"
+    assert mocap_mod.ImportOptions(side="left", mirror=True).model_side == "right"
+    with pytest.raises(InputError, match="its choices are arm"):
+        mocap_mod.ImportOptions(clips={"x": {"arm": "up"}})
+
+    guide, call = (mocap / f"dataset-1_{n}_normal_001.bvh" for n in ("guide", "call"))
+    out = tmp_path / "run"
+    mocap_mod.import_clips([guide], out, mocap_mod.ImportOptions(rate=50))
+    before = (out / f"{guide.stem}.npz").read_bytes(), (out / "body.yaml").read_text()
+    refused = f"holds an import of other clips \\({guide.stem}\\) in another body"
+    with pytest.raises(InputError, match=refused):
+        mocap_mod.import_clips([call], out, mocap_mod.ImportOptions(rate=50))
+    like = mocap_mod.like_body(out)
+    mocap_mod.import_clips([call], out, mocap_mod.ImportOptions(rate=50, like=like))
+    report = json.loads((out / "report.json").read_text())
+    assert [c["clip"] for c in report["clips"]] == [guide.stem, call.stem]
+    assert ((out / f"{guide.stem}.npz").read_bytes(), (out / "body.yaml").read_text()) == before
+    mocap_mod.import_clips([guide], out, mocap_mod.ImportOptions(rate=50, like=like, split=0.8))
+    files = sorted(p.name for p in out.glob("*.npz"))
+    assert files == [f"{call.stem}.npz"] + [f"{guide.stem}_part{k:02d}.npz" for k in range(4)]  # 2.8 s
+    assert not (out / "torso" / f"{guide.stem}.npz").exists()
+
+    cfg = config.load(None, [f"out={tmp_path}"])                  # a run on the default arm
+    with pytest.raises(InputError, match="not in the run's body \\(shoulder chart [0-9.]+° from"):
+        mocap_mod.import_like(cfg, str(out), tmp_path / "new")
+    assert mocap_mod.import_like(config.load(None, ["body=" + json.dumps(like)]), str(out), tmp_path) is None
+    folder = mocap_mod.import_like(cfg.replace(bvh=config.BvhSection(rate=50)), str(right), tmp_path / "new")
+    assert mocap_mod.same_body(config.read(folder / "body.yaml")["body"], cfg.body)
+    (tmp_path / "planar.yaml").write_text("body: {preset: chain}\n")
+    with pytest.raises(InputError, match="planar.yaml: its body: section is not an arm"):
+        mocap_mod.like_body(tmp_path / "planar.yaml")
 
 
 def test_configured_map(tmp_path):

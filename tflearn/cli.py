@@ -115,12 +115,14 @@ def _evaluate(args) -> int:
     run, _ = _model_paths(args.model)
     out = args.out or run / "evaluation.json"
     with _out_folder(out.parent):
-        metrics = evaluate.evaluate_run(run, data=args.data, out=out)
+        metrics = evaluate.evaluate_run(run, data=args.data, out=out, progress=not args.quiet)
     o = metrics["overall"]
     print("\n".join(_motion_lines(metrics["motions"])))
     print(f"M = {o['M']}, overall rmse {o['rmse']:.4f} rad, max tip error {100 * o['tip']:.2f} cm, "
           f"all reproduced: {'yes' if o['success'] else 'no'}")
-    print(f"wrote {out}")
+    synth = " and the new motions' programs, " + str(out.parent / "synthesized.json") if any(
+        r["synthesized"] for r in metrics["motions"].values()) else ""
+    print(f"wrote {out}{synth}")
     return 0
 
 
@@ -271,15 +273,38 @@ def _bvh_import(args) -> int:
         from .config import read
         from .mocap.retarget import map_from_dict
         amap = map_from_dict(read(args.map), str(args.map))
-    opts = mocap.ImportOptions(side=args.arm, mirror=args.mirror, rate=args.rate, fps=args.fps,
+    side, clips = _per_clip(args.arm, "arm", str, "right")
+    fps, fps_of = _per_clip(args.fps, "fps", float, None)
+    for name, x in fps_of.items():
+        clips.setdefault(name, {})["fps"] = x["fps"]
+    opts = mocap.ImportOptions(side=side, mirror=args.mirror, clips=clips, rate=args.rate, fps=fps,
                                gravity=args.gravity, strict=args.strict, amap=amap,
                                window=None if args.window is None else tuple(args.window),
-                               split=args.split)
+                               busiest=args.busiest, split=args.split,
+                               like=None if args.like is None else mocap.like_body(args.like))
     with _out_folder(args.out):
         report = mocap.import_clips(args.clips, args.out, opts)
     print("\n".join(mocap.report_lines(report)))
     print(f"wrote {len(report['clips'])} motions, body.yaml and report.json to {args.out}")
     return 0
+
+
+def _per_clip(values, key: str, kind, default) -> tuple:
+    """(the value for every clip, {clip: {key: value}}) of repeated options VALUE or
+    CLIP=VALUE (``--arm moving --arm punch=left``)."""
+    from .errors import InputError
+    every, clips = default, {}
+    for text in values or ():
+        name, _, value = text.rpartition("=")
+        try:
+            value = kind(value)
+        except ValueError:
+            raise InputError(f"--{key} {text}: not a {kind.__name__} value") from None
+        if name:
+            clips[name] = {key: value}
+        else:
+            every = value
+    return every, clips
 
 
 def _bvh_export(args) -> int:
@@ -319,11 +344,21 @@ def _bvh_args(sub) -> None:
         dest="bvh_command", required=True, metavar="ACTION")
     p = bvh.add_parser("import", help="retarget BVH clips onto the arm: NAME.npz, body.yaml, report.json")
     p.add_argument("clips", nargs="+", type=Path, metavar="CLIP", help="BVH files or folders of them")
-    p.add_argument("--arm", choices=("right", "left"), default="right", help="the performer's arm")
-    p.add_argument("--mirror", action="store_true", help="reflect it to the other side")
+    p.add_argument("--arm", action="append", metavar="SIDE|CLIP=SIDE",
+                   help="the performer's arm: right (default), left, or moving (per clip the one whose "
+                        "hand travels further; left ones mirrored onto the right); CLIP=left sets one "
+                        "clip's (CLIP: its file name without .bvh); repeatable")
+    p.add_argument("--mirror", action="store_true", help="reflect the arms to the other side")
     p.add_argument("--out", type=Path, default=Path("runs/mocap"), help="output folder")
-    p.add_argument("--rate", type=float, default=120.0, help="output samples per second (default 120)")
-    p.add_argument("--fps", type=float, default=None, help="the clips' true frame rate (default: header)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="output samples per second (default: each clip's own frame rate)")
+    p.add_argument("--fps", action="append", metavar="FPS|CLIP=FPS",
+                   help="the clips' (or one clip's) true frame rate when the header's is wrong; repeatable")
+    p.add_argument("--like", type=Path, default=None, metavar="RUN",
+                   help="import in the body and shoulder chart of a run, an import folder or a "
+                        "body.yaml (clips for a trained run, or added to an import)")
+    p.add_argument("--busiest", type=float, default=None, metavar="SECONDS",
+                   help="keep each clip's busiest SECONDS (largest joint path length)")
     p.add_argument("--gravity", action="store_true", help="give the body gravity (default: none)")
     p.add_argument("--strict", action="store_true", help="stop at a bad file instead of skipping it")
     p.add_argument("--window", type=float, nargs=2, default=None, metavar=("START", "STOP"),
@@ -365,8 +400,10 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="re-simulate a trained model on motions; new motions are synthesised")
     p.add_argument("model", type=Path, metavar="MODEL", help="a run folder or its basis.json")
-    p.add_argument("--data", default=None, help="motions to evaluate (default: the run's data)")
+    p.add_argument("--data", default=None, help="motions to evaluate, or BVH clips (imported in the run's "
+                                                "chart); default: the run's data")
     p.add_argument("--out", type=Path, default=None, help="metrics file (default RUN/evaluation.json)")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
     p.set_defaults(func=_evaluate)
 

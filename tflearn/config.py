@@ -309,13 +309,25 @@ def _device_named(name: str) -> str:
 DeviceName = Annotated[str, AfterValidator(_device_named)]
 
 
+class ClipChoice(Section):
+    # one clip's own choices (bvh.clips.NAME, NAME its file name without .bvh)
+    arm: Optional[Literal["right", "left"]] = None    # its performer's arm (null: bvh.arm)
+    fps: Optional[float] = Field(None, gt=0, allow_inf_nan=False)   # its true frame rate (null: header)
+
+
 class BvhSection(Section):
     # when data names BVH clips: imported into OUT/imported (tflearn.mocap.clips.import_config)
-    arm: Literal["right", "left"] = "right"      # the performer's arm
-    mirror: bool = False                         # reflect it onto the other side
-    rate: float = Field(120.0, gt=0, allow_inf_nan=False)   # samples per second after import
+    # the performer's arm; moving: per clip the one whose hand travels further (left ones
+    # mirrored onto the right, so that one arm serves every clip)
+    arm: Literal["right", "left", "moving"] = "right"
+    mirror: bool = False                         # reflect the arms onto the other side
+    clips: dict[str, ClipChoice] = {}            # per clip: {arm, fps} (e.g. a header's wrong rate)
+    # samples per second after import; null: each clip's own frame rate
+    rate: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
     # [start, stop] (s): the part of every clip that is learned; null: the whole clip
     window: Optional[list[float]] = Field(None, min_length=2, max_length=2)
+    # instead of a window: each clip's busiest this many seconds (largest joint path length)
+    busiest: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
     # cut what is kept into consecutive pieces of this many seconds, each its own motion
     # NAME_partKK (a remainder under half a piece joins the last); null: one motion per clip
     split: Optional[float] = Field(None, gt=0, allow_inf_nan=False)
@@ -326,6 +338,20 @@ class BvhSection(Section):
         if w is not None and not 0 <= w[0] < w[1]:
             raise ValueError(f"a window is [start, stop] with 0 ≤ start < stop (seconds), got {list(w)}")
         return w
+
+    @model_validator(mode="after")
+    def _one_part(self):
+        if self.window is not None and self.busiest is not None:
+            raise ValueError("window and busiest both choose the part of a clip learned: give one")
+        return self
+
+    def options(self, strict: bool = False, like: Optional[dict] = None):
+        """These choices as :class:`tflearn.mocap.clips.ImportOptions`."""
+        from .mocap.clips import ImportOptions
+        clips = {name: c.model_dump(exclude_none=True) for name, c in self.clips.items()}
+        return ImportOptions(side=self.arm, mirror=self.mirror, clips=clips, rate=self.rate,
+                             strict=strict, window=None if self.window is None else tuple(self.window),
+                             busiest=self.busiest, split=self.split, like=like)
 
 
 class Config(Section):

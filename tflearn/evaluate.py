@@ -19,8 +19,11 @@ from .fit.shooting import ShootingOptions
 from .fit.targets import Targets, prepare, submovement_windows
 from .fit.torque import DivergenceWarning
 from .io import basis as basis_io
+from .io.basis import LearnedBasis
 from .io.files import write_text
+from .log import progress_bar
 from .metrics import UNITS, pooled_rmse, score, summarize
+from .mocap.clips import import_like
 from .model.program import FieldProgram
 from .model.weights import MotionWeights
 from .motions.motion import Motion
@@ -76,46 +79,74 @@ def weights_for(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
     return w
 
 
-def evaluate_run(run, data=None, out=None) -> dict:
+def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
     """Metrics of a run's basis.json on motions (default: the run's own data).
 
     Motions named in the basis are simulated with their stored weights; new ones are
-    synthesised with the frozen basis (:func:`synthesize`). Writes RUN/evaluation.json
-    (or ``out``) and returns its content."""
+    synthesised with the frozen basis (:func:`synthesize`), one at a time, under a
+    progress bar (``progress``). ``data`` may name BVH clips: they are imported into
+    OUT's folder/imported in the run's body and chart with its ``bvh`` choices
+    (:func:`tflearn.mocap.clips.import_like`; a folder of motions in another body is
+    refused). Writes ``out`` (default RUN/evaluation.json) after each synthesised motion,
+    with ``"complete"`` false until the last, and beside it synthesized.json: a basis.json
+    of the fields and the new motions' programs (``tflearn simulate``, ``render`` and
+    ``perturb`` read it). Returns the metrics."""
     run = Path(run)
     lb = basis_io.load(run / "basis.json")
     cfg, options = run_config(run)
-    source = data if data is not None else cfg.data
+    out = Path(out or run / "evaluation.json")
+    source = cfg.data if data is None else (import_like(cfg, data, out.parent / "imported") or data)
     motions = load_motions(source, lb.body, strict=cfg.strict)
     resolution = dict(zip([m.name for m in motions], check_resolution(lb.body, motions)))
     known = [m for m in motions if m.name in lb.names]
     new = [m for m in motions if m.name not in lb.names]
     results, counts = {}, {}
-    for group, synth in ((known, False), (new, True)):
-        if not group:
-            continue
+
+    def scored(group: list, synth: bool) -> LearnedBasis:
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
                      base=torsos(source, group, cfg.torso))
         shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
         held = cfg.solver.layout.impedance() if cfg.solver.method == "layout" else impedance.Impedance()
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip),
-                               ridge=cfg.solver.ridge, held=held) if synth
+                              ridge=cfg.solver.ridge, held=held) if synth
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
         summary = summarize(s, ok, tg, lb.basis.M, 0.0, stability.growth(lb.body, lb.basis, weights, tg),
                             impedance.path_stiffness(lb.body, lb.basis, weights, tg))
         for j, (name, row) in enumerate(summary["motions"].items()):
-            row["synthesized"] = synth
-            row["torque_resolution"] = resolution[name]
-            results[name] = row
+            results[name] = {**row, "synthesized": synth, "torque_resolution": resolution[name]}
             counts[name] = int(tg.mask[j].sum())
-    # Over all samples of all motions, as in metrics.json.
+        return LearnedBasis(lb.body, lb.basis, weights, tg.q0, tg.qd0, tg.rate)
+
+    if known:
+        scored(known, False)
+    programs = []
+    with progress_bar(len(new), "synthesis", "motions", progress and bool(new)) as bar:
+        for m in new:
+            programs.append(scored([m], True))
+            r = results[m.name]
+            bar.set_postfix_str(f"{m.name}: {r['rmse']:.4f} rad, {100 * r['tip']:.2f} cm")
+            bar.update()
+            _write(out, results, counts, lb.basis.M, complete=len(programs) == len(new))
+            basis_io.save(_joined(programs), out.parent / "synthesized.json")
+    return _write(out, results, counts, lb.basis.M, complete=True)
+
+
+def _joined(parts: list) -> LearnedBasis:
+    """One basis file's content from programs on the same fields."""
+    weights = MotionWeights.concat([p.weights for p in parts])
+    q0, qd0, rate = (torch.cat([getattr(p, k) for p in parts]) for k in ("q0", "qd0", "rate"))
+    return LearnedBasis(parts[0].body, parts[0].basis, weights, q0, qd0, rate)
+
+
+def _write(out: Path, results: dict, counts: dict, M: int, complete: bool) -> dict:
+    """Write the evaluation so far (over all samples of all motions, as in metrics.json)."""
     overall = {"rmse": pooled_rmse([r["rmse"] for r in results.values()], list(counts.values())),
                "tip": max(r["tip"] for r in results.values()),
-               "success": all(r["success"] for r in results.values()), "M": lb.basis.M}
-    doc = {"motions": results, "overall": overall, "units": dict(UNITS)}
-    write_text(out or run / "evaluation.json", json.dumps(doc, indent=1))
+               "success": all(r["success"] for r in results.values()), "M": M}
+    doc = {"motions": results, "overall": overall, "units": dict(UNITS), "complete": complete}
+    write_text(out, json.dumps(doc, indent=1))
     return doc
 
 

@@ -29,9 +29,9 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Optional
+from typing import Mapping, Optional
 
 import numpy as np
 import roma
@@ -53,41 +53,92 @@ from . import retarget as rt
 GRAVITY = (0.0, 0.0, -9.81)
 
 
+OTHER = {"right": "left", "left": "right"}
+
+
 @dataclass(frozen=True)
 class ImportOptions:
     """Options of :func:`import_clips`.
 
-    side: the performer's arm, "right" or "left"; mirror: reflect it to the other side;
-    rate: output samples per second; fps: the clips' true frame rate when the header's
-    is wrong (None: the header's); gravity: the body has gravity (else the thesis'
-    gravity-free world); strict: stop at the first bad file (else skip it with a
-    warning); cutoffs: low-pass cutoffs (Hz) tried, highest first; amap: the arm map
-    for a skeleton without a built-in one (:class:`tflearn.mocap.retarget.ArmMap`); window:
-    (start, stop) in seconds, the part of every clip kept (the arm's samples within it,
-    times then from the first of them, and the torso's frames covering those; a clip
-    shorter than stop is refused like a bad file), None: all of it; split: cut what is
-    kept into consecutive pieces of this many seconds (rounded to whole samples), each its
-    own motion NAME_partKK (pieces share their boundary samples; a remainder shorter than
-    half a piece joins the last one), None: one motion per clip.
+    side: the performer's arm, "right", "left", or "moving": per clip the arm whose hand
+    travels further relative to the chest (:func:`tflearn.mocap.retarget.moving_arm`);
+    mirror: reflect the arms to the other side; clips: per clip (its file name without
+    .bvh) a mapping with "arm" ("right" or "left") and "fps" (its true frame rate) that
+    overrides side and fps. Every clip is brought onto one model arm
+    (:attr:`model_side`): ``side``'s when all clips use it, else the right one, the other
+    side with ``mirror``; a clip of the other arm is mirrored onto it.
+    rate: output samples per second (None: each clip's own frame rate); fps: the clips'
+    true frame rate when the header's is wrong (None: the header's); gravity: the body has
+    gravity (else the thesis' gravity-free world); strict: stop at the first bad file
+    (else skip it with a warning); cutoffs: low-pass cutoffs (Hz) tried, highest first;
+    amap: the arm map for a skeleton without a built-in one (:class:`tflearn.mocap.retarget.
+    ArmMap`); window: (start, stop) in seconds, the part of every clip kept (the arm's
+    samples within it, times then from the first of them, and the torso's frames covering
+    those; a clip shorter than stop is refused like a bad file), None: all of it;
+    busiest: instead of a window, each clip's busiest this many seconds (the largest joint
+    path length Σ‖Δν‖ at the output rate: :func:`busiest_window`); split: cut what is kept
+    into consecutive pieces of this many seconds (rounded to whole samples), each its own
+    motion NAME_partKK (pieces share their boundary samples; a remainder shorter than half
+    a piece joins the last one), None: one motion per clip; like: a body (a ``body:``
+    section, as :func:`like_body` reads it) whose shoulder chart and bones the clips are
+    imported in (new clips for a trained run), None: the clips' own.
     """
 
     side: str = "right"
     mirror: bool = False
-    rate: float = 120.0
+    clips: Mapping[str, Mapping] = field(default_factory=dict)
+    rate: Optional[float] = None
     fps: Optional[float] = None
     gravity: bool = False
     strict: bool = False
     cutoffs: tuple = (12.0, 10.0, 8.0, 6.0, 5.0, 4.0, 3.0, 2.0)
     amap: Optional[rt.ArmMap] = None
     window: Optional[tuple] = None
+    busiest: Optional[float] = None
     split: Optional[float] = None
+    like: Optional[dict] = None
 
     def __post_init__(self):
         w = self.window
         if w is not None and not (len(w) == 2 and 0 <= w[0] < w[1]):
             raise InputError(f"a window is (start, stop) with 0 ≤ start < stop (seconds), got {tuple(w)}")
-        if self.split is not None and not self.split > 0:
-            raise InputError(f"a split is a piece's length in seconds (> 0), got {self.split}")
+        for key, what in (("split", "a piece's length in seconds"), ("busiest", "a length in seconds"),
+                          ("rate", "samples per second"), ("fps", "frames per second")):
+            x = getattr(self, key)
+            if x is not None and not x > 0:
+                raise InputError(f"a {key} is {what} (> 0), got {x}")
+        if w is not None and self.busiest is not None:
+            raise InputError("a window and busiest both choose the part of a clip kept: give one")
+        if self.side not in ("right", "left", "moving"):
+            raise InputError(f"an arm is right, left or moving, got {self.side!r}")
+        if self.like is not None and self.like.get("preset") != "arm":
+            raise InputError(f"clips are imported like an arm (preset: arm), not {self.like}")
+        if self.amap is not None and self.side == "moving":
+            raise InputError("an arm map names one arm: give --arm right or left with it")
+        for name, choice in self.clips.items():
+            bad = set(choice) - {"arm", "fps"}
+            if bad or choice.get("arm", "right") not in OTHER or not choice.get("fps", 1.0) > 0:
+                raise InputError(f"clip {name}: its choices are arm (right or left) and fps (> 0), "
+                                 f"got {dict(choice)}")
+
+    @property
+    def model_side(self) -> str:
+        """The arm every clip is imported onto (see the class doc)."""
+        arms = {self.side, *(c.get("arm", self.side) for c in self.clips.values())}
+        side = self.side if arms in ({"right"}, {"left"}) else "right"
+        return OTHER[side] if self.mirror else side
+
+    def frames(self, skel: bvh.Skeleton) -> rt.ArmFrames:
+        """A clip's arm with this import's per-clip choices: its frame rate, its arm, and
+        mirrored when that arm is not :attr:`model_side`."""
+        choice = self.clips.get(skel.name, {})
+        fps = choice.get("fps", self.fps)
+        if fps is not None:
+            skel = replace(skel, frame_time=1.0 / fps)
+        side = choice.get("arm", self.side)
+        if side == "moving":
+            side = rt.moving_arm(skel)
+        return rt.arm_frames(skel, side, self.amap, side != self.model_side)
 
 
 def _filtered(q: np.ndarray, fps: float, cutoff: float) -> np.ndarray:
@@ -141,55 +192,148 @@ def _body_doc(frames: list, zero: np.ndarray, gravity: bool) -> dict:
             "gravity": list(GRAVITY) if gravity else [0.0, 0.0, 0.0]}
 
 
-def import_clips(paths, out, options: ImportOptions = ImportOptions()) -> dict:
+def import_clips(paths, out, options: ImportOptions = ImportOptions(), *, choices: bool = True) -> dict:
     """Import BVH files and folders into ``out`` (see the module doc). Returns the report
     (also written as report.json): per clip the retargeting report (:func:`tflearn.
-    retarget.retarget`), the filter, the torso's motion and the file written."""
-    frames = rt.read_clips(paths, options.side, options.mirror, options.strict, options.amap)
-    if options.fps is not None:
-        frames = [rt.arm_frames(_with_fps(f.skeleton, options.fps), options.side, options.amap,
-                                options.mirror) for f in frames]
+    retarget.retarget`), the filter, the torso's motion and the file written. With
+    ``choices``, per-clip choices naming no clip imported are warned about (a typo)."""
+    frames = rt.read_clips(paths, options.frames, options.strict)
+    names = {f.skeleton.name for f in frames}
+    for name in sorted(set(options.clips) - names if choices else ()):
+        warnings.warn(f"clip {name}: has choices but is not among the clips imported "
+                      f"({', '.join(sorted(names))})", rt.BVHWarning, stacklevel=2)
     return import_frames(frames, out, options)
 
 
 def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -> dict:
     """:func:`import_clips` of clips already read (:class:`tflearn.mocap.retarget.ArmFrames`,
-    of any sides and mirrors: one shoulder chart and one body for all)."""
+    of any sides and mirrors: one shoulder chart and one body for all, or ``options.like``'s).
+    An earlier import into ``out`` is added to when this one is in its body (``like``
+    it), replaced when this one re-imports all its clips, and refused otherwise
+    (:func:`_earlier`)."""
     from ..physics.body import from_config
     if not frames:
         raise InputError(f"{out}: no clips to import")
     names = [f.skeleton.name + ("_mirrored" if f.mirror else "") for f in frames]
     if len(set(names)) != len(names):
         raise InputError(f"{out}: two clips have the same name ({sorted(names)})")
-    zero = rt.shoulder_zero(frames)
-    doc = _body_doc(frames, zero, options.gravity)
+    if options.like is None:
+        zero = rt.shoulder_zero(frames)
+        doc = _body_doc(frames, zero, options.gravity)
+    else:
+        doc, zero = options.like, np.asarray(options.like.get("offsets", [[0.0] * 3])[0], dtype=float)
     body = from_config(doc)
     out = Path(out)
+    kept, dropped = _earlier(out, doc, names)
     out.mkdir(parents=True, exist_ok=True)
     clips = []
     for r in rt.retarget_all(frames, zero):
         m = motion_mod.Motion(r.motion.name, r.motion.t, r.motion.q, None, body)
-        if not _window_fits(m, options):
+        if not _long_enough(m, options):
             continue
         sm, filt = smooth(m, options.cutoffs)
+        rate = options.rate or m.rate
+        sampled = spline.resample(sm, rate)
+        window = options.window if options.busiest is None else busiest_window(sampled, options.busiest)
         (out / "torso").mkdir(exist_ok=True)      # here: no empty folder when no clip fits
-        for final, span in _pieces(spline.resample(sm, options.rate), options.window, options.split):
+        for final, span in _pieces(sampled, window, options.split):
             motion_mod.save(final, out / f"{final.name}.npz")
             base = _save_torso(r.frames, out / "torso" / f"{final.name}.npz", filt["cutoff_hz"], span)
             torso = {**r.report["torso"], "torque_share": torso_torque_share(body, final, base)}
-            clips.append({**r.report, "torso": torso, "filter": filt, "rate_hz": options.rate,
+            clips.append({**r.report, "torso": torso, "filter": filt, "rate_hz": rate,
                           "window_s": None if span is None else list(span), "file": f"{final.name}.npz"})
     if not clips:
-        raise InputError(f"{out}: no clip is as long as the window {list(options.window)} s")
+        raise InputError(f"{out}: no clip is as long as the window "
+                         f"{list(options.window) if options.busiest is None else options.busiest} s")
+    written = {c["file"] for c in clips}
+    _remove(out, [c for c in dropped if c["file"] not in written])
     side = ", ".join(sorted({("mirrored " if f.mirror else "") + f.side for f in frames}))
-    write_text(out / "body.yaml",
-               f"# The performer's arm ({side}) from {len(frames)} BVH clip(s): mean bone lengths (m),\n"
-               f"# the shoulder zero orientation shared by the clips (a rotation vector).\n"
-               + yaml.safe_dump({"body": doc}, default_flow_style=None, sort_keys=False))
-    report = {"sides": side, "gravity": options.gravity,
-              "shoulder_zero": [float(x) for x in zero], "body": doc, "clips": clips}
+    origin = (f"from {len(frames)} BVH clip(s): mean bone lengths (m),\n# the shoulder zero orientation "
+              f"shared by the clips (a rotation vector)." if options.like is None else
+              "in the body and shoulder chart the clips were imported like (--like).")
+    if not _holds_body(out / "body.yaml", doc):              # an import added to keeps its own
+        write_text(out / "body.yaml", f"# The performer's arm ({side}) {origin}\n"
+                   + yaml.safe_dump({"body": doc}, default_flow_style=None, sort_keys=False))
+    report = {"sides": side, "gravity": bool(any(doc.get("gravity", [0.0]))),
+              "shoulder_zero": [float(x) for x in zero], "body": doc, "clips": kept + clips}
     write_text(out / "report.json", json.dumps(report, indent=2) + "\n")
-    return report
+    return {**report, "clips": clips}
+
+
+def _holds_body(path: Path, doc: dict) -> bool:
+    return path.exists() and same_body(yaml.safe_load(path.read_text())["body"], doc)
+
+
+def _clip_key(entry: dict) -> str:
+    return entry["clip"] + ("_mirrored" if entry["mirrored"] else "")
+
+
+def same_body(a: dict, b: dict) -> bool:
+    """Whether two ``body:`` sections make the same body (its kinematics and inertia)."""
+    from ..physics.body import from_config
+    return from_config(a).to_dict() == from_config(b).to_dict()
+
+
+def _earlier(out: Path, doc: dict, names: list) -> tuple:
+    """(kept, dropped): the report entries of an earlier import into ``out`` that an
+    import of clips ``names`` in body ``doc`` keeps, and those it replaces (their files
+    are removed unless written again: a clip imported whole after being split leaves no
+    pieces behind). With the same body it keeps the other clips; with another body it
+    keeps none when it holds all their clips, and otherwise raises :class:`InputError`
+    (the new chart would silently move the earlier clips' coordinates)."""
+    path = out / "report.json"
+    if not path.exists():
+        return [], []
+    old = json.loads(path.read_text())
+    mine = [c for c in old["clips"] if _clip_key(c) in names]
+    if same_body(old["body"], doc):
+        return [c for c in old["clips"] if _clip_key(c) not in names], mine
+    if len(mine) == len(old["clips"]):
+        return [], mine
+    others = sorted({_clip_key(c) for c in old["clips"]} - set(names))
+    raise InputError(f"{out}: holds an import of other clips ({', '.join(others)}) in another body "
+                     f"or shoulder chart; import into another folder, or add these clips in its "
+                     f"chart with --like {out}")
+
+
+def _remove(out: Path, entries: list) -> None:
+    for c in entries:
+        for f in (out / c["file"], out / "torso" / c["file"]):
+            f.unlink(missing_ok=True)
+
+
+def like_body(path) -> dict:
+    """The ``body:`` section that clips are imported like (``--like``): of a run folder
+    (its config.yaml), an import folder (its body.yaml) or a YAML file holding one; an
+    arm (preset "arm"). :class:`InputError` names the path and the problem."""
+    from ..config import read
+    path = Path(path)
+    if path.is_dir():
+        found = [path / n for n in ("config.yaml", "body.yaml") if (path / n).exists()]
+        if not found:
+            raise InputError(f"{path}: neither a run (config.yaml) nor an import (body.yaml)")
+        path = found[0]
+    doc = read(path).get("body")
+    if not isinstance(doc, dict) or doc.get("preset") != "arm":
+        raise InputError(f"{path}: its body: section is not an arm (preset: arm), got {doc!r}")
+    return doc
+
+
+def chart_angle(a: dict, b: dict) -> float:
+    """The angle (degrees) between the shoulder charts (zero orientations) of two arm bodies."""
+    from scipy.spatial.transform import Rotation
+    za, zb = (Rotation.from_rotvec(np.asarray(d.get("offsets", [[0.0] * 3])[0], dtype=float))
+              for d in (a, b))
+    return float(np.degrees((za.inv() * zb).magnitude()))
+
+
+def busiest_window(m: motion_mod.Motion, seconds: float) -> tuple:
+    """(start, stop) in seconds: the window of ``seconds`` (rounded to whole samples) of
+    ``m`` (uniformly sampled) with the largest joint path length Σ‖Δν‖."""
+    n = max(1, round(seconds * m.rate))
+    step = np.linalg.norm(np.diff(m.q.numpy(), axis=0), axis=1)
+    i = int(np.argmax(np.convolve(step, np.ones(n), mode="valid")))
+    return float(m.t[i]), float(m.t[i + n])
 
 
 def bvh_paths(data) -> list:
@@ -226,24 +370,48 @@ def import_config(cfg):
     clips = bvh_paths(cfg.data)
     if not clips:
         return cfg, None
-    b = cfg.bvh
     out = Path(cfg.out) / "imported"
-    report = import_clips(clips, out, ImportOptions(
-        side=b.arm, mirror=b.mirror, rate=b.rate, strict=cfg.strict,
-        window=None if b.window is None else tuple(b.window), split=b.split))
+    report = import_clips(clips, out, cfg.bvh.options(cfg.strict))
     if cfg.body not in ({"preset": "arm"}, report["body"]):
         warnings.warn(f"{cfg.out}: the config's body: section is replaced by the performer's arm "
                       f"imported from the BVH clips ({out / 'body.yaml'})", stacklevel=2)
     return cfg.replace(data=str(out), body=report["body"]), report
 
 
-def _window_fits(m: motion_mod.Motion, options: ImportOptions) -> bool:
-    """Whether clip ``m`` covers ``options.window``; if not, raises :class:`InputError`
-    naming it (``strict``) or warns and returns False."""
-    if options.window is None or options.window[1] <= float(m.t[-1]) + 1e-9:
+def import_like(cfg, data, out) -> Optional[Path]:
+    """Clips a trained run has not seen, brought into its body and chart: when ``data``
+    names BVH clips (:func:`bvh_paths`), they are imported into ``out`` with the run's
+    config's ``bvh`` choices (those of its clips) like its body (``cfg``: the run's config), and that folder
+    is returned; when it is a folder of motions with a body.yaml that is not the run's
+    body, :class:`InputError` says so (their coordinates would be read in the wrong chart);
+    else None (``data`` is read as it is)."""
+    clips = bvh_paths(data)
+    if clips:
+        import_clips(clips, out, cfg.bvh.options(cfg.strict, like=cfg.body), choices=False)
+        return Path(out)
+    items = [data] if isinstance(data, (str, Path)) else list(data)
+    for folder in {Path(x) if Path(x).is_dir() else Path(x).parent for x in items}:
+        path = folder / "body.yaml"
+        if path.exists():
+            from ..config import read
+            doc = read(path).get("body")
+            if isinstance(doc, dict) and not same_body(doc, cfg.body):
+                raise InputError(
+                    f"{path}: these motions are not in the run's body (shoulder chart "
+                    f"{chart_angle(doc, cfg.body):.1f}° from the run's, bones "
+                    f"{doc.get('lengths')} against {cfg.body.get('lengths')}); import their clips in "
+                    f"the run's chart (tflearn bvh import CLIPS --like RUN), or name the clips")
+    return None
+
+
+def _long_enough(m: motion_mod.Motion, options: ImportOptions) -> bool:
+    """Whether clip ``m`` covers ``options.window`` (or lasts ``options.busiest``); if
+    not, raises :class:`InputError` naming it (``strict``) or warns and returns False."""
+    need = options.busiest if options.window is None else options.window[1]
+    if need is None or need <= float(m.t[-1]) + 1e-9:
         return True
-    msg = (f"{m.name}: the window {list(options.window)} s ends after the clip "
-           f"({float(m.t[-1]):.2f} s long)")
+    what = f"{options.busiest} s" if options.window is None else f"the window {list(options.window)} s"
+    msg = f"{m.name}: {what} ends after the clip ({float(m.t[-1]):.2f} s long)"
     if options.strict:
         raise InputError(msg)
     warnings.warn(msg + "; skipped", rt.BVHWarning, stacklevel=3)
@@ -277,13 +445,6 @@ def _pieces(m: motion_mod.Motion, window: Optional[tuple], split: Optional[float
         piece, _ = _cut(whole, (ta, tb), f"{m.name}_part{k:02d}")
         pieces.append((piece, (span[0] + ta, span[0] + tb)))           # clip times
     return pieces
-
-
-def _with_fps(skel: bvh.Skeleton, fps: float) -> bvh.Skeleton:
-    from dataclasses import replace
-    if not fps > 0:
-        raise InputError(f"--fps must be positive, got {fps}")
-    return replace(skel, frame_time=1.0 / fps)
 
 
 def _save_torso(frames: rt.ArmFrames, path: Path, cutoff: Optional[float],

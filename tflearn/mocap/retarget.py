@@ -44,7 +44,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -339,9 +339,9 @@ class BVHWarning(UserWarning):
     """A BVH file skipped when importing several; the message names it and the problem."""
 
 
-def read_clips(paths, side: str = "right", mirror: bool = False, strict: bool = False,
-               amap: Optional[ArmMap] = None) -> list:
-    """:class:`ArmFrames` of BVH files and folders (``*.bvh`` in name order). A file
+def read_clips(paths, make: Callable[[Skeleton], ArmFrames] = arm_frames, strict: bool = False) -> list:
+    """:class:`ArmFrames` of BVH files and folders (``*.bvh`` in name order), each made
+    by ``make`` from its skeleton (default: the right arm, :func:`arm_frames`). A file
     that cannot be read or mapped is skipped with a :class:`BVHWarning` naming it and
     the problem, or, with ``strict``, raises its BVHError; nothing left raises, once:
     the one file's own BVHError, or one naming the paths and every problem."""
@@ -351,8 +351,7 @@ def read_clips(paths, side: str = "right", mirror: bool = False, strict: bool = 
     out, errors = [], []
     for f in files:
         try:
-            skel = read(f)
-            out.append(arm_frames(skel, side, amap, mirror))
+            out.append(make(read(f)))
         except BVHError as err:
             if strict:
                 raise
@@ -365,6 +364,32 @@ def read_clips(paths, side: str = "right", mirror: bool = False, strict: bool = 
     for err in errors:
         warnings.warn(f"{err}; skipped", BVHWarning, stacklevel=2)
     return out
+
+
+def hand_travel(frames: ArmFrames) -> float:
+    """The wrist's path length relative to the chest (metres, Σ‖Δx‖ in the base frame)."""
+    return float(np.linalg.norm(np.diff(frames.joints[:, 1], axis=0), axis=1).sum())
+
+
+#: ``moving_arm``: the other arm is taken only when its hand travels this many times further.
+BOTH_ARMS = 1.25
+
+
+def moving_arm(skel: Skeleton, prefer: str = "right") -> str:
+    """The arm of a clip that performs it: the one whose hand travels further relative
+    to the chest (:func:`hand_travel`); ``prefer`` unless the other's travel is
+    :data:`BOTH_ARMS` times its own (a clip moving both arms alike keeps ``prefer``), or
+    ``prefer``'s arm cannot be mapped (built-in maps, :func:`find_map`)."""
+    other = "left" if prefer == "right" else "right"
+    try:
+        own = hand_travel(arm_frames(skel, prefer))
+    except BVHError:
+        return other
+    try:
+        far = hand_travel(arm_frames(skel, other))
+    except BVHError:
+        return prefer
+    return other if far > BOTH_ARMS * own else prefer
 
 
 def retarget_all(frames: list, zero: Optional[np.ndarray] = None) -> list:

@@ -155,6 +155,14 @@ class MotionWeights(nn.Module):
         return self._with({k: v[idx] for k, v in self._arrays().items()},
                           duration=self.duration[idx], names=[self.names[i] for i in idx.tolist()])
 
+    @staticmethod
+    def concat(parts: Sequence[MotionWeights]) -> MotionWeights:
+        """New weights (detached) of the motions of ``parts`` in turn (the same M and P)."""
+        arrays = [p._arrays() for p in parts]
+        return parts[0]._with({k: torch.cat([a[k] for a in arrays]) for k in arrays[0]},
+                              duration=torch.cat([p.duration for p in parts]),
+                              names=[n for p in parts for n in p.names])
+
     def timing(self, j: int, weights: bool = False) -> dict:
         """Motion j's activation timing (detached copies): {name: (M,)} over :attr:`TIMING`
         and {name: (P,)} over :attr:`WINDOWS`; with ``weights`` its weights too (a_raw,
