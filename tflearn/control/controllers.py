@@ -89,13 +89,15 @@ def joint_gains(body: Body, gains: Optional[Mapping[str, tuple]] = None) -> tupl
 class Target:
     """The motion a controller tracks: ν_d(t), v_d(t) from its spline and τ_ff(t).
 
-    τ_ff(t) is the spline's inverse dynamics, or with ``program`` (on ν (...×nv), e.g. a
-    :class:`OneMotion`) τ_ff(t) = program(t, ν_d(t), v_d(t)) — a motion's exact torques
-    when that program generated it. Calling the target at a time t (scalar) returns
-    (ν_d, v_d, τ_ff), nv each; times outside the motion are clamped to its ends."""
+    τ_ff(t) is the spline's inverse dynamics (on a moving ``base``, a one-member
+    :class:`tflearn.motions.torso.Bases`, with its inertial terms and gravity seen from
+    it), or with ``program`` (on ν (...×nv), e.g. a :class:`OneMotion`) τ_ff(t) =
+    program(t, ν_d(t), v_d(t)) — a motion's exact torques when that program generated
+    it. Calling the target at a time t (scalar) returns (ν_d, v_d, τ_ff), nv each; times
+    outside the motion are clamped to its ends."""
 
-    def __init__(self, body: Body, motion: Motion, program=None):
-        self.body, self.motion, self.program = body, motion, program
+    def __init__(self, body: Body, motion: Motion, program=None, base=None):
+        self.body, self.motion, self.program, self.base = body, motion, program, base
         self.spline = MotionSpline(body, motion)
         self._last = (None, None)
 
@@ -106,7 +108,8 @@ class Target:
         if self._last[0] == key:                 # FSAL: the solver asks twice per step
             return self._last[1]
         if self.program is None:
-            tau, q, v, _ = self.spline.torques(tt)
+            moving = None if self.base is None else self.base.terms(self.body.gravity, tt)
+            tau, q, v, _ = self.spline.torques(tt, moving)
             out = q[0], v[0], tau[0]
         else:
             q, v, _, _ = self.spline(tt)

@@ -1,7 +1,8 @@
 """Perturbations of a controlled limb and how it responds (Yin, Cline & Pai 2003).
 
 A :class:`Push` is an external force f(t) = F φ((t − t₀)/D) on a named point of the body,
-in world coordinates, with φ the C¹ cosine pulse of :func:`tflearn.model.weights.pulse_profile`
+in the body's base frame (the world's on a fixed base; on a moving torso the chest's: the
+push moves with the performer), with φ the C¹ cosine pulse of :func:`tflearn.model.weights.pulse_profile`
 (φ(u) = ½(1 − cos 2πu) on [0, 1], zero elsewhere), so its impulse is ∫f dt = F D/2
 (:meth:`Push.from_impulse` for a given impulse). It acts on the joints as τ = J_pᵀ f
 (:func:`tflearn.physics.dynamics.point_jacobian`, linear rows), added to the controller's torque.
@@ -61,7 +62,7 @@ def point_on(body: Body, name: str) -> tuple:
 
 @dataclass(frozen=True)
 class Push:
-    """Force F (N, world, 3 or B×3) at ``point`` with profile φ((t − onset)/duration)."""
+    """Force F (N, base frame, 3 or B×3) at ``point`` with profile φ((t − onset)/duration)."""
 
     force: tuple
     onset: float
@@ -178,15 +179,20 @@ def _options(options: SimOptions, perturbation: Perturbation) -> SimOptions:
 
 
 def respond(body: Body, controller, perturbation: Perturbation, q0: torch.Tensor,
-            v0: torch.Tensor, t: torch.Tensor, options: SimOptions = SimOptions()) -> Response:
-    """Simulate ``controller`` on the perturbed body from (q0, v0) over t (T).
+            v0: torch.Tensor, t: torch.Tensor, options: SimOptions = SimOptions(),
+            base=None) -> Response:
+    """Simulate ``controller`` on the perturbed body from (q0, v0) (B×nv) over t (T), on
+    a moving ``base`` (a one-member :class:`tflearn.motions.torso.Bases`, every member of
+    the batch on it; the pushes' forces and the hand then in its frame) or a fixed one.
 
     Raises :class:`tflearn.simulation.simulate.SimulationFailed` as :func:`simulate` does."""
     plant = perturbation.body(body)
     program = Pushed(plant, controller, perturbation.pushes)
+    if base is not None:
+        base = base.take(torch.zeros(q0.shape[:-1].numel(), dtype=torch.long))
     with torch.no_grad():
         tr: Trajectory = simulate(plant, program, q0, v0, t, _options(options, perturbation),
-                                  track_work=True)
+                                  track_work=True, base=base)
         tau = torch.stack([controller(t[k], tr.q[..., k, :], tr.v[..., k, :])
                            for k in range(len(t))], dim=-2)
         hand = dynamics.tip_position(plant, tr.q)

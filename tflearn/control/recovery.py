@@ -11,7 +11,10 @@ a run folder with a config, else NAME.npz beside the basis.json (as ``tflearn ge
 writes them). MODEL may also be a folder of motions without a basis — NAME.npz with the
 body in body.yaml, as ``tflearn bvh import`` writes recorded clips — for the tracking
 controllers (``ff+pd``, ``ff``, ``pd-high``). The feed-forward torques are the target
-spline's inverse dynamics on the body. ``fields`` plays the basis' program of NAME.
+spline's inverse dynamics on the body. ``fields`` plays the basis' program of NAME. A run
+trained on moving torsos (``torso: moving``) is pushed on them: every controller's limb
+rides the motion's torso (its feed-forward torques with the torso's inertial terms), and
+the pushes' forces and the hand are in the torso's (chest's) frame.
 
 Writes to ``out``: ``results.json`` (per motion and controller: the unperturbed tracking
 RMSE and per case the push and its figures), ``figures/NAME_push.png`` (hand deviation
@@ -40,12 +43,13 @@ from . import pushes as P
 
 
 def targets(model, names: list) -> tuple:
-    """(body, LearnedBasis or None, {name: target Motion}) of a MODEL: a run folder or its
-    basis.json (the basis' body and program), or a folder of motions without a basis, as
-    ``tflearn bvh import`` writes them (NAME.npz and body.yaml, the performer's arm), for
-    the tracking controllers only. Raises :class:`InputError` naming a motion the basis
-    or the data does not hold, and for a run whose motions ride their torsos (``torso:
-    moving``: pushes are simulated on a fixed base)."""
+    """(body, LearnedBasis or None, {name: target Motion}, {name: its torso, a one-member
+    :class:`tflearn.motions.torso.Bases`, or None}) of a MODEL: a run folder or its
+    basis.json (the basis' body and program; the torsos of a run with ``torso: moving``),
+    or a folder of motions without a basis, as ``tflearn bvh import`` writes them
+    (NAME.npz and body.yaml, the performer's arm), for the tracking controllers only, on
+    a fixed base. Raises :class:`InputError` naming a motion the basis or the data does
+    not hold."""
     model = Path(model)
     if model.is_dir() and not (model / "basis.json").exists():
         from ..config import read_body
@@ -53,20 +57,20 @@ def targets(model, names: list) -> tuple:
             raise InputError(f"{model}: neither a run (no basis.json) nor a folder of imported "
                              f"motions (no body.yaml)")
         body = read_body(model / "body.yaml")
-        return body, None, _beside(model, names, body)
-    from ..data.loading import named_motions
+        return body, None, _beside(model, names, body), dict.fromkeys(names)
+    from ..data.loading import named_motions, torsos
     from ..evaluate import run_config
     run, path = (model, model / "basis.json") if model.is_dir() else (model.parent, model)
     lb = basis_io.load(path)
     for name in names:
         lb.index(name)
     if not (run / "config.yaml").exists():
-        return lb.body, lb, _beside(path.parent, names, lb.body, f"{path}: ")
+        return lb.body, lb, _beside(path.parent, names, lb.body, f"{path}: "), dict.fromkeys(names)
     cfg, _ = run_config(run)
-    if cfg.torso == "moving":
-        raise InputError(f"{path}: its motions ride their torsos (torso: moving); pushes are "
-                         f"simulated on a fixed base only")
-    return lb.body, lb, dict(zip(names, named_motions(cfg.data, lb.body, names, str(path))))
+    motions = named_motions(cfg.data, lb.body, names, str(path))
+    bases = torsos(cfg.data, motions, cfg.torso)
+    return (lb.body, lb, dict(zip(names, motions)),
+            {n: None if bases is None else bases.take([j]) for j, n in enumerate(names)})
 
 
 def _beside(folder: Path, names: list, body, where: str = "") -> dict:
@@ -114,15 +118,16 @@ def _push_doc(case: P.Perturbation, i: int) -> dict:
 
 
 def run_motion(body, lb, motion, cfg: PerturbConfig, options: SimOptions,
-               done: Callable[[str], None] = lambda what: None) -> dict:
+               done: Callable[[str], None] = lambda what: None, base=None) -> dict:
     """Every controller × case on one motion: {controller: {"rmse", "cases": [...]}} and the
     responses {controller: (unperturbed, [pushed per case])} for the figures. ``lb``: the
-    learned basis (for ``fields``), or None. ``done(what)`` follows each simulation, 1 +
-    len(cases) per controller ("CONTROLLER: CASE")."""
+    learned basis (for ``fields``), or None; ``base``: the motion's torso (a one-member
+    :class:`tflearn.motions.torso.Bases`) or None (fixed). ``done(what)`` follows each
+    simulation, 1 + len(cases) per controller ("CONTROLLER: CASE")."""
     program = None
     if lb is not None:
         program = FieldProgram(lb.basis, lb.weights.select_motions([lb.index(motion.name)]))
-    target = C.Target(body, motion)
+    target = C.Target(body, motion, base=base)
     copts = C.ControllerOptions(scale=cfg.gains.scale, bilinear=cfg.gains.bilinear,
                                 high_gain=cfg.gains.high_gain)
     q0, v0, _ = target(motion.t[0])
@@ -130,20 +135,21 @@ def run_motion(body, lb, motion, cfg: PerturbConfig, options: SimOptions,
     doc, responses = {}, {}
     for name in cfg.controllers:
         ctrl = C.build(name, target, program, copts)
-        base = _select(P.respond(body, ctrl, P.Perturbation(), q0[None], v0[None], motion.t, options), 0)
+        still = _select(P.respond(body, ctrl, P.Perturbation(), q0[None], v0[None], motion.t, options,
+                                  base), 0)
         done(f"{name}: unperturbed")
         rows, pushed = [], []
         for label, case, J in cases:
             B = 1 if J is None else len(J)
-            r = P.respond(body, ctrl, case, q0.expand(B, -1), v0.expand(B, -1), motion.t, options)
+            r = P.respond(body, ctrl, case, q0.expand(B, -1), v0.expand(B, -1), motion.t, options, base)
             done(f"{name}: {label}")
             pushed.append(r)
             for i in range(B):
                 row = {"case": label, **_push_doc(case, i)}
-                row.update(P.measure(case.body(body), base, _select(r, i), motion.q, case.window(), cfg.tol))
+                row.update(P.measure(case.body(body), still, _select(r, i), motion.q, case.window(), cfg.tol))
                 rows.append(row)
-        doc[name] = {"rmse": P.tracking_rmse(body, base, motion.q), "cases": rows}
-        responses[name] = (base, pushed)
+        doc[name] = {"rmse": P.tracking_rmse(body, still, motion.q), "cases": rows}
+        responses[name] = (still, pushed)
     return doc, responses, cases
 
 
@@ -153,7 +159,7 @@ def run(cfg: PerturbConfig, progress: bool = True) -> dict:
     simulations and each motion's figures."""
     from ..log import RunLog, progress_bar
     out = Path(cfg.out)
-    body, lb, motions = targets(cfg.model, cfg.motions)
+    body, lb, motions, bases = targets(cfg.model, cfg.motions)
     if lb is None and "fields" in cfg.controllers:
         raise InputError(f"{cfg.model}: no basis.json, so there is no 'fields' controller to "
                          f"push (choose among {', '.join(c for c in C.CONTROLLERS if c != 'fields')})")
@@ -175,7 +181,7 @@ def run(cfg: PerturbConfig, progress: bool = True) -> dict:
             def done(what: str, name=name) -> None:
                 bar.set_postfix_str(f"{name}: {what}", refresh=False)
                 bar.update()
-            res, responses, cases = run_motion(body, lb, motion, cfg, options, done)
+            res, responses, cases = run_motion(body, lb, motion, cfg, options, done, bases[name])
             doc["motions"][name] = res
             for c, r in res.items():
                 for k, row in enumerate(r["cases"]):
