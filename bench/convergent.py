@@ -31,8 +31,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from push_sweep import sweep  # noqa: E402
+
 from tflearn import config, train  # noqa: E402
-from tflearn.control import recovery  # noqa: E402
 from tflearn.data.keyframes import random_keyframes  # noqa: E402
 from tflearn.fit import impedance  # noqa: E402
 from tflearn.fit.targets import prepare  # noqa: E402
@@ -71,26 +72,6 @@ def row(run: Path, motions: list, metrics: dict, wall: float) -> dict:
             "M": lb.basis.M, "wall_s": wall}
 
 
-def push(run: Path, names: list, out: Path) -> dict:
-    """Fields against ff+pd under the sweep of pushes (module docstring)."""
-    cfg = config.PerturbConfig(model=str(run), motions=names, controllers=["fields", "ff+pd"],
-                               sweep={"directions": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
-                                      "impulses": [0.025, 0.05, 0.1, 0.2], "at": 0.5,
-                                      "duration": 0.1, "point": "hand"},
-                               tol=0.05, out=str(out), animation=False, tensorboard=False)
-    doc = recovery.run(cfg, progress=False)
-    summary = {}
-    for name, per in doc["motions"].items():
-        f, p = per["fields"]["cases"], per["ff+pd"]["cases"]
-        summary[name] = {
-            "worst_ratio": max(a["max_hand_dev"] / b["max_hand_dev"] for a, b in zip(f, p)),
-            "fields_peak_cm": 100 * max(a["max_hand_dev"] for a in f),
-            "ffpd_peak_cm": 100 * max(b["max_hand_dev"] for b in p),
-            "recovered_1s": sum(a["recovery_s"] is not None and a["recovery_s"] <= 1.0 for a in f),
-            "cases": len(f)}
-    return summary
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", default="1,2,3")
@@ -115,7 +96,7 @@ def main() -> None:
     if args.push:
         first = int(args.seeds.split(",")[0])
         names = [f"keys{first}_{i}" for i in range(args.motions)]
-        result["push"] = push(out / f"run{first}_held", names, out / "push")
+        result["push"] = sweep(out / f"run{first}_held", names, out / "push")
         print(json.dumps(result["push"], indent=1))
     (out / "convergent.json").write_text(json.dumps(result, indent=1))
 

@@ -101,7 +101,7 @@ def prepare_windows(args) -> tuple:
     if not files:
         sys.exit(f"{args.mocap}: no .bvh clips" + (f" matching {args.clips}" if args.clips else "")
                  + " (--mocap DIR or $TFLEARN_MOCAP names the mocap folder)")
-    options = replace(config.load(ROOT / "configs" / "mocap.yaml").bvh.options(), rate=args.rate,
+    options = replace(mocap.import_options(config.load(ROOT / "configs" / "mocap.yaml").bvh), rate=args.rate,
                       busiest=None if args.whole else args.window, split=args.window if args.whole else None)
     folder = args.out / ("pieces" if args.whole else "windows")
     t0 = time.time()

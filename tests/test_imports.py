@@ -9,7 +9,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "tflearn"
 
 #: The rooms from the bottom up, as README's layout lists them.
 ROOMS = ("errors", "parallel", "physics", "model", "io", "motions", "simulation", "plots", "data",
-         "fit", "metrics", "synthesis", "config", "log", "evaluate", "render", "mocap", "modes",
+         "fit", "metrics", "synthesis", "config", "log", "mocap", "evaluate", "render", "modes",
          "control", "train", "experiments", "cli")
 
 

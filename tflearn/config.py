@@ -345,14 +345,6 @@ class BvhSection(Section):
             raise ValueError("window and busiest both choose the part of a clip learned: give one")
         return self
 
-    def options(self, strict: bool = False, like: Optional[dict] = None):
-        """These choices as :class:`tflearn.mocap.clips.ImportOptions`."""
-        from .mocap.clips import ImportOptions
-        clips = {name: c.model_dump(exclude_none=True) for name, c in self.clips.items()}
-        return ImportOptions(side=self.arm, mirror=self.mirror, clips=clips, rate=self.rate,
-                             strict=strict, window=None if self.window is None else tuple(self.window),
-                             busiest=self.busiest, split=self.split, like=like)
-
 
 class Config(Section):
     """The training config (``train CONFIG``); see configs/gestures.yaml."""

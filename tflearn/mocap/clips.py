@@ -360,6 +360,15 @@ def bvh_paths(data) -> list:
     return clips
 
 
+def import_options(bvh, strict: bool = False, like: Optional[dict] = None) -> ImportOptions:
+    """A config's ``bvh:`` section (:class:`tflearn.config.BvhSection`) as the options of
+    :func:`import_clips`, with ``strict`` and ``like``."""
+    clips = {name: c.model_dump(exclude_none=True) for name, c in bvh.clips.items()}
+    return ImportOptions(side=bvh.arm, mirror=bvh.mirror, clips=clips, rate=bvh.rate, strict=strict,
+                         window=None if bvh.window is None else tuple(bvh.window),
+                         busiest=bvh.busiest, split=bvh.split, like=like)
+
+
 def import_config(cfg):
     """A train config (:class:`tflearn.config.Config`) whose ``data`` names BVH clips
     (:func:`bvh_paths`), with the clips imported (:func:`import_clips`, the config's
@@ -371,7 +380,7 @@ def import_config(cfg):
     if not clips:
         return cfg, None
     out = Path(cfg.out) / "imported"
-    report = import_clips(clips, out, cfg.bvh.options(cfg.strict))
+    report = import_clips(clips, out, import_options(cfg.bvh, cfg.strict))
     if cfg.body not in ({"preset": "arm"}, report["body"]):
         warnings.warn(f"{cfg.out}: the config's body: section is replaced by the performer's arm "
                       f"imported from the BVH clips ({out / 'body.yaml'})", stacklevel=2)
@@ -387,7 +396,7 @@ def import_like(cfg, data, out) -> Optional[Path]:
     else None (``data`` is read as it is)."""
     clips = bvh_paths(data)
     if clips:
-        import_clips(clips, out, cfg.bvh.options(cfg.strict, like=cfg.body), choices=False)
+        import_clips(clips, out, import_options(cfg.bvh, cfg.strict, like=cfg.body), choices=False)
         return Path(out)
     items = [data] if isinstance(data, (str, Path)) else list(data)
     for folder in {Path(x) if Path(x).is_dir() else Path(x).parent for x in items}:
