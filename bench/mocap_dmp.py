@@ -4,15 +4,15 @@
     PYTHONPATH=. python bench/mocap_dmp.py [--out runs/mocap_bench] [--weights 10]
         [--window 1.0] [--rate 60] [--run RUN] [--clips TEXT...]
 
-The windows are bench/mocap_basis.py's (the same import, ARMS and busiest windows; give
-the same --window, --rate and --clips). Per window: a DMP over the 7 coordinates (ball
-joints' rotation vectors as plain vectors: the shared shoulder chart keeps them far from
-π), ``--weights`` basis functions per dimension, imitated from the window resampled at
-16× its rate on tflearn's quintic spline (the package's imitation differentiates by
-finite differences: at 60 Hz they alone cost ~5 cm on a smooth rest-to-rest profile)
-and replayed open loop from its start (position and velocity; the windows start and
-end moving, so the final velocity is allowed); parameters per motion = 7 × weights + 7 (goal) + 7
-(goal velocity) + 1 (duration).
+The windows are bench/mocap_basis.py's (the same import with configs/mocap.yaml's
+choices, the busiest windows; give the same --window, --rate and --clips). Per window:
+a DMP over the 7 coordinates (ball joints' rotation vectors as plain vectors: the shared
+shoulder chart keeps them far from π), ``--weights`` basis functions per dimension,
+imitated from the window resampled at 16× its rate on tflearn's quintic spline (the
+package's imitation differentiates by finite differences: at 60 Hz they alone cost
+~5 cm on a smooth rest-to-rest profile) and replayed open loop from its start (position
+and velocity; the windows start and end moving, so the final velocity is allowed);
+parameters per motion = 7 × weights + 7 (goal) + 7 (goal velocity) + 1 (duration).
 Scores as tflearn's metrics: joint RMSE (configuration difference, rad) and the largest
 hand-tip distance (m). Then the start posture is moved by +0.2 rad in every coordinate:
 the response is the RMS deviation from the unperturbed replay over the window, and at
