@@ -161,7 +161,8 @@ def test_evaluate_new_motion(run_dir, tmp_path, capsys):
     its stored weights (its metrics.json figures); the new one is synthesised (flag
     ``synthesized``: NNLS weights on its torques, then 2 path steps) and reproduced as
     well as in training (measured: rmse 0.0093 → 0.0093, tip 0.87 cm); its program is
-    written beside the metrics as synthesized.json, which ``simulate`` plays."""
+    written beside the metrics as the run folder synthesized/, which ``simulate`` plays
+    and ``perturb`` pushes (the target found through its config.yaml's data)."""
     from tflearn.io import basis as basis_io
     run = run_dir["out"]
     data2 = tmp_path / "data2"
@@ -185,11 +186,13 @@ def test_evaluate_new_motion(run_dir, tmp_path, capsys):
         assert abs(row_known[key] - ref["motions"][known][key]) <= 1e-6
         assert row_new[key] <= ref["motions"][other][key] + 1e-3
     assert row_new["success"] and ev["complete"] is True
-    synth = basis_io.load(tmp_path / "synthesized.json")
+    synth = basis_io.load(tmp_path / "synthesized" / "basis.json")
     assert synth.names == ["unseen"] and synth.basis.M == ev["overall"]["M"]
-    assert printed.strip().splitlines()[-1].endswith(f"programs, {tmp_path / 'synthesized.json'}")
-    assert cli.main(["simulate", str(tmp_path / "synthesized.json"), "--motion", "unseen",
+    assert printed.strip().splitlines()[-1].endswith(f"programs, {tmp_path / 'synthesized'}")
+    assert cli.main(["simulate", str(tmp_path / "synthesized"), "--motion", "unseen",
                      "--out", str(tmp_path / "unseen.npz")]) == 0
+    assert cli.main(["perturb", str(tmp_path / "synthesized"), "--motion", "unseen", "--controller",
+                     "fields", "--no-animation", "--out", str(tmp_path / "push"), "--quiet"]) == 0
     # the path steps trade a little torque fit for path (measured 0.0097 against 0.0062
     # in training), but the frozen basis still explains the torques
     assert row_new["torque_rel_rms"] <= 0.05

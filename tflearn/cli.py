@@ -120,7 +120,7 @@ def _evaluate(args) -> int:
     print("\n".join(_motion_lines(metrics["motions"])))
     print(f"M = {o['M']}, overall rmse {o['rmse']:.4f} rad, max tip error {100 * o['tip']:.2f} cm, "
           f"all reproduced: {'yes' if o['success'] else 'no'}")
-    synth = " and the new motions' programs, " + str(out.parent / "synthesized.json") if any(
+    synth = " and the new motions' programs, " + str(out.parent / "synthesized") if any(
         r["synthesized"] for r in metrics["motions"].values()) else ""
     print(f"wrote {out}{synth}")
     return 0

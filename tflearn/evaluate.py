@@ -88,9 +88,10 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
     OUT's folder/imported in the run's body and chart with its ``bvh`` choices
     (:func:`tflearn.mocap.clips.import_like`; a folder of motions in another body is
     refused). Writes ``out`` (default RUN/evaluation.json) after each synthesised motion,
-    with ``"complete"`` false until the last, and beside it synthesized.json: a basis.json
-    of the fields and the new motions' programs (``tflearn simulate``, ``render`` and
-    ``perturb`` read it). Returns the metrics."""
+    with ``"complete"`` false until the last, and beside it the folder synthesized/: a run
+    folder of the new motions (basis.json of the fields and their programs, config.yaml
+    naming their data), which ``tflearn simulate``, ``render`` and ``perturb`` take as
+    RUN. Returns the metrics."""
     run = Path(run)
     lb = basis_io.load(run / "basis.json")
     cfg, options = run_config(run)
@@ -121,7 +122,10 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
 
     if known:
         scored(known, False)
-    programs = []
+    programs, synth = [], out.parent / "synthesized"
+    if new:
+        synth.mkdir(parents=True, exist_ok=True)
+        config_mod.dump(cfg.replace(data=_absolute(source), out=str(synth)), synth / "config.yaml")
     with progress_bar(len(new), "synthesis", "motions", progress and bool(new)) as bar:
         for m in new:
             programs.append(scored([m], True))
@@ -129,8 +133,15 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
             bar.set_postfix_str(f"{m.name}: {r['rmse']:.4f} rad, {100 * r['tip']:.2f} cm")
             bar.update()
             _write(out, results, counts, lb.basis.M, complete=len(programs) == len(new))
-            basis_io.save(_joined(programs), out.parent / "synthesized.json")
+            basis_io.save(_joined(programs), synth / "basis.json")
     return _write(out, results, counts, lb.basis.M, complete=True)
+
+
+def _absolute(data):
+    """A config's ``data`` with its paths made absolute (the built-in "gestures" as it is)."""
+    if isinstance(data, (str, Path)):
+        return data if str(data) == "gestures" else str(Path(data).resolve())
+    return [str(Path(p).resolve()) for p in data]
 
 
 def _joined(parts: list) -> LearnedBasis:
