@@ -208,3 +208,19 @@ def test_held_out_synthesis_asks_the_runs_stiffness(keyframes):
     stiff = impedance.path_stiffness(body, basis, held, new)
     soft = impedance.path_stiffness(body, basis, loose, new)
     assert bool((stiff > 5.0).all()) and bool((soft < 0.5 * stiff).all()), (stiff, soft)
+
+
+def test_windows_per_second_follow_the_longest_motion(keyframes, tmp_path):
+    """``model.window_rate``: P = ⌈rate × the longest motion's duration⌉, written into the
+    run's config (so a resumed run and its checkpoint agree); 0 leaves model.windows."""
+    import math
+
+    from tflearn import config
+    from tflearn.train.pipeline import sized_windows
+    _, tg = keyframes
+    longest = float(tg.duration.max())
+    cfg = config.load(None, ["model.windows=16", "model.window_rate=8"])
+    assert sized_windows(cfg, tg).model.windows == math.ceil(8 * longest) != 16
+    assert sized_windows(config.load(None, ["model.windows=16"]), tg).model.windows == 16
+    with pytest.raises(config.ConfigError, match="window_rate"):
+        config.load(None, ["model.window_rate=-1"])

@@ -45,13 +45,13 @@ def check_config(cfg: Config) -> None:
                           "coordinate: it needs model.fields=0 and model.stiffness diag, block "
                           f"or full (got {m.fields}, {m.stiffness!r})")
     if cfg.solver.method == "slsqp" and (m.fields < 1 or m.stiffness != "diag" or m.phases != "fixed"
-                                         or m.field_damping or m.windows
+                                         or m.field_damping or m.windows or m.window_rate
                                          or cfg.solver.torque_weight != "uniform"):
         raise ConfigError(
             "solver.method 'slsqp' (the thesis' baseline) fits a basis of a given size "
             "with diagonal stiffness, fixed phases, no field damping and no windows: it "
             "needs model.fields ≥ 1, model.stiffness=diag, model.phases=fixed, "
-            f"model.field_damping=0, model.windows=0 and solver.torque_weight=uniform "
+            f"model.field_damping=0, model.windows=0 (and window_rate) and solver.torque_weight=uniform "
             f"(got {m.fields}, {m.stiffness!r}, {m.phases!r}, {m.field_damping}, "
             f"{m.windows}, {cfg.solver.torque_weight!r})")
 

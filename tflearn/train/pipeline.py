@@ -5,6 +5,7 @@ done (:meth:`RunState.advance`), then the artefacts (:func:`~tflearn.train.artef
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -39,8 +40,9 @@ def run(cfg: Config, restart: bool = False, stop_after: Optional[int] = None,
     check_config(cfg)
     with parallel.group(str(device)):
         torch.manual_seed(cfg.seed)
-        checkpoints = Checkpoints(cfg, device, stop_after)
         tg, resolution, skipped = load(cfg, body)
+        cfg = sized_windows(cfg, tg)
+        checkpoints = Checkpoints(cfg, device, stop_after)
         with on_device(device):
             ctx = new_context(cfg, tg.to(device), checkpoints, resolution=resolution, skipped=skipped)
             state = checkpoints.start(restart) or RunState(
@@ -62,6 +64,17 @@ def load(cfg: Config, body) -> tuple:
     resolution = check_resolution(body, motions)
     tg = prepare(body, motions, weight=cfg.solver.torque_weight, base=torsos(cfg.data, motions, cfg.torso))
     return tg, resolution, skipped
+
+
+def sized_windows(cfg: Config, tg) -> Config:
+    """``cfg`` with ``model.windows`` P = ⌈``model.window_rate`` × the longest motion's
+    duration⌉ when that rate is set (> 0), else as it is: the run, its checkpoint and
+    its config.yaml then hold that P."""
+    rate = cfg.model.window_rate
+    if not rate:
+        return cfg
+    P = max(1, math.ceil(rate * float(tg.duration.max()) - 1e-9))
+    return cfg.replace(model={"windows": P})
 
 
 def new_context(cfg: Config, tg, checkpoints: Optional[Checkpoints] = None, **data) -> RunContext:
