@@ -17,6 +17,7 @@ from dataclasses import replace
 
 import torch
 
+from ... import parallel
 from ...fit import search, select, torque
 from ...metrics import Scores
 from ...model.program import model_from_state, model_state
@@ -81,8 +82,8 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     candidates."""
     pooled = basis.M
     ctx.log.busy(pooled=pooled, choosing="fields")
-    sel = select.select(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
-                        progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m))
+    sel = _chosen(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
+                  progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m))
     weights = weights.select_fields(sel.kept)
     state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
                      if ctx.cfg.solver.pool.sharing == "own" else None)
@@ -91,6 +92,14 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     if ctx.log.writer is not None:
         ctx.log.figure("model/knee", knee(sel.path, len(sel.kept), ctx.tg.N), state.iteration)
     return basis.select(sel.kept), weights, sel.merged, record, sel.tolerance
+
+
+def _chosen(*args, **kwargs) -> select.Selection:
+    """:func:`~tflearn.fit.select.select` on rank 0 alone, its result broadcast: the
+    selection holds every motion's normal equations over its candidates (memory ∝ N·F²),
+    which each rank of a parallel run would otherwise build again."""
+    sel = select.select(*args, **kwargs) if parallel.rank() == 0 else None
+    return parallel.broadcast(sel)
 
 
 def _options(ctx: RunContext) -> select.SelectOptions:
@@ -104,7 +113,7 @@ def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tol
     motions may now be served by a refined field); if fewer remain, EM again. Returns
     (basis, weights); ``chosen`` records the count (``refined``)."""
     used = weights.used() | torch.tensor(state.support or [[False] * basis.M] * ctx.tg.N)
-    sel = select.select(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance)
+    sel = _chosen(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance)
     chosen["refined"] = len(sel.kept)
     if len(sel.kept) == basis.M:
         return basis, weights
