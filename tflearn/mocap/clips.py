@@ -260,8 +260,17 @@ def import_frames(frames: list, out, options: ImportOptions = ImportOptions()) -
     return {**report, "clips": clips}
 
 
+def _body_in(path: Path) -> Optional[dict]:
+    """The ``body:`` section of a YAML file (a body.yaml, a run's config.yaml), None when
+    the file is absent or holds none; errors reading it name the file."""
+    from ..config import read
+    doc = read(path).get("body") if path.exists() else None
+    return doc if isinstance(doc, dict) else None
+
+
 def _holds_body(path: Path, doc: dict) -> bool:
-    return path.exists() and same_body(yaml.safe_load(path.read_text())["body"], doc)
+    held = _body_in(path)
+    return held is not None and same_body(held, doc)
 
 
 def _clip_key(entry: dict) -> str:
@@ -306,15 +315,14 @@ def like_body(path) -> dict:
     """The ``body:`` section that clips are imported like (``--like``): of a run folder
     (its config.yaml), an import folder (its body.yaml) or a YAML file holding one; an
     arm (preset "arm"). :class:`InputError` names the path and the problem."""
-    from ..config import read
     path = Path(path)
     if path.is_dir():
         found = [path / n for n in ("config.yaml", "body.yaml") if (path / n).exists()]
         if not found:
             raise InputError(f"{path}: neither a run (config.yaml) nor an import (body.yaml)")
         path = found[0]
-    doc = read(path).get("body")
-    if not isinstance(doc, dict) or doc.get("preset") != "arm":
+    doc = _body_in(path)
+    if doc is None or doc.get("preset") != "arm":
         raise InputError(f"{path}: its body: section is not an arm (preset: arm), got {doc!r}")
     return doc
 
@@ -401,15 +409,13 @@ def import_like(cfg, data, out) -> Optional[Path]:
     items = [data] if isinstance(data, (str, Path)) else list(data)
     for folder in {Path(x) if Path(x).is_dir() else Path(x).parent for x in items}:
         path = folder / "body.yaml"
-        if path.exists():
-            from ..config import read
-            doc = read(path).get("body")
-            if isinstance(doc, dict) and not same_body(doc, cfg.body):
-                raise InputError(
-                    f"{path}: these motions are not in the run's body (shoulder chart "
-                    f"{chart_angle(doc, cfg.body):.1f}° from the run's, bones "
-                    f"{doc.get('lengths')} against {cfg.body.get('lengths')}); import their clips in "
-                    f"the run's chart (tflearn bvh import CLIPS --like RUN), or name the clips")
+        doc = _body_in(path)
+        if doc is not None and not same_body(doc, cfg.body):
+            raise InputError(
+                f"{path}: these motions are not in the run's body (shoulder chart "
+                f"{chart_angle(doc, cfg.body):.1f}° from the run's, bones "
+                f"{doc.get('lengths')} against {cfg.body.get('lengths')}); import their clips in "
+                f"the run's chart (tflearn bvh import CLIPS --like RUN), or name the clips")
     return None
 
 
