@@ -102,12 +102,12 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
     known = [m for m in motions if m.name in lb.names]
     new = [m for m in motions if m.name not in lb.names]
     results, counts = {}, {}
+    shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
+    held = cfg.solver.layout.impedance() if cfg.solver.method == "layout" else impedance.Impedance()
 
     def scored(group: list, synth: bool) -> LearnedBasis:
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
                      base=torsos(source, group, cfg.torso))
-        shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
-        held = cfg.solver.layout.impedance() if cfg.solver.method == "layout" else impedance.Impedance()
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip),
                               ridge=cfg.solver.ridge, held=held) if synth
                    else weights_for(lb, tg))
@@ -122,19 +122,20 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
 
     if known:
         scored(known, False)
+    if not new:
+        return _write(out, results, counts, lb.basis.M, complete=True)
     programs, synth = [], out.parent / "synthesized"
-    if new:
-        synth.mkdir(parents=True, exist_ok=True)
-        config_mod.dump(cfg.replace(data=_absolute(source), out=str(synth)), synth / "config.yaml")
-    with progress_bar(len(new), "synthesis", "motions", progress and bool(new)) as bar:
+    synth.mkdir(parents=True, exist_ok=True)
+    config_mod.dump(cfg.replace(data=_absolute(source), out=str(synth)), synth / "config.yaml")
+    with progress_bar(len(new), "synthesis", "motions", progress) as bar:
         for m in new:
             programs.append(scored([m], True))
             r = results[m.name]
             bar.set_postfix_str(f"{m.name}: {r['rmse']:.4f} rad, {100 * r['tip']:.2f} cm")
             bar.update()
-            _write(out, results, counts, lb.basis.M, complete=len(programs) == len(new))
+            doc = _write(out, results, counts, lb.basis.M, complete=len(programs) == len(new))
             basis_io.save(_joined(programs), synth / "basis.json")
-    return _write(out, results, counts, lb.basis.M, complete=True)
+    return doc
 
 
 def _absolute(data):
