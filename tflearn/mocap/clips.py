@@ -344,11 +344,16 @@ def busiest_window(m: motion_mod.Motion, seconds: float) -> tuple:
     return float(m.t[i]), float(m.t[i + n])
 
 
+def _items(data) -> list:
+    """A config's ``data`` as a list of the paths it names (one, or several)."""
+    return [data] if isinstance(data, (str, Path)) else list(data)
+
+
 def bvh_paths(data) -> list:
     """The BVH clips a train config's ``data`` names: .bvh files and folders holding
     .bvh files (as :class:`~pathlib.Path`); [] when it names none. Raises
     :class:`InputError` when it mixes them with motion files, or a folder holds both."""
-    items = [data] if isinstance(data, (str, Path)) else list(data)
+    items = _items(data)
     if [str(x) for x in items] == ["gestures"]:
         return []
     paths = [Path(x) for x in items]
@@ -406,7 +411,7 @@ def import_like(cfg, data, out) -> Optional[Path]:
     if clips:
         import_clips(clips, out, import_options(cfg.bvh, cfg.strict, like=cfg.body), choices=False)
         return Path(out)
-    items = [data] if isinstance(data, (str, Path)) else list(data)
+    items = _items(data)
     for folder in {Path(x) if Path(x).is_dir() else Path(x).parent for x in items}:
         path = folder / "body.yaml"
         doc = _body_in(path)
