@@ -53,9 +53,6 @@ from . import retarget as rt
 GRAVITY = (0.0, 0.0, -9.81)
 
 
-OTHER = {"right": "left", "left": "right"}
-
-
 @dataclass(frozen=True)
 class ImportOptions:
     """Options of :func:`import_clips`.
@@ -117,7 +114,7 @@ class ImportOptions:
             raise InputError("an arm map names one arm: give --arm right or left with it")
         for name, choice in self.clips.items():
             bad = set(choice) - {"arm", "fps"}
-            if bad or choice.get("arm", "right") not in OTHER or not choice.get("fps", 1.0) > 0:
+            if bad or choice.get("arm", "right") not in rt.OTHER or not choice.get("fps", 1.0) > 0:
                 raise InputError(f"clip {name}: its choices are arm (right or left) and fps (> 0), "
                                  f"got {dict(choice)}")
 
@@ -126,7 +123,7 @@ class ImportOptions:
         """The arm every clip is imported onto (see the class doc)."""
         arms = {self.side, *(c.get("arm", self.side) for c in self.clips.values())}
         side = self.side if arms in ({"right"}, {"left"}) else "right"
-        return OTHER[side] if self.mirror else side
+        return rt.OTHER[side] if self.mirror else side
 
     def frames(self, skel: bvh.Skeleton) -> rt.ArmFrames:
         """A clip's arm with this import's per-clip choices: its frame rate, its arm, and

@@ -374,13 +374,16 @@ def hand_travel(frames: ArmFrames) -> float:
 #: ``moving_arm``: the other arm is taken only when its hand travels this many times further.
 BOTH_ARMS = 1.25
 
+#: Each arm's other one.
+OTHER = {"right": "left", "left": "right"}
+
 
 def moving_arm(skel: Skeleton, prefer: str = "right") -> str:
     """The arm of a clip that performs it: the one whose hand travels further relative
     to the chest (:func:`hand_travel`); ``prefer`` unless the other's travel is
     :data:`BOTH_ARMS` times its own (a clip moving both arms alike keeps ``prefer``), or
     ``prefer``'s arm cannot be mapped (built-in maps, :func:`find_map`)."""
-    other = "left" if prefer == "right" else "right"
+    other = OTHER[prefer]
     try:
         own = hand_travel(arm_frames(skel, prefer))
     except BVHError:
