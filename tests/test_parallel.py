@@ -86,6 +86,16 @@ def test_rows_sent_to_other_ranks_carry_their_own_elements_only():
     assert sent["whole"] is big
 
 
+def test_named_tuples_are_sent_whole():
+    """A per-motion fit (a named tuple, :class:`tflearn.train.state.FieldFit`) sent to the
+    other ranks comes back the same type with its rows."""
+    from tflearn.train.state import FieldFit
+    big = torch.arange(20, dtype=torch.float64).reshape(4, 5)
+    sent = parallel._cpu([FieldFit(big[1:2], big[2:4], {"a_raw": big[3]})])[0]
+    assert isinstance(sent, FieldFit) and torch.equal(sent.eta, big[1:2]) and torch.equal(sent.K, big[2:4])
+    assert torch.equal(sent.timing["a_raw"], big[3])
+
+
 def test_local_device_is_the_ranks_gpu(monkeypatch):
     """Plain cuda is GPU LOCAL_RANK (0 without torchrun); a numbered device stays itself."""
     monkeypatch.delenv("LOCAL_RANK", raising=False)

@@ -97,9 +97,12 @@ def group(device: str = "cpu", timeout_s: float = 1800.0):
 
 
 def _map(obj, f):
-    """``obj`` with ``f`` applied to every tensor in it (nested in lists, tuples, dicts)."""
+    """``obj`` with ``f`` applied to every tensor in it (nested in lists, tuples, named
+    tuples, dicts)."""
     if isinstance(obj, torch.Tensor):
         return f(obj)
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
+        return type(obj)(*(_map(x, f) for x in obj))
     if isinstance(obj, (list, tuple)):
         return type(obj)(_map(x, f) for x in obj)
     if isinstance(obj, dict):
