@@ -762,11 +762,11 @@ def test_reuse_tol_lets_simulation_judge_a_library_fit_above_tol(tmp_path):
 
 
 @pytest.mark.slow
-def test_pool_restores_the_fields_a_motion_was_reproduced_with(tmp_path):
-    """:func:`pool.restore`: tuck, reproduced by its own fit (its generating field,
-    a = 2), is not by a pooled model whose copy of its field was moved 0.2 rad (as a merge
-    can): its own field comes back as a third field, with its own weight, for it alone,
-    and it is reproduced again; come_here keeps its weights, scores and fields."""
+def _restored(tmp_path, *extra) -> tuple:
+    """:func:`pool.restore` on come_here and tuck, both reproduced by their own fits
+    (each its generating field), on a pooled model whose copy of tuck's field was moved
+    0.2 rad (as a merge can), which no longer reproduces tuck: (the state after, the
+    scores and success before and after, tuck's field, the pooled weights)."""
     programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
     pairs = gestures.generate(gestures=programs)
     tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
@@ -777,7 +777,7 @@ def test_pool_restores_the_fields_a_motion_was_reproduced_with(tmp_path):
     moved = FieldBasis(torch.stack([eta[0], eta[1] + 0.2]), K, kind="scalar")
     weights = MotionWeights.zeros(2, tg.duration, tg.names)
     torque.solve_weights(moved, weights, tg)
-    ctx = train.new_context(small_config("gestures", tmp_path / "run"), tg)
+    ctx = train.new_context(small_config("gestures", tmp_path / "run", *extra), tg)
     scores, ok = ctx.check(moved, weights, tg)
     assert ok == [True, False]
     state = train.RunState(config={}, stage="pool", rng=torch.Generator().get_state(), fits=fits,
@@ -785,13 +785,35 @@ def test_pool_restores_the_fields_a_motion_was_reproduced_with(tmp_path):
                            history=History(each=EachRecord(reproduced=[True, True]),
                                            pool=ModelRecord(M=2, torque_cost=0.0, success=ok)))
     after, fine = pool.restore(ctx, state, scores, ok)
+    return state, (scores, ok), (after, fine), eta[1], weights
+
+
+def test_pool_gives_a_motion_it_lost_a_fitted_copy_of_its_field(tmp_path):
+    """Multiple shooting with the fields free fits copies of the two fields tuck has a
+    weight on to its path: two more fields, for tuck alone, that reproduce it; come_here
+    keeps its weights, scores and fields."""
+    state, (scores, _), (after, fine), _, weights = _restored(tmp_path)
+    assert weights.used()[1].tolist() == [True, True]
+    assert fine == [True, True] and after.rmse[1] < 0.03 and after.rmse[0] == scores.rmse[0]
+    basis, w = model_from_state(state.model)
+    assert basis.M == 4 and torch.equal(w.a.detach()[1, :2], torch.zeros(2, dtype=torch.float64))
+    assert torch.equal(w.a.detach()[0, :2], weights.a.detach()[0])
+    assert state.support == [[True, True, False, False], [False, False, True, True]]
+    assert state.history.pool.restored == state.history.pool.copied == ["tuck"]
+
+
+def test_pool_restores_the_fields_a_motion_was_reproduced_with(tmp_path):
+    """Without shooting of the fields, tuck's own field comes back as a third field,
+    with its own weight, for it alone, and it is reproduced again."""
+    state, (scores, _), (after, fine), eta, weights = _restored(tmp_path, "solver.shooting.fields=false")
     assert fine == [True, True] and after.rmse[1] < 1e-3 and after.rmse[0] == scores.rmse[0]
     basis, w = model_from_state(state.model)
-    assert basis.M == 3 and torch.equal(basis.eta.detach()[2], eta[1])
+    assert basis.M == 3 and torch.equal(basis.eta.detach()[2], eta)
     assert w.a.detach()[1].tolist() == [0.0, 0.0, 2.0]
     assert torch.equal(w.a.detach()[0, :2], weights.a.detach()[0])
     assert state.support == [[True, True, False], [False, False, True]]
-    assert state.history.pool.restored == ["tuck"] and state.history.pool.M == 3
+    assert state.history.pool.restored == ["tuck"] and state.history.pool.copied is None
+    assert state.history.pool.M == 3
 
 
 def test_training_warns_of_an_unresolved_motion():

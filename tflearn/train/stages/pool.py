@@ -1,31 +1,34 @@
 """Stage ``pool`` — all per-motion fields in one basis; the shared fields chosen among
 them by what the motions need (``solver.select``, :func:`~tflearn.fit.select.select`:
-the fewest that keep every motion's torque cost within its own fit's plus δ), refined
-jointly by EM and chosen again among the refined ones; with ``solver.select.enabled:
+the fewest that keep every motion's torque cost within its own fit's plus δ, each
+motion then driven by the fewest of them that serve it), refined jointly by EM and
+chosen again among the refined ones; with ``solver.select.enabled:
 false`` fields that nearly coincide (``solver.merge``) are merged instead, every other
 pooled field kept (with ``solver.pool.sharing: own`` each motion keeps to its own
 fields, as it was reproduced alone).
 
 Motions that their own fits reproduced but the chosen basis does not are first
-path-matched on it by multiple shooting (:func:`shoot`), and get their own fields back
-if that fails (:func:`restore`). The pooled model is scored by simulation: the reference
+path-matched on it by multiple shooting (:func:`shoot`), and if that fails get fields
+of their own (:func:`restore`): copies of those they drive fitted to their path, or
+their own fit's. The pooled model is scored by simulation: the reference
 that elimination (``reduce``) keeps every motion to. One unit.
 """
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Optional
 
 import torch
 
 from ... import parallel
-from ...fit import search, select, torque
+from ...fit import search, select, shooting, torque
 from ...metrics import Scores
 from ...model.program import model_from_state, model_state
 from ...model.weights import MotionWeights
 from ...plots.model import knee
 from ..context import RunContext
 from ..models import weight_support
-from ..state import ModelRecord, Reference, RunState
+from ..state import FieldFit, ModelRecord, Reference, RunState
 
 NAME, TITLE, UNIT = "pool", "pool and merge", "stage"
 
@@ -78,15 +81,14 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     """The fewest pooled fields that serve every motion (:func:`~tflearn.fit.select.select`):
     (basis, weights on them, merged pairs [kept, dropped] — each dropped own field with
     the nearest kept one its motion uses —, the selection's record for metrics.json, each
-    motion's bar τ_j). With ``sharing: own`` a motion may use the chosen fields among its
-    candidates."""
+    motion's bar τ_j). Each motion may use its support: the fewest chosen fields that
+    serve it (``state.support``)."""
     pooled = basis.M
     ctx.log.busy(pooled=pooled, choosing="fields")
     sel = _chosen(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
                   progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m))
     weights = weights.select_fields(sel.kept)
-    state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
-                     if ctx.cfg.solver.pool.sharing == "own" else None)
+    state.support = [[f in mine for f in sel.kept] for mine in sel.support]
     record = {"pooled": pooled, "kept": len(sel.kept), "pruned": len(sel.pruned),
               "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved]}
     if ctx.log.writer is not None:
@@ -110,17 +112,17 @@ def _options(ctx: RunContext) -> select.SelectOptions:
 def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tolerance: list) -> tuple:
     """EM has moved the chosen copies towards what all their motions need: the selection
     again among them, each motion held to the same bar τ_j (a copy that served few
-    motions may now be served by a refined field); if fewer remain, EM again. Returns
+    motions may now be served by a refined field), and each motion's support chosen
+    again; if fewer remain, EM again. Returns
     (basis, weights); ``chosen`` records the count (``refined``)."""
-    used = weights.used() | torch.tensor(state.support or [[False] * basis.M] * ctx.tg.N)
+    used = weights.used() | torch.tensor(state.support)
     sel = _chosen(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance)
     chosen["refined"] = len(sel.kept)
+    keep = sorted(sel.kept)
+    state.support = [[i in mine for i in keep] for mine in sel.support]
     if len(sel.kept) == basis.M:
         return basis, weights
-    keep = sorted(sel.kept)
     basis, weights = basis.select(keep), weights.select_fields(keep)
-    if state.support is not None:
-        state.support = [[row[i] for i in keep] for row in state.support]
     ctx.em(basis, weights, ctx.tg, state, tag="torque_cost/pool", support=state.support,
            min_gain=ctx.cfg.solver.pool.min_gain)
     return basis, weights
@@ -166,17 +168,22 @@ def shoot(ctx: RunContext, state: RunState, basis, weights, scores: Scores, ok: 
 
 def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple:
     """Motions their own fits reproduced (``each``) that the pooled model does not —
-    merging or refitting moved a field their path needs to the digit — get their own
-    fields back as fields of their own: such a motion's weights and timing are its own
-    fit's, on those fields only, and no other motion uses them (``state.support``);
-    elimination may still remove them, by its rule. Changes ``state.model``,
-    ``state.support`` and the pool's record; returns the (scores, success) of every
+    merging or refitting moved a field their path needs to the digit — get fields of
+    their own, which no other motion uses (``state.support``): copies of the fields they
+    drive, fitted to their path by multiple shooting with the fields free
+    (:func:`_fitted_copies`) when that reproduces them, else their own fit's fields,
+    weights and timing. Elimination may still remove them, by its rule. Changes
+    ``state.model``, ``state.support`` and the pool's record (``restored``: every such
+    motion; ``copied``: those on fitted copies); returns the (scores, success) of every
     motion."""
     tg, lost = ctx.tg, broken(state, ok)
     if not lost:
         return scores, ok
     basis, weights = model_from_state(state.model)
-    M0, own = basis.M, [state.fits[j] for j in lost]
+    ctx.log.busy(restoring=len(lost))
+    copies = parallel.gather_motions(len(lost), [_fitted_copies(ctx, basis, weights, lost[i])
+                                                 for i in parallel.mine(len(lost))])
+    M0, own = basis.M, [c or state.fits[j] for c, j in zip(copies, lost)]
     nb = basis.extend(torch.cat([f.eta for f in own]), torch.cat([f.K for f in own]))
     nw = weights.extend_fields(nb.M - M0)
     rows = state.support or [[True] * M0 for _ in range(tg.N)]
@@ -200,8 +207,27 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple
         ok[j] = fine[i]
     state.model, state.support = model_state(nb, nw), support
     record = state.history.pool
-    record.M, record.success, record.restored = nb.M, ok, [tg.names[j] for j in lost]
+    record.M, record.success = nb.M, ok
+    record.restored = [tg.names[j] for j in lost]
+    record.copied = [tg.names[j] for j, c in zip(lost, copies) if c is not None] or None
     return scores, ok
+
+
+def _fitted_copies(ctx: RunContext, basis, weights, j: int) -> Optional[FieldFit]:
+    """Motion j alone on copies of the fields it has a weight on, those copies and its
+    weights fitted to its path by multiple shooting with the fields free (``solver.shooting``,
+    as for a motion alone in ``each``): their :class:`FieldFit` when simulation then
+    reproduces it, else None. A motion driven by one shared field costs one field of its
+    own this way, not the two or three its own search found."""
+    c, fields = ctx.cfg.solver.shooting, weights.used()[j].nonzero().flatten().tolist()
+    if not (c.fields and c.iterations and fields):
+        return None
+    one, b, w = ctx.tg.select([j]), basis.select(fields), weights.select_motions([j]).select_fields(fields)
+    shooting.shooting_match(ctx.body, b, w, one, options=replace(c.options(ctx.variable_phases), fields=True),
+                            sim=ctx.options)
+    if not all(ctx.check(b, w, one, distributed=False)[1]):
+        return None
+    return FieldFit(b.eta.detach().clone(), b.K().detach().clone(), w.timing(0, weights=True))
 
 
 def _replaced(scores: Scores, motions: list, check: Scores) -> Scores:
