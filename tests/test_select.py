@@ -62,6 +62,31 @@ def test_the_forward_path_never_costs_more_with_more_fields():
     assert served == sorted(served) and served[-1] == tg.N
 
 
+def test_each_motion_is_driven_by_the_fewest_chosen_fields_that_serve_it():
+    basis, weights, tg, own = _copies(STIFF)
+    s = select.select(basis, weights, tg, own)
+    assert sorted(s.kept) == [0, 1]
+    assert s.support == [[0], [1], [1], [1]]                 # each its own field alone
+    assert all(c <= t for c, t in zip(s.costs, s.tolerance))
+
+
+def test_exact_copies_are_one_candidate():
+    basis, weights, tg, own = _copies(STIFF)                 # fields 1, 2, 3: one field thrice
+    s = select.select(basis, weights, tg, own)
+    assert all(2 not in c and 3 not in c for c in s.candidates)
+    assert all(1 in c for c in s.candidates[1:])
+
+
+def test_reach_is_relative_to_the_motions_own_fields():
+    """A copy of a motion's own field is its candidate however weak both are on its path:
+    with reach 0.9, an absolute bar would leave motion 1 its own copy alone."""
+    basis, weights, tg, own = _copies(STIFF, distance=1e-6)
+    peak = basis.gaussians(tg.q[1][tg.mask[1]]).max(0).values
+    assert float(peak[1]) < 0.9
+    s = select.select(basis, weights, tg, own, select.SelectOptions(reach=0.9))
+    assert 0 in s.candidates[1] and len(s.kept) == 1
+
+
 @pytest.mark.slow
 def test_a_planted_library_of_three_fields_in_twelve_motions_gives_back_three(tmp_path):
     data = tmp_path / "data"

@@ -132,9 +132,11 @@ class ShootingSection(Section):
 
 
 class PoolSection(Section):
-    # joint: every motion's weights solved over every pooled field; own: each motion
-    # starts on its own fields only (the union of the per-motion fits, each as it was
-    # alone), and a motion may use the other fields once one of its own is eliminated
+    # without the selection (solver.select.enabled false): joint: every motion's weights
+    # solved over every pooled field; own: each motion starts on its own fields only (the
+    # union of the per-motion fits, each as it was alone), and a motion may use the other
+    # fields once one of its own is eliminated. With the selection each motion starts on
+    # the fewest chosen fields that serve it
     sharing: Literal["joint", "own"] = "joint"
     # the pooled EM also stops once a step lowers the mean motion's relative torque cost
     # by less than this (absolute; 0: off). solver.em.tol is relative to the summed cost,
@@ -151,7 +153,8 @@ class ReduceSection(Section):                   # backward elimination of pooled
     # e-folds of local error growth along its path (tflearn.fit.stability) a removal may
     # add to any motion it touches; null: removals are judged by simulation alone
     growth: Optional[float] = Field(None, ge=0)
-    # with solver.pool.sharing own, a motion that loses one of its fields may draw on its
+    # where each motion has its support (the selection's fewest fields, or solver.pool.
+    # sharing own), a motion that loses one of its fields may draw on its
     # own fields left and on those whose Gaussian exp(−½ dᵀKd) reaches this somewhere on
     # its path (0: on every field left; for a thousand motions, whose every weight solve
     # over every field left costs O(M²): docs/benchmarks.md)
@@ -171,7 +174,8 @@ class SelectSection(Section):                   # the shared basis chosen among 
     # the relative torque cost a motion may gain over its own fit's on the chosen fields
     tol: float = Field(1e-4, ge=0, allow_inf_nan=False)
     # a pooled field is one of a motion's candidates where its Gaussian exp(−½ dᵀKd)
-    # reaches this on the motion's path (or it is one of its own)
+    # reaches this on the motion's path (or it is one of its own), relative to the
+    # peak of the motion's weakest own field there
     reach: float = Field(1e-4, ge=0, le=1)
     # multiple-shooting iterations per horizon (solver.shooting's other settings) for a
     # motion its own fields reproduced and the chosen basis does not, before it gets its

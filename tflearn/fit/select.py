@@ -25,7 +25,9 @@ pruning: a chosen field whose every motion is still served without it leaves. Th
 forward path gives each size's summed cost and count served (the knee of
 :class:`Selection`). A motion sees only the candidates whose Gaussian reaches
 ``SelectOptions.reach`` on its path (and its own), so the cost grows with the motions,
-not with their product with the candidates.
+not with their product with the candidates; the reach is relative to the motion's
+weakest own field, since a field centred far from the path (its Gaussian 10⁻⁵ there,
+its weights large) drives a motion as well as a near one.
 """
 from __future__ import annotations
 
@@ -47,7 +49,8 @@ __all__ = ["SelectOptions", "Selection", "select"]
 class SelectOptions:
     """Settings of :func:`select`. tol: δ, the relative torque cost a motion may gain over
     its own fit's; reach: a candidate is one of motion j's when its Gaussian
-    exp(−½ dᵀKd) reaches this at one of its samples (or it is one of its own); beyond: the
+    exp(−½ dᵀKd) reaches this at one of its samples (or it is one of its own), relative
+    to the weakest of its own fields (that field's peak on the path); beyond: the
     candidates added after every motion is served, for the knee (:attr:`Selection.path`)."""
 
     tol: float = 1e-4
@@ -62,8 +65,10 @@ class Selection:
     candidates chosen, weights re-solved), the summed cost Σ_j C_j and the count of
     motions served ([m, cost, served]); ``pruned``, the chosen candidates pruned again;
     ``unserved``, the motions no subset serves within tolerance (their own candidates
-    were out of reach of one another: never, when ``reach`` keeps their own); ``costs``,
-    each motion's C_j on ``kept``; ``tolerance``, each motion's τ_j; ``candidates``,
+    were out of reach of one another: never, when ``reach`` keeps their own);
+    ``support``, each motion's fewest fields of ``kept`` (found greedily, by C_j) that
+    serve it, or that fit it as well as all of ``kept`` can (an unserved motion);
+    ``costs``, each motion's C_j on its support; ``tolerance``, each motion's τ_j; ``candidates``,
     each motion's candidates (indices); ``merged``, [kept, dropped] pairs: each dropped
     candidate that was a motion's own, with the nearest kept field (Euclidean centre) that
     its motion uses instead."""
@@ -72,6 +77,7 @@ class Selection:
     path: list
     pruned: list = field(default_factory=list)
     unserved: list = field(default_factory=list)
+    support: list = field(default_factory=list)
     costs: list = field(default_factory=list)
     tolerance: list = field(default_factory=list)
     candidates: list = field(default_factory=list)
@@ -112,19 +118,42 @@ class _Motion:
 def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
              opts: SelectOptions, tolerance: Optional[list]) -> list:
     """Each motion's :class:`_Motion`: its candidates (reach or its own, ``own`` N×M
-    bools) and their normal equations; τ_j as given, or c_j + δ from its own fit's cost
-    c_j on ``weights``."""
+    bools; of exact copies the first alone) and their normal equations; τ_j as given, or
+    c_j + δ from its own fit's cost c_j on ``weights``."""
     out = []
     if tolerance is None:
         tolerance = (torque_costs(basis, weights, tg) + opts.tol).tolist()
+    mine, first = _onto_first_copies(basis, own)
     for j in range(tg.N):
-        q = tg.q[j][tg.mask[j]]
-        near = (basis.gaussians(q) >= opts.reach).any(0) | own[j]
+        peak = basis.gaussians(tg.q[j][tg.mask[j]]).max(0).values
+        near = ((peak >= opts.reach * _weakest(peak, own[j])) & first) | mine[j]
         fields = near.nonzero().flatten().tolist()
         sub = weights.select_motions([j]).select_fields(fields)
         G, h = normal_equations(basis.select(fields), sub, tg.select([j], trim=True))
         out.append(_Motion(fields, G[0], h[0], weights.P, tolerance[j]))
     return out
+
+
+def _onto_first_copies(basis: FieldBasis, own: torch.Tensor) -> tuple:
+    """Candidates that equal an earlier one exactly (the same η and K: motions that took
+    an earlier block's fields bring copies of them) are that earlier one: identical
+    columns are one candidate. Returns (``own`` (N×M bools) with each copy's motions
+    moved onto its first, whether each candidate is a first (M bools))."""
+    if not basis.M:
+        return own, torch.ones(0, dtype=torch.bool)
+    key = torch.cat([basis.eta.detach(), basis.K().detach().flatten(1)], 1)
+    _, group = torch.unique(key, dim=0, return_inverse=True)
+    index = torch.arange(basis.M)
+    rep = torch.full((int(group.max()) + 1,), basis.M).scatter_reduce(0, group, index, "amin")[group]
+    moved = torch.zeros(own.shape, dtype=torch.long).index_add_(1, rep, own.long()) > 0
+    return moved, rep == index
+
+
+def _weakest(peak: torch.Tensor, own: torch.Tensor) -> float:
+    """The smallest peak Gaussian on a motion's path among its own fields (1 with none):
+    the scale ``reach`` is relative to. A motion made by a field centred far from its path
+    (peak 2e-5, its weights large) sees the copies of that field as its own fit does."""
+    return float(peak[own].min()) if bool(own.any()) else 1.0
 
 
 @torch.no_grad()
@@ -182,19 +211,38 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
         mine = [f for f in kept if f in mo.local]
         mo.cost = float(mo.costs([mine])[0])
     kept, pruned = _prune(kept, motions, users)
-    return Selection(kept=kept, path=path, pruned=pruned,
-                     unserved=[j for j, mo in enumerate(motions) if mo.excess(mo.cost) > 0],
+    unserved = [j for j, mo in enumerate(motions) if mo.excess(mo.cost) > 0]
+    support = [_fewest(mo, kept) for mo in motions]
+    return Selection(kept=kept, path=path, pruned=pruned, unserved=unserved, support=support,
                      costs=[mo.cost for mo in motions], tolerance=[mo.tau for mo in motions],
                      candidates=[mo.fields for mo in motions],
-                     merged=_merged(basis, kept, motions, own))
+                     merged=_merged(basis, kept, support, motions, own))
 
 
-def _merged(basis: FieldBasis, kept: list, motions: list, own: torch.Tensor) -> list:
+def _fewest(mo: _Motion, kept: list) -> list:
+    """Motion ``mo``'s fewest fields of ``kept``, greedily: the field that lowers C_j the
+    most joins, until C_j ≤ max(τ_j, C_j on all of ``kept``) (relative 1e-9). A motion
+    made by one or two fields is driven by those alone — weights spread over every field
+    in reach buy a little torque cost with paths that amplify small errors. Sets
+    ``mo.cost`` to C_j on them."""
+    free, mine = [f for f in kept if f in mo.local], []
+    bar = max(mo.tau, mo.cost) * (1 + 1e-9)
+    cost = 1.0
+    while free and cost > bar:
+        trial = mo.costs([mine + [f] for f in free])
+        best = int(torch.argmin(trial))
+        mine.append(free.pop(best))
+        cost = float(trial[best])
+    mo.cost = cost if mine else mo.cost
+    return mine
+
+
+def _merged(basis: FieldBasis, kept: list, support: list, motions: list, own: torch.Tensor) -> list:
     """[kept, dropped] pairs: each own field of a motion that was not kept, with the
-    kept field nearest to it (Euclidean centre) among those its motion now uses."""
+    kept field nearest to it (Euclidean centre) among those its motion now uses (its
+    ``support``, those with a weight)."""
     eta, pairs = basis.eta.detach(), {}
-    for j, mo in enumerate(motions):
-        mine = [f for f in kept if f in mo.local]
+    for j, (mo, mine) in enumerate(zip(motions, support)):
         used = [f for f, u in zip(mine, mo.solve([mine])[1][0].tolist()) if u] if mine else []
         for f in own[j].nonzero().flatten().tolist():
             if f not in kept and f not in pairs and used:
