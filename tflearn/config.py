@@ -132,11 +132,9 @@ class ShootingSection(Section):
 
 
 class PoolSection(Section):
-    # without the selection (solver.select.enabled false): joint: every motion's weights
-    # solved over every pooled field; own: each motion starts on its own fields only (the
-    # union of the per-motion fits, each as it was alone), and a motion may use the other
-    # fields once one of its own is eliminated. With the selection each motion starts on
-    # the fewest chosen fields that serve it
+    # joint: every motion's weights solved over every pooled field; own: each motion
+    # starts on its own fields only (the union of the per-motion fits, each as it was
+    # alone), and a motion may use the other fields once one of its own is eliminated
     sharing: Literal["joint", "own"] = "joint"
     # the pooled EM also stops once a step lowers the mean motion's relative torque cost
     # by less than this (absolute; 0: off). solver.em.tol is relative to the summed cost,
@@ -153,8 +151,7 @@ class ReduceSection(Section):                   # backward elimination of pooled
     # e-folds of local error growth along its path (tflearn.fit.stability) a removal may
     # add to any motion it touches; null: removals are judged by simulation alone
     growth: Optional[float] = Field(None, ge=0)
-    # where each motion has its support (the selection's fewest fields, or solver.pool.
-    # sharing own), a motion that loses one of its fields may draw on its
+    # with solver.pool.sharing own, a motion that loses one of its fields may draw on its
     # own fields left and on those whose Gaussian exp(−½ dᵀKd) reaches this somewhere on
     # its path (0: on every field left; for a thousand motions, whose every weight solve
     # over every field left costs O(M²): docs/benchmarks.md)

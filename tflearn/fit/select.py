@@ -221,10 +221,8 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
 
 def _fewest(mo: _Motion, kept: list) -> list:
     """Motion ``mo``'s fewest fields of ``kept``, greedily: the field that lowers C_j the
-    most joins, until C_j ≤ max(τ_j, C_j on all of ``kept``) (relative 1e-9). A motion
-    made by one or two fields is driven by those alone — weights spread over every field
-    in reach buy a little torque cost with paths that amplify small errors. Sets
-    ``mo.cost`` to C_j on them."""
+    most joins, until C_j ≤ max(τ_j, C_j on all of ``kept``) (relative 1e-9): a motion
+    made by one or two fields gets those. Sets ``mo.cost`` to C_j on them."""
     free, mine = [f for f in kept if f in mo.local], []
     bar = max(mo.tau, mo.cost) * (1 + 1e-9)
     cost = 1.0

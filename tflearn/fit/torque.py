@@ -159,7 +159,7 @@ def _solve_on(fields: list, basis, weights, tg, support, ridge):
     """:func:`_solve_weights` with the design of ``fields`` only, those that some motion's
     ``support`` holds: the other fields' weights are 0 either way, and a motion's normal
     equations over every field cost O(M²) where its own few fields cost O(1) (many
-    motions, each on its support)."""
+    motions pooled with :attr:`~tflearn.config.PoolSection.sharing` own)."""
     cols = columns(fields, basis.M, weights.P)
     sub = weights.select_fields(fields)
     costs = _solve_weights(basis.select(fields), sub, tg, support[:, cols], ridge)

@@ -42,9 +42,9 @@ def run(ctx: RunContext, state: RunState) -> None:
     basis, weights = search.pool(tg, state.fits, ctx.template())
     ends = torch.tensor([len(f.eta) for f in state.fits]).cumsum(0).tolist()
     own = [[lo <= i < hi for i in range(basis.M)] for lo, hi in zip([0] + ends, ends)]
-    chosen = tolerance = None
+    chosen = tolerance = fewest = None
     if ctx.cfg.solver.select.enabled:
-        basis, weights, merged, chosen, tolerance = _select(ctx, state, basis, weights, own)
+        basis, weights, merged, chosen, tolerance, fewest = _select(ctx, state, basis, weights, own)
     else:
         state.support = own if c.sharing == "own" else None
         basis, weights, merged = _merge(ctx, state, basis, weights)
@@ -52,7 +52,7 @@ def run(ctx: RunContext, state: RunState) -> None:
     if merged or dropped or ctx.variable_phases:    # other motions' phases: default
         ctx.em(basis, weights, tg, state, tag="torque_cost/pool", support=state.support, min_gain=c.min_gain)
     if dropped:
-        basis, weights = _refined(ctx, state, basis, weights, chosen, tolerance)
+        basis, weights, fewest = _refined(ctx, state, basis, weights, chosen, tolerance)
     cost = float(torque.solve_weights(basis, weights, tg, weight_support(state.support, weights.P)).sum())
     scores, ok = ctx.check(basis, weights, tg)
     if chosen:
@@ -60,7 +60,7 @@ def run(ctx: RunContext, state: RunState) -> None:
     state.model = model_state(basis, weights)
     state.history.pool = ModelRecord(M=basis.M, torque_cost=cost, success=ok, merged=merged or None,
                                      selection=chosen)
-    scores, ok = restore(ctx, state, scores, ok)
+    scores, ok = restore(ctx, state, scores, ok, fewest)
     step = ctx.tick(state)
     ctx.log.scalar("torque_cost/pool", cost, step)
     ctx.log.scores(scores, tg, step, figures=True)
@@ -81,19 +81,22 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     """The fewest pooled fields that serve every motion (:func:`~tflearn.fit.select.select`):
     (basis, weights on them, merged pairs [kept, dropped] — each dropped own field with
     the nearest kept one its motion uses —, the selection's record for metrics.json, each
-    motion's bar τ_j). Each motion may use its support: the fewest chosen fields that
-    serve it (``state.support``)."""
+    motion's bar τ_j, each motion's fewest chosen fields that serve it). With ``sharing:
+    own`` a motion may use the chosen fields among its candidates."""
     pooled = basis.M
     ctx.log.busy(pooled=pooled, choosing="fields")
     sel = _chosen(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
                   progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m))
     weights = weights.select_fields(sel.kept)
-    state.support = [[f in mine for f in sel.kept] for mine in sel.support]
+    state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
+                     if ctx.cfg.solver.pool.sharing == "own" else None)
     record = {"pooled": pooled, "kept": len(sel.kept), "pruned": len(sel.pruned),
               "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved]}
     if ctx.log.writer is not None:
         ctx.log.figure("model/knee", knee(sel.path, len(sel.kept), ctx.tg.N), state.iteration)
-    return basis.select(sel.kept), weights, sel.merged, record, sel.tolerance
+    where = {f: i for i, f in enumerate(sel.kept)}
+    return (basis.select(sel.kept), weights, sel.merged, record, sel.tolerance,
+            [[where[f] for f in mine] for mine in sel.support])
 
 
 def _chosen(*args, **kwargs) -> select.Selection:
@@ -112,20 +115,22 @@ def _options(ctx: RunContext) -> select.SelectOptions:
 def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tolerance: list) -> tuple:
     """EM has moved the chosen copies towards what all their motions need: the selection
     again among them, each motion held to the same bar τ_j (a copy that served few
-    motions may now be served by a refined field), and each motion's support chosen
-    again; if fewer remain, EM again. Returns
-    (basis, weights); ``chosen`` records the count (``refined``)."""
-    used = weights.used() | torch.tensor(state.support)
+    motions may now be served by a refined field), and each motion's fewest fields
+    chosen again; if fewer remain, EM again. Returns (basis, weights, each motion's
+    fewest fields); ``chosen`` records the count (``refined``)."""
+    used = weights.used() | torch.tensor(state.support or [[False] * basis.M] * ctx.tg.N)
     sel = _chosen(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance)
     chosen["refined"] = len(sel.kept)
     keep = sorted(sel.kept)
-    state.support = [[i in mine for i in keep] for mine in sel.support]
+    fewest = [[keep.index(f) for f in mine] for mine in sel.support]
     if len(sel.kept) == basis.M:
-        return basis, weights
+        return basis, weights, fewest
     basis, weights = basis.select(keep), weights.select_fields(keep)
+    if state.support is not None:
+        state.support = [[row[i] for i in keep] for row in state.support]
     ctx.em(basis, weights, ctx.tg, state, tag="torque_cost/pool", support=state.support,
            min_gain=ctx.cfg.solver.pool.min_gain)
-    return basis, weights
+    return basis, weights, fewest
 
 
 def _merge(ctx: RunContext, state: RunState, basis, weights) -> tuple:
@@ -166,12 +171,14 @@ def shoot(ctx: RunContext, state: RunState, basis, weights, scores: Scores, ok: 
     return _replaced(scores, motions, check), ok
 
 
-def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple:
+def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
+            fewest: Optional[list] = None) -> tuple:
     """Motions their own fits reproduced (``each``) that the pooled model does not —
     merging or refitting moved a field their path needs to the digit — get fields of
     their own, which no other motion uses (``state.support``): copies of the fields they
-    drive, fitted to their path by multiple shooting with the fields free
-    (:func:`_fitted_copies`) when that reproduces them, else their own fit's fields,
+    drive (``fewest``: each motion's fewest fields that serve it, from the selection;
+    else those it has a weight on), fitted to their path by multiple shooting with the
+    fields free (:func:`_fitted_copies`) when that reproduces them, else their own fit's fields,
     weights and timing. Elimination may still remove them, by its rule. Changes
     ``state.model``, ``state.support`` and the pool's record (``restored``: every such
     motion; ``copied``: those on fitted copies); returns the (scores, success) of every
@@ -181,7 +188,8 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple
         return scores, ok
     basis, weights = model_from_state(state.model)
     ctx.log.busy(restoring=len(lost))
-    copies = parallel.gather_motions(len(lost), [_fitted_copies(ctx, basis, weights, lost[i])
+    drives = fewest or [row.nonzero().flatten().tolist() for row in weights.used()]
+    copies = parallel.gather_motions(len(lost), [_fitted_copies(ctx, basis, weights, lost[i], drives[lost[i]])
                                                  for i in parallel.mine(len(lost))])
     M0, own = basis.M, [c or state.fits[j] for c, j in zip(copies, lost)]
     nb = basis.extend(torch.cat([f.eta for f in own]), torch.cat([f.K for f in own]))
@@ -213,16 +221,18 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list) -> tuple
     return scores, ok
 
 
-def _fitted_copies(ctx: RunContext, basis, weights, j: int) -> Optional[FieldFit]:
-    """Motion j alone on copies of the fields it has a weight on, those copies and its
-    weights fitted to its path by multiple shooting with the fields free (``solver.shooting``,
-    as for a motion alone in ``each``): their :class:`FieldFit` when simulation then
-    reproduces it, else None. A motion driven by one shared field costs one field of its
-    own this way, not the two or three its own search found."""
-    c, fields = ctx.cfg.solver.shooting, weights.used()[j].nonzero().flatten().tolist()
+def _fitted_copies(ctx: RunContext, basis, weights, j: int, fields: list) -> Optional[FieldFit]:
+    """Motion j alone on copies of ``fields`` (indices), its NNLS weights on
+    them, copies and weights then fitted to its path by multiple shooting with the fields
+    free (``solver.shooting``, as for a motion alone in ``each``): their
+    :class:`FieldFit` when simulation then reproduces it, else None. A motion driven by
+    one shared field costs one field of its own this way, not the two or three its own
+    search found."""
+    c = ctx.cfg.solver.shooting
     if not (c.fields and c.iterations and fields):
         return None
     one, b, w = ctx.tg.select([j]), basis.select(fields), weights.select_motions([j]).select_fields(fields)
+    torque.solve_weights(b, w, one)
     shooting.shooting_match(ctx.body, b, w, one, options=replace(c.options(ctx.variable_phases), fields=True),
                             sim=ctx.options)
     if not all(ctx.check(b, w, one, distributed=False)[1]):
