@@ -68,7 +68,7 @@ class Selection:
     were out of reach of one another: never, when ``reach`` keeps their own);
     ``support``, each motion's fewest fields of ``kept`` (found greedily, by C_j) that
     serve it, or that fit it as well as all of ``kept`` can (an unserved motion);
-    ``costs``, each motion's C_j on its support; ``tolerance``, each motion's τ_j; ``candidates``,
+    ``costs``, each motion's C_j on ``kept``; ``tolerance``, each motion's τ_j; ``candidates``,
     each motion's candidates (indices); ``merged``, [kept, dropped] pairs: each dropped
     candidate that was a motion's own, with the nearest kept field (Euclidean centre) that
     its motion uses instead."""
@@ -212,17 +212,18 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
         mo.cost = float(mo.costs([mine])[0])
     kept, pruned = _prune(kept, motions, users)
     unserved = [j for j, mo in enumerate(motions) if mo.excess(mo.cost) > 0]
-    support = [_fewest(mo, kept) for mo in motions]
-    return Selection(kept=kept, path=path, pruned=pruned, unserved=unserved, support=support,
-                     costs=[mo.cost for mo in motions], tolerance=[mo.tau for mo in motions],
+    costs = [mo.cost for mo in motions]
+    return Selection(kept=kept, path=path, pruned=pruned, unserved=unserved,
+                     support=[_fewest(mo, kept) for mo in motions], costs=costs,
+                     tolerance=[mo.tau for mo in motions],
                      candidates=[mo.fields for mo in motions],
-                     merged=_merged(basis, kept, support, motions, own))
+                     merged=_merged(basis, kept, motions, own))
 
 
 def _fewest(mo: _Motion, kept: list) -> list:
     """Motion ``mo``'s fewest fields of ``kept``, greedily: the field that lowers C_j the
     most joins, until C_j ≤ max(τ_j, C_j on all of ``kept``) (relative 1e-9): a motion
-    made by one or two fields gets those. Sets ``mo.cost`` to C_j on them."""
+    made by one or two fields gets those."""
     free, mine = [f for f in kept if f in mo.local], []
     bar = max(mo.tau, mo.cost) * (1 + 1e-9)
     cost = 1.0
@@ -231,16 +232,15 @@ def _fewest(mo: _Motion, kept: list) -> list:
         best = int(torch.argmin(trial))
         mine.append(free.pop(best))
         cost = float(trial[best])
-    mo.cost = cost if mine else mo.cost
     return mine
 
 
-def _merged(basis: FieldBasis, kept: list, support: list, motions: list, own: torch.Tensor) -> list:
+def _merged(basis: FieldBasis, kept: list, motions: list, own: torch.Tensor) -> list:
     """[kept, dropped] pairs: each own field of a motion that was not kept, with the
-    kept field nearest to it (Euclidean centre) among those its motion now uses (its
-    ``support``, those with a weight)."""
+    kept field nearest to it (Euclidean centre) among those its motion now uses."""
     eta, pairs = basis.eta.detach(), {}
-    for j, (mo, mine) in enumerate(zip(motions, support)):
+    for j, mo in enumerate(motions):
+        mine = [f for f in kept if f in mo.local]
         used = [f for f, u in zip(mine, mo.solve([mine])[1][0].tolist()) if u] if mine else []
         for f in own[j].nonzero().flatten().tolist():
             if f not in kept and f not in pairs and used:
