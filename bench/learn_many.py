@@ -7,7 +7,8 @@ job's configuration on them, ``train configs/gestures.yaml data=DIR``, in a fres
 the wall time of making them and of training, each stage's share (from the progress
 bars), M, how many motions simulation reproduces, the worst joint RMSE and tip error, how
 many fields were pooled, how many the selection chose (:mod:`tflearn.fit.select`) and how
-many motions got their own back, how many of the G generating fields a learned field
+many motions got fields of their own back (and how many of those fitted copies), how
+many of the G generating fields a learned field
 matches (metrics.json's ``identity``, :mod:`tflearn.fit.identity`) and the worst centre
 distance and stiffness error |r − 1| among those, the training process' peak memory, and
 the fitted exponent of each time (cost ∝ N^p, least squares on log–log). One torch thread.
@@ -94,6 +95,7 @@ def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
     return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
             "pooled": chosen.get("pooled"), "selected": chosen.get("kept"),
             "restored": len(m["history"].get("pool", {}).get("restored") or []),
+            "copied": len(m["history"].get("pool", {}).get("copied") or []),
             "reproduced": sum(bool(x["success"]) for x in motions),
             "worst_rmse_rad": max(x["rmse"] for x in motions),
             "worst_tip_m": max(x["tip"] for x in motions), "fields_matched": identity.get("matched"),
