@@ -17,14 +17,14 @@ iteration that made what it shows, one per tag and iteration.
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import torch
 
 from .. import parallel, synthesis
 from ..config import Config, ConfigError
-from ..fit import stability, torque
+from ..fit import shooting, stability, torque
 from ..fit.targets import Targets
 from ..log import RunLog
 from ..metrics import Scores, score
@@ -150,6 +150,18 @@ class RunContext:
     def efolds(self, basis, weights, tg: Targets) -> list:
         """Each motion's e-folds of local error growth along its path (:mod:`tflearn.fit.stability`)."""
         return stability.growth(self.body, basis, weights, tg).efolds.tolist()
+
+    def shoot_fields(self, basis, weights, one: Targets) -> bool:
+        """One motion's fields and weights fitted to its path by multiple shooting with
+        the fields free (``solver.shooting``'s settings, its fields on), in place; False,
+        with nothing done, where ``solver.shooting.fields`` or ``iterations`` turn it off."""
+        c = self.cfg.solver.shooting
+        if not (c.fields and c.iterations):
+            return False
+        self.log.busy(shooting="fields")
+        options = replace(c.options(self.variable_phases), fields=True)
+        shooting.shooting_match(self.body, basis, weights, one, options=options, sim=self.options)
+        return True
 
     def shoot(self, state: RunState, basis, weights, motions: list, options=None) -> None:
         """Multiple-shooting path matching of ``motions``' programs, the basis fixed

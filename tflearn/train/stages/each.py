@@ -23,7 +23,7 @@ from typing import Optional
 import torch
 
 from ... import parallel
-from ...fit import search, shooting, torque
+from ...fit import search, torque
 from ...fit.targets import Targets, submovement_windows
 from ...metrics import Scores
 from ...model.fields import FieldBasis
@@ -185,11 +185,7 @@ def shoot_alone(ctx: RunContext, basis, weights, one: Targets, reproduced) -> bo
     its path by multiple shooting (``solver.shooting.fields``; docs/model.md, "Programs
     whose motion is chaotic"), in place, then checked by ``reproduced``. Returns whether
     it ran."""
-    c = ctx.cfg.solver.shooting
-    if not (c.fields and c.iterations):
+    if not ctx.shoot_fields(basis, weights, one):
         return False
-    ctx.log.busy(shooting="fields")
-    opts = replace(c.options(ctx.variable_phases), fields=True)
-    shooting.shooting_match(ctx.body, basis, weights, one, options=opts, sim=ctx.options)
     reproduced(basis, weights)
     return True

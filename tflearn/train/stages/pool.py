@@ -1,16 +1,15 @@
 """Stage ``pool`` — all per-motion fields in one basis; the shared fields chosen among
 them by what the motions need (``solver.select``, :func:`~tflearn.fit.select.select`:
-the fewest that keep every motion's torque cost within its own fit's plus δ, each
-motion then driven by the fewest of them that serve it), refined jointly by EM and
-chosen again among the refined ones; with ``solver.select.enabled:
+the fewest that keep every motion's torque cost within its own fit's plus δ), refined
+jointly by EM and chosen again among the refined ones; with ``solver.select.enabled:
 false`` fields that nearly coincide (``solver.merge``) are merged instead, every other
 pooled field kept (with ``solver.pool.sharing: own`` each motion keeps to its own
 fields, as it was reproduced alone).
 
 Motions that their own fits reproduced but the chosen basis does not are first
 path-matched on it by multiple shooting (:func:`shoot`), and if that fails get fields
-of their own (:func:`restore`): copies of those they drive fitted to their path, or
-their own fit's. The pooled model is scored by simulation: the reference
+of their own (:func:`restore`): copies of their fewest chosen fields fitted to their
+path, or their own fit's. The pooled model is scored by simulation: the reference
 that elimination (``reduce``) keeps every motion to. One unit.
 """
 from __future__ import annotations
@@ -21,7 +20,7 @@ from typing import Optional
 import torch
 
 from ... import parallel
-from ...fit import search, select, shooting, torque
+from ...fit import search, select, torque
 from ...metrics import Scores
 from ...model.program import model_from_state, model_state
 from ...model.weights import MotionWeights
@@ -178,8 +177,8 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
     their own, which no other motion uses (``state.support``): copies of the fields they
     drive (``fewest``: each motion's fewest fields that serve it, from the selection;
     else those it has a weight on), fitted to their path by multiple shooting with the
-    fields free (:func:`_fitted_copies`) when that reproduces them, else their own fit's fields,
-    weights and timing. Elimination may still remove them, by its rule. Changes
+    fields free (:func:`_fitted_copies`) when that reproduces them, else their own fit's
+    fields, weights and timing. Elimination may still remove them, by its rule. Changes
     ``state.model``, ``state.support`` and the pool's record (``restored``: every such
     motion; ``copied``: those on fitted copies); returns the (scores, success) of every
     motion."""
@@ -228,14 +227,11 @@ def _fitted_copies(ctx: RunContext, basis, weights, j: int, fields: list) -> Opt
     :class:`FieldFit` when simulation then reproduces it, else None. A motion driven by
     one shared field costs one field of its own this way, not the two or three its own
     search found."""
-    c = ctx.cfg.solver.shooting
-    if not (c.fields and c.iterations and fields):
+    if not fields:
         return None
     one, b, w = ctx.tg.select([j]), basis.select(fields), weights.select_motions([j]).select_fields(fields)
     torque.solve_weights(b, w, one)
-    shooting.shooting_match(ctx.body, b, w, one, options=replace(c.options(ctx.variable_phases), fields=True),
-                            sim=ctx.options)
-    if not all(ctx.check(b, w, one, distributed=False)[1]):
+    if not ctx.shoot_fields(b, w, one) or not all(ctx.check(b, w, one, distributed=False)[1]):
         return None
     return FieldFit(b.eta.detach().clone(), b.K().detach().clone(), w.timing(0, weights=True))
 
