@@ -62,7 +62,7 @@ def test_the_forward_path_never_costs_more_with_more_fields():
     assert served == sorted(served) and served[-1] == tg.N
 
 
-def test_each_motion_is_driven_by_the_fewest_chosen_fields_that_serve_it():
+def test_each_motion_gets_its_fewest_chosen_fields_that_serve_it():
     basis, weights, tg, own = _copies(STIFF)
     s = select.select(basis, weights, tg, own)
     assert sorted(s.kept) == [0, 1]
