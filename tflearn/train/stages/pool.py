@@ -93,9 +93,14 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
               "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved]}
     if ctx.log.writer is not None:
         ctx.log.figure("model/knee", knee(sel.path, len(sel.kept), ctx.tg.N), state.iteration)
-    where = {f: i for i, f in enumerate(sel.kept)}
     return (basis.select(sel.kept), weights, sel.merged, record, sel.tolerance,
-            [[where[f] for f in mine] for mine in sel.support])
+            _positions(sel.kept, sel.support))
+
+
+def _positions(kept: list, support: list) -> list:
+    """Each motion's fields (``support``: candidate indices) as positions in ``kept``."""
+    where = {f: i for i, f in enumerate(kept)}
+    return [[where[f] for f in mine] for mine in support]
 
 
 def _chosen(*args, **kwargs) -> select.Selection:
@@ -121,7 +126,7 @@ def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tol
     sel = _chosen(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance)
     chosen["refined"] = len(sel.kept)
     keep = sorted(sel.kept)
-    fewest = [[keep.index(f) for f in mine] for mine in sel.support]
+    fewest = _positions(keep, sel.support)
     if len(sel.kept) == basis.M:
         return basis, weights, fewest
     basis, weights = basis.select(keep), weights.select_fields(keep)
