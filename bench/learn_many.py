@@ -94,6 +94,7 @@ def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
     matched = [f for f in identity.get("fields", []) if f["matched"]]
     return {"train_s": wall, "stages_s": stage_seconds(proc.stderr), "M": m["overall"]["M"],
             "pooled": chosen.get("pooled"), "selected": chosen.get("kept"),
+            "shared": len(m["history"].get("pool", {}).get("shared") or []),
             "restored": len(m["history"].get("pool", {}).get("restored") or []),
             "copied": len(m["history"].get("pool", {}).get("copied") or []),
             "reproduced": sum(bool(x["success"]) for x in motions),

@@ -178,6 +178,10 @@ class SelectSection(Section):                   # the shared basis chosen among 
     # motion its own fields reproduced and the chosen basis does not, before it gets its
     # own fields back: a restored motion costs fields for good, an iteration only time
     shooting: int = Field(20, ge=0)
+    # a motion still lost then has its fewest chosen fields fitted to its path and to the
+    # paths of up to this many reproduced motions that those fields alone serve, all at
+    # once, the fields free and shared, before it gets fields of its own; 0: off
+    users: int = Field(8, ge=0)
 
 
 class MergeSection(Section):                    # merge pooled fields that nearly coincide

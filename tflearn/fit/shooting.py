@@ -2,11 +2,24 @@
 
 With the basis fixed, motion j's path depends on its own parameters θ_j only (its
 weights a, b, c and, optionally, its activation timing), so the problem splits into one
-small least-squares problem per motion. A motion fitted alone may free its fields too
+small least-squares problem per motion. The fields may be freed too
 (``ShootingOptions.fields``: θ then also holds every field's centre and free stiffness
 parameters, :meth:`~tflearn.model.fields.FieldBasis.free_vector`): the fields of a motion whose
 path amplifies small field errors several hundredfold are placed by its path, not by
 torque matching on spline torques (docs/model.md, "Programs whose motion is chaotic").
+
+**Shared fields.** With the fields free and several motions, the fields are one
+parameter vector f shared by every motion, and the problem no longer splits: one
+Levenberg–Marquardt problem over (θ_1, …, θ_N, f), whose normal equations are
+arrow-shaped — each motion's weights couple with f only,
+
+    [ J_jᵀJ_j (weights)   J_jᵀJ_j (weights, f)  ]      A_ff = Σ_j J_jᵀJ_j (f, f),
+    [ (its transpose)     A_ff                  ]
+
+J_j motion j's Jacobian (:meth:`_Problem.jacobian`, the same forward differences: a
+perturbation of f is one of every motion's copies) —, one μ for all, a step kept when
+it lowers the summed cost, and the whole θ backed off towards θ₀ where a new horizon
+cannot be simulated; at the end the summed path loss is never worse than at the start.
 
 **Segments.** Motion j is cut every K_j = max(1, round(h·rate_j)) samples; segment s
 starts at the target's own state (q, v) at its first sample k_s and is simulated to
@@ -92,11 +105,12 @@ class ShootingOptions:
     each motion's activation timing (onsets and durations of its steps, pulses and
     windows); velocity_weight: β; tip_weight: γ (rad²/m²: γ = 100 counts 1 cm of hand
     like 0.1 rad of joint angle); mu: the initial damping; step: the relative
-    forward-difference step; fields: also fit the basis' fields (one motion only: they
-    are otherwise shared); broyden: after a successful step update J by Broyden's
+    forward-difference step; fields: also fit the basis' fields (shared by the motions,
+    module docstring); broyden: after a successful step update J by Broyden's
     formula instead of differences (module docstring); used: fit each motion alone on
     the fields it has a weight on (a, b or c > 0), its weights on the others held at 0:
-    D ∝ those fields, not M, for a basis of many fields (not with ``fields``)."""
+    D ∝ those fields, not M, for a basis of many fields (not with ``fields``); free:
+    with ``fields``, the fields freed (indices; None: every field), the others held."""
 
     horizon: float = 0.25
     iterations: int = 6
@@ -110,6 +124,7 @@ class ShootingOptions:
     fields: bool = False
     broyden: bool = False
     used: bool = False
+    free: Optional[tuple] = None
 
 
 @dataclass
@@ -212,26 +227,34 @@ class _Problem:
                                            (0.0 if k in WEIGHTS else -math.inf), dtype=torch.float64)
                                 for k, d in layout])
         self.dw = len(self.lower)                  # θ[:dw] the weights, θ[dw:] the fields
+        self.free = list(range(basis.M)) if opts.free is None else list(opts.free)
         if opts.fields:
-            free = torch.full((basis.M * basis.free_size,), -math.inf, dtype=torch.float64)
+            free = torch.full((len(self.free) * basis.free_size,), -math.inf, dtype=torch.float64)
             self.lower = torch.cat([self.lower, free])
 
     def theta(self) -> torch.Tensor:
-        """θ (N×D) of the current weights (and fields)."""
+        """θ (N×D) of the current weights (and freed fields)."""
         theta = self.weights.flat(self.keys)
         if not self.opts.fields:
             return theta
-        return torch.cat([theta, self.basis.free_vector().reshape(1, -1).expand(len(theta), -1)], -1)
+        fields = self.basis.free_vector()[self.free].reshape(1, -1)
+        return torch.cat([theta, fields.expand(len(theta), -1)], -1)
+
+    def _fields(self, theta: torch.Tensor) -> torch.Tensor:
+        """Every field's free vector (B×M×p) with the freed ones from θ[dw:] (B×…)."""
+        full = self.basis.free_vector().expand(len(theta), -1, -1).clone()
+        full[:, self.free] = theta.reshape(len(theta), len(self.free), -1)
+        return full
 
     def assign(self, theta: torch.Tensor) -> None:
-        """Set the weights (and fields) from θ (N×D)."""
+        """Set the weights (and freed fields) from θ (N×D)."""
         self.weights.set_flat(self.keys, theta[:, :self.dw], list(range(len(theta))))
         if self.opts.fields:
-            self.basis.assign_free(theta[0, self.dw:].reshape(self.basis.M, -1))
+            self.basis.assign_free(self._fields(theta[:1, self.dw:])[0])
 
     def _basis(self, fields: torch.Tensor):
-        """The fields of every member (rows of θ[dw:], B×M·p) as one group each."""
-        eta, raw = self.basis.split_free(fields.reshape(len(fields), self.basis.M, -1))
+        """The fields of every member (rows of θ[dw:]) as one group each."""
+        eta, raw = self.basis.split_free(self._fields(fields))
         return MotionFields(eta, self.basis.stiffness(raw), self.basis.damping)
 
     def _run(self, theta, seg: _Segments, rows, copies: int = 1):
@@ -347,8 +370,8 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
                    motions: Optional[list] = None,
                    callback: Optional[Callable] = None) -> ShootingResult:
     """Fit every motion's weights (and with ``options.phases`` its timing) to its path,
-    the basis fixed — or with ``options.fields`` free, for one motion (``basis`` is then
-    changed in place) —, by multiple shooting and Levenberg–Marquardt (module docstring).
+    the basis fixed — or with ``options.fields`` free (``basis`` is then changed in place;
+    with several motions, fitted to all their paths at once) —, by multiple shooting and Levenberg–Marquardt (module docstring).
     ``motions``: fit these only (indices; the others are left as they are, and the
     result's rows are these motions'). ``weights`` is changed in place;
     ``callback(horizon, iteration, cost (N))`` is called after each iteration. Returns
@@ -360,8 +383,8 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
                                 callback=callback)
         weights.set_flat(keys_of(options), sub.flat(keys_of(options)), motions)
         return result
-    if options.fields and tg.N != 1:
-        raise ValueError(f"shooting_match: free fields need one motion (fields are shared), got {tg.N}")
+    if options.fields and tg.N > 1:
+        return _shared(_Problem(body, basis, weights, tg, keys_of(options), options, sim), callback)
     if options.used and not options.fields:
         return _on_used(body, basis, weights, tg, options, sim, callback)
     keys = keys_of(options)
@@ -514,3 +537,94 @@ def _stage(prob: _Problem, theta, start, mu, h, active: list, result: ShootingRe
         todo_stage = _still_going(prob.opts, todo_stage, old, cost, exact, linear)
     active[:] = [j for j in active if tg.names[j] not in result.failures]
     return cost
+
+
+def _shared(prob: _Problem, callback) -> ShootingResult:
+    """:func:`shooting_match` of several motions with the fields free and shared: one
+    Levenberg–Marquardt problem over every motion's θ (module docstring, "Shared
+    fields"); each horizon from the θ of the last, backed off towards θ₀ where it
+    cannot be simulated. Every motion's loss is ∞ and named in ``failures`` where one
+    cannot be simulated from θ₀."""
+    tg, everyone = prob.tg, list(range(prob.tg.N))
+    longest, theta = float(tg.duration.max()), prob.theta()
+    start, result = theta.clone(), ShootingResult(loss=[])
+    before = prob.cost(theta, 2 * longest, everyone)
+    if not torch.isfinite(before).all():
+        result.failures = {tg.names[j]: "cannot be simulated from its starting weights"
+                           for j in everyone if not math.isfinite(float(before[j]))}
+        result.loss, result.simulations = before.tolist(), prob.simulations
+        return result
+    h, mu = min(prob.opts.horizon, longest), prob.opts.mu
+    while True:
+        theta = _backed_off(prob, theta, start, h)
+        if theta is None:
+            result.failures["fields"] = f"cannot be simulated at horizon {h:.3g} s"
+            theta = start
+            break
+        theta, mu = _shared_stage(prob, theta, mu, h, result, callback)
+        if h >= longest:
+            break
+        h = min(2 * h, longest)
+    after = prob.cost(theta, 2 * longest, everyone)
+    if not float(after.sum()) <= float(before.sum()):    # never end further from the paths
+        theta, after = start, before
+    prob.assign(theta)
+    result.loss, result.simulations = after.tolist(), prob.simulations
+    return result
+
+
+def _backed_off(prob: _Problem, theta, start, h):
+    """θ₀ + α(θ − θ₀) for the first α of 1, ½, ¼, …, 1/16, 0 at which every motion's
+    segments at horizon h can be simulated; None if none can."""
+    everyone = list(range(prob.tg.N))
+    for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0):
+        trial = start + alpha * (theta - start)
+        if torch.isfinite(prob.cost(trial, h, everyone)).all():
+            return trial
+    return None
+
+
+def _shared_stage(prob: _Problem, theta, mu: float, h: float, result: ShootingResult, callback):
+    """The Levenberg–Marquardt iterations of one horizon on (θ_1, …, θ_N, f) together:
+    (θ, μ) at the end; stops when the summed cost falls by less than ``tol``
+    relatively, is below N·``floor``, or no μ lowers it."""
+    everyone, N, dw = list(range(prob.tg.N)), prob.tg.N, prob.dw
+    cost = prob.cost(theta, h, everyone)
+    for it in range(prob.opts.iterations):
+        total = float(cost.sum())
+        if total <= N * prob.opts.floor:
+            break
+        try:
+            A, g, x, lower = _arrow(*prob.normal_equations(theta, h, everyone), theta, prob.lower, dw)
+        except SimulationFailed as err:
+            result.failures["fields"] = f"Jacobian not simulated: {err}"
+            break
+        for _ in range(8):
+            step = _lm_step(A[None], g[None], torch.tensor([mu], dtype=A.dtype), x[None], lower)[0]
+            trial = torch.cat([step[:N * dw].reshape(N, dw), step[N * dw:].expand(N, -1)], -1)
+            c = prob.cost(trial, h, everyone)
+            if float(c.sum()) < total:
+                theta, cost, mu = trial, c, mu / 3
+                break
+            mu *= 4
+        else:
+            break
+        result.history.append({"horizon": h, "cost": cost.tolist()})
+        if callback:
+            callback(h, it, cost.clone())
+        if total - float(cost.sum()) <= prob.opts.tol * total:
+            break
+    return theta, mu
+
+
+def _arrow(JtJ, Jtr, theta, lower, dw: int):
+    """The joint normal equations of every motion's weights and the fields they share:
+    (A (n×n), Jᵀr (n), x (n), lower bounds (n)), n = N·dw + p, x = (θ_1[:dw], …,
+    θ_N[:dw], f) from each motion's (JᵀJ (N×D×D), Jᵀr (N×D)) over (its weights, f)."""
+    N = len(theta)
+    ww = torch.block_diag(*JtJ[:, :dw, :dw])
+    wf = JtJ[:, :dw, dw:].reshape(N * dw, -1)
+    A = torch.cat([torch.cat([ww, wf], 1), torch.cat([wf.T, JtJ[:, dw:, dw:].sum(0)], 1)], 0)
+    g = torch.cat([Jtr[:, :dw].reshape(-1), Jtr[:, dw:].sum(0)])
+    x = torch.cat([theta[:, :dw].reshape(-1), theta[0, dw:]])
+    return A, g, x, torch.cat([lower[:dw].repeat(N), lower[dw:]])

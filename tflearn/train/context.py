@@ -151,16 +151,17 @@ class RunContext:
         """Each motion's e-folds of local error growth along its path (:mod:`tflearn.fit.stability`)."""
         return stability.growth(self.body, basis, weights, tg).efolds.tolist()
 
-    def shoot_fields(self, basis, weights, one: Targets) -> bool:
-        """One motion's fields and weights fitted to its path by multiple shooting with
-        the fields free (``solver.shooting``'s settings, its fields on), in place; False,
-        with nothing done, where ``solver.shooting.fields`` or ``iterations`` turn it off."""
+    def shoot_fields(self, basis, weights, tg: Targets, free: Optional[tuple] = None) -> bool:
+        """Motions' fields and weights fitted to their paths by multiple shooting with the
+        fields free (``free``: those fields, indices; None: all; shared by the motions of
+        ``tg``; ``solver.shooting``'s settings, its fields on), in place; False, with
+        nothing done, where ``solver.shooting.fields`` or ``iterations`` turn it off."""
         c = self.cfg.solver.shooting
         if not (c.fields and c.iterations):
             return False
         self.log.busy(shooting="fields")
-        options = replace(c.options(self.variable_phases), fields=True)
-        shooting.shooting_match(self.body, basis, weights, one, options=options, sim=self.options)
+        options = replace(c.options(self.variable_phases), fields=True, free=free)
+        shooting.shooting_match(self.body, basis, weights, tg, options=options, sim=self.options)
         return True
 
     def shoot(self, state: RunState, basis, weights, motions: list, options=None) -> None:

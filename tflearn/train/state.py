@@ -87,8 +87,9 @@ class ModelRecord:
     reproduces; for ``pool`` the fields ``merged`` ([kept, merged] pairs), the
     ``selection`` of the shared fields (:func:`tflearn.fit.select.select`: the pooled M,
     the M kept and pruned, the knee's path [m, Σ C_j, served], motions left unserved)
-    and the motions ``restored`` to fields of their own, ``copied`` those of them on
-    fitted copies of the fields they drive (None: none)."""
+    the motions reproduced by fitting their fields jointly with other motions' paths
+    (``shared``), and the motions ``restored`` to fields of their own, ``copied`` those
+    of them on fitted copies of the fields they drive (None: none)."""
 
     M: int
     torque_cost: float
@@ -97,11 +98,12 @@ class ModelRecord:
     restored: Optional[list] = None
     selection: Optional[dict] = None
     copied: Optional[list] = None
+    shared: Optional[list] = None
 
     def to_dict(self) -> dict:
         doc = {"M": self.M, "merged": self.merged, "torque_cost": self.torque_cost,
-               "success": self.success, "restored": self.restored, "copied": self.copied,
-               "selection": self.selection}
+               "success": self.success, "shared": self.shared, "restored": self.restored,
+               "copied": self.copied, "selection": self.selection}
         return {k: v for k, v in doc.items() if v is not None}
 
 

@@ -7,10 +7,12 @@ pooled field kept (with ``solver.pool.sharing: own`` each motion keeps to its ow
 fields, as it was reproduced alone).
 
 Motions that their own fits reproduced but the chosen basis does not are first
-path-matched on it by multiple shooting (:func:`shoot`), and if that fails get fields
-of their own (:func:`restore`): copies of their fewest chosen fields fitted to their
-path, or their own fit's. The pooled model is scored by simulation: the reference
-that elimination (``reduce``) keeps every motion to. One unit.
+path-matched on it by multiple shooting (:func:`shoot`); if that fails their fewest
+chosen fields are fitted to their paths and to those of other motions that drive them,
+all at once (:func:`share`); and if that fails too they get fields of their own
+(:func:`restore`): copies of their fewest chosen fields fitted to their path, or their
+own fit's. The pooled model is scored by simulation: the reference that elimination
+(``reduce``) keeps every motion to. One unit.
 """
 from __future__ import annotations
 
@@ -59,6 +61,8 @@ def run(ctx: RunContext, state: RunState) -> None:
     state.model = model_state(basis, weights)
     state.history.pool = ModelRecord(M=basis.M, torque_cost=cost, success=ok, merged=merged or None,
                                      selection=chosen)
+    if chosen:
+        scores, ok = share(ctx, state, scores, ok, fewest)
     scores, ok = restore(ctx, state, scores, ok, fewest)
     step = ctx.tick(state)
     ctx.log.scalar("torque_cost/pool", cost, step)
@@ -69,7 +73,8 @@ def run(ctx: RunContext, state: RunState) -> None:
     if ctx.cfg.solver.reduce.growth is not None:
         state.reference.efolds = ctx.efolds(*model_from_state(state.model), tg)
     pooled = state.history.pool
-    ctx.log.status(M=pooled.M, merged=len(merged), cost=cost, restored=len(pooled.restored or []),
+    ctx.log.status(M=pooled.M, merged=len(merged), cost=cost, shared=len(pooled.shared or []),
+                   restored=len(pooled.restored or []),
                    reproduced=f"{sum(ok)}/{tg.N}")
     ctx.log.end_stage()
     state.advance(ctx.sequence)
@@ -173,6 +178,99 @@ def shoot(ctx: RunContext, state: RunState, basis, weights, scores: Scores, ok: 
     for i, j in enumerate(motions):
         ok[j] = fine[i]
     return _replaced(scores, motions, check), ok
+
+
+def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: list) -> tuple:
+    """A :func:`broken` motion's fewest chosen fields S (``fewest``) are a hair from where
+    its path needs them: they are fitted by multiple shooting, free and shared, to its
+    path and to those of up to ``solver.select.users`` reproduced motions whose fewest
+    fields share one with S (those S alone serves first), all at once, their other
+    fields held (:func:`_joint`), and kept when simulation reproduces every one
+    of them and every other reproduced motion with a weight on S. The motion then costs
+    no field of its own. Changes ``state.model`` and the pool's record (``shared``: the
+    motions so reproduced); returns the (scores, success) of every motion."""
+    limit, lost = ctx.cfg.solver.select.users, broken(state, ok)
+    if not lost or not limit:
+        return scores, ok
+    basis, weights = model_from_state(state.model)
+    ok, shared, touched = list(ok), [], set()
+    for j in lost:
+        S = fewest[j]
+        near = sorted((k for k in range(ctx.tg.N) if k != j and ok[k] and set(fewest[k]) & set(S)),
+                      key=lambda k: not set(fewest[k]) <= set(S))    # those S alone serves first
+        if ok[j] or not S or not near:
+            continue
+        motions = [j] + near[:limit]
+        ctx.log.busy(sharing=ctx.tg.names[j], users=len(motions) - 1)
+        trial = _joint(ctx, basis, weights, motions, [S] + [fewest[k] for k in near[:limit]], S)
+        if trial is None:
+            continue
+        others = [k for k in trial[1].used()[:, S].any(1).nonzero().flatten().tolist() if k not in motions]
+        if not _kept(ctx, state, *trial, [k for k in others if ok[k]]):
+            continue
+        basis, weights = trial
+        shared.append(j)
+        touched.update(motions + others)
+    if not shared:
+        return scores, ok
+    moved = sorted(touched)
+    check, fine = ctx.check(basis, weights.select_motions(moved), ctx.tg.select(moved))
+    scores = _replaced(scores, moved, check)
+    for k, f in zip(moved, fine):
+        ok[k] = f
+    state.model = model_state(basis, weights)
+    if state.support is not None:
+        for j in shared:
+            for i in fewest[j]:
+                state.support[j][i] = True
+    record = state.history.pool
+    record.success, record.shared = ok, [ctx.tg.names[j] for j in shared]
+    return scores, ok
+
+
+def _kept(ctx: RunContext, state: RunState, basis, weights, motions: list) -> bool:
+    """Whether simulation reproduces every one of ``motions`` on the model, those it does
+    not first path-matched by multiple shooting (as in :func:`shoot`, ``weights``
+    changed in place)."""
+    if not motions:
+        return True
+    lost = [k for k, f in zip(motions, ctx.check(basis, weights.select_motions(motions),
+                                                  ctx.tg.select(motions))[1]) if not f]
+    if not lost or not ctx.cfg.solver.select.shooting:
+        return not lost
+    options = replace(ctx.cfg.solver.shooting.options(ctx.variable_phases),
+                      iterations=ctx.cfg.solver.select.shooting)
+    ctx.shoot(state, basis, weights, lost, options)
+    return all(ctx.check(basis, weights.select_motions(lost), ctx.tg.select(lost))[1])
+
+
+def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: list) -> Optional[tuple]:
+    """``motions`` each on the fields it drives (``drives``: indices, per motion) alone,
+    their NNLS weights on them, then the ``free`` fields and every motion's weights
+    fitted to all their paths at once by multiple shooting, the other fields held
+    (:meth:`RunContext.shoot_fields`): (basis, weights) with the ``free`` fields moved and
+    those motions' weights on their fields alone, when simulation then reproduces every
+    one of ``motions``; else None."""
+    fields = list(dict.fromkeys(free + [i for d in drives for i in d]))
+    tg, b = ctx.tg.select(motions), basis.select(fields)
+    w = weights.select_motions(motions).select_fields(fields)
+    torque.solve_weights(b, w, tg, weight_support([[i in d for i in fields] for d in drives], w.P))
+    if not ctx.shoot_fields(b, w, tg, free=tuple(range(len(free)))) or not all(ctx.check(b, w, tg)[1]):
+        return None
+    eta, K = basis.eta.detach().clone(), basis.K().detach().clone()
+    eta[free], K[free] = b.eta.detach()[:len(free)], b.K().detach()[:len(free)]
+    nw = weights.select_motions(range(weights.N))
+    with torch.no_grad():
+        for key in MotionWeights.PER_FIELD + MotionWeights.WINDOWS:
+            target, fitted = getattr(nw, key), getattr(w, key).detach()
+            for i, j in enumerate(motions):
+                if key in ("a_raw", "b_raw", "c_raw"):
+                    target[j] = 0.0
+                if key in MotionWeights.PER_FIELD:
+                    target[j, fields] = fitted[i]
+                else:
+                    target[j] = fitted[i]
+    return basis.like(eta, K), nw
 
 
 def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
