@@ -336,7 +336,7 @@ def test_shared_fields_are_fitted_to_every_motions_path_at_once(problem):
     fields ends on the generating fields and both paths (loss below 1e-9 each; measured
     2.5e-13 and 3.1e-11, centres within 3.6e-6 rad); the arrow-shaped normal equations are the
     stacked problem's JᵀJ. With the first field alone freed (the second right), the
-    second is held to the bit and the first recovered.""" 
+    second is held to the bit and the first recovered."""
     body, basis, weights, tg = problem
     b, w = _fields_off(basis), _perturbed(weights)
     opts = shooting.ShootingOptions(fields=True, iterations=10)
@@ -344,11 +344,13 @@ def test_shared_fields_are_fitted_to_every_motions_path_at_once(problem):
     theta = prob.theta()
     (J0, r0), (J1, r1) = prob.jacobian(theta, 0.5, [0, 1])
     dw = prob.dw
-    stacked = torch.cat([torch.cat([J0[..., :dw], torch.zeros_like(J0[..., :dw]), J0[..., dw:]], -1).flatten(0, 1),
-                         torch.cat([torch.zeros_like(J1[..., :dw]), J1[..., :dw], J1[..., dw:]], -1).flatten(0, 1)])
+    z0, z1 = torch.zeros_like(J0[..., :dw]), torch.zeros_like(J1[..., :dw])
+    stacked = torch.cat([torch.cat([J0[..., :dw], z0, J0[..., dw:]], -1).flatten(0, 1),
+                         torch.cat([z1, J1[..., :dw], J1[..., dw:]], -1).flatten(0, 1)])
     A, g, _, _ = shooting._arrow(*shooting._normal([(J0, r0), (J1, r1)]), theta, prob.lower, dw)
     assert torch.allclose(A, stacked.T @ stacked, rtol=1e-12, atol=1e-12 * float(A.abs().max()))
-    assert torch.allclose(g, stacked.T @ torch.cat([r0.flatten(), r1.flatten()]), atol=1e-12 * float(g.abs().max()))
+    r = torch.cat([r0.flatten(), r1.flatten()])
+    assert torch.allclose(g, stacked.T @ r, atol=1e-12 * float(g.abs().max()))
     res = shooting.shooting_match(body, b, w, tg, options=opts)
     print("losses:", res.loss, "centres", float((b.eta - basis.eta).abs().max()))
     assert max(res.loss) < 1e-9 and not res.failures

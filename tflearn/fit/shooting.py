@@ -371,7 +371,8 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
                    callback: Optional[Callable] = None) -> ShootingResult:
     """Fit every motion's weights (and with ``options.phases`` its timing) to its path,
     the basis fixed — or with ``options.fields`` free (``basis`` is then changed in place;
-    with several motions, fitted to all their paths at once) —, by multiple shooting and Levenberg–Marquardt (module docstring).
+    with several motions, fitted to all their paths at once) —, by multiple shooting and
+    Levenberg–Marquardt (module docstring).
     ``motions``: fit these only (indices; the others are left as they are, and the
     result's rows are these motions'). ``weights`` is changed in place;
     ``callback(horizon, iteration, cost (N))`` is called after each iteration. Returns

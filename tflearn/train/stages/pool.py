@@ -185,8 +185,9 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
     its path needs them: they are fitted by multiple shooting, free and shared, to its
     path and to those of up to ``solver.select.users`` reproduced motions whose fewest
     fields share one with S (those S alone serves first), all at once, their other
-    fields held (:func:`_joint`), and kept when simulation reproduces every one
-    of them and every other reproduced motion with a weight on S. The motion then costs
+    fields held (:func:`_joint`), and kept when simulation reproduces every one of them
+    and every other reproduced motion with a weight on S (once its weights are
+    path-matched on the moved fields where it must be, :func:`_kept`). The motion then costs
     no field of its own. Changes ``state.model`` and the pool's record (``shared``: the
     motions so reproduced); returns the (scores, success) of every motion."""
     limit, lost = ctx.cfg.solver.select.users, broken(state, ok)
