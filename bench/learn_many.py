@@ -36,12 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 _BAR = re.compile(r"\[\d+/\d+\] (.+?): .*?\[(?:(\d+):)?(\d+):(\d+)<")
 
 
-def make(n: int, seed: int, folder: Path, library: int = 0) -> dict:
+def make(n: int, seed: int, folder: Path, library: int = 0, stiffness: str = "scalar") -> dict:
     """Write n random programs' motions into ``folder`` (``library`` = G > 0: their fields
-    drawn from G shared ones), each as NAME.npz and its generating program as NAME.json
-    (basis format, as ``tflearn gestures --out`` writes): the seconds it took, the number
-    of motions at each sampling rate, the samples in all and the number of generating
-    fields G."""
+    drawn from G shared ones; ``stiffness``: scalar or diag fields), each as NAME.npz and
+    its generating program as NAME.json (basis format, as ``tflearn gestures --out``
+    writes): the seconds it took, the number of motions at each sampling rate, the
+    samples in all and the number of generating fields G."""
     import torch
 
     from tflearn.data import gestures
@@ -50,7 +50,7 @@ def make(n: int, seed: int, folder: Path, library: int = 0) -> dict:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     rates, samples = {}, 0
-    programs = gestures.random_gestures(n, seed=seed, library=library)
+    programs = gestures.random_gestures(n, seed=seed, library=library, stiffness=stiffness)
     for motion, generating in gestures.generate_resolved(programs):
         save(motion, folder / f"{motion.name}.npz")
         basis.save(generating, folder / f"{motion.name}.json")
@@ -115,6 +115,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--library", type=int, default=0,
                    help="G > 0: the programs' fields drawn from G shared ones (0: each its own)")
+    p.add_argument("--stiffness", choices=("scalar", "diag"), default="scalar",
+                   help="the programs' fields: K = k·I or seven independent diagonal entries")
     p.add_argument("--nproc", type=int, default=1, help="training processes (torchrun)")
     p.add_argument("--out", type=Path)
     p.add_argument("overrides", nargs="*", help="config overrides for train (KEY=VALUE)")
@@ -125,7 +127,8 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             data, out = Path(tmp) / "data", Path(tmp) / "run"
             data.mkdir()
-            row = {"motions": n, "nproc": args.nproc, **make(n, args.seed, data, args.library)}
+            row = {"motions": n, "nproc": args.nproc, "stiffness": args.stiffness,
+                   **make(n, args.seed, data, args.library, args.stiffness)}
             row.update(learn(data, out, args.overrides, args.nproc))
         rows.append(row)
         print(json.dumps(row), flush=True)
