@@ -185,7 +185,7 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
     its path needs them: they are fitted by multiple shooting, free and shared, to its
     path and to those of up to ``solver.select.users`` reproduced motions whose fewest
     fields share one with S (those S alone serves first), all at once, their other
-    fields held (:func:`_joint`), and kept when simulation reproduces every one of them
+    fields held (:func:`_moved`), and kept when simulation reproduces every one of them
     and every other reproduced motion with a weight on S (once its weights are
     path-matched on the moved fields where it must be, :func:`_kept`). The motion then costs
     no field of its own. Changes ``state.model`` and the pool's record (``shared``: the
@@ -196,22 +196,16 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
     basis, weights = model_from_state(state.model)
     ok, shared, touched = list(ok), [], set()
     for j in lost:
-        S = fewest[j]
-        near = sorted((k for k in range(ctx.tg.N) if k != j and ok[k] and set(fewest[k]) & set(S)),
-                      key=lambda k: not set(fewest[k]) <= set(S))    # those S alone serves first
-        if ok[j] or not S or not near:
+        near = sorted((k for k in range(ctx.tg.N) if k != j and ok[k] and set(fewest[k]) & set(fewest[j])),
+                      key=lambda k: not set(fewest[k]) <= set(fewest[j]))   # those S alone serves first
+        if ok[j] or not near:
             continue
-        motions = [j] + near[:limit]
-        ctx.log.busy(sharing=ctx.tg.names[j], users=len(motions) - 1)
-        trial = _joint(ctx, basis, weights, motions, [S] + [fewest[k] for k in near[:limit]], S)
-        if trial is None:
-            continue
-        others = [k for k in trial[1].used()[:, S].any(1).nonzero().flatten().tolist() if k not in motions]
-        if not _kept(ctx, state, *trial, [k for k in others if ok[k]]):
-            continue
-        basis, weights = trial
-        shared.append(j)
-        touched.update(motions + others)
+        ctx.log.busy(sharing=ctx.tg.names[j], users=len(near[:limit]))
+        trial = _moved(ctx, state, basis, weights, [j] + near[:limit], fewest, ok)
+        if trial is not None:
+            basis, weights, moved = trial
+            shared.append(j)
+            touched.update(moved)
     if not shared:
         return scores, ok
     moved = sorted(touched)
@@ -227,6 +221,29 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
     record = state.history.pool
     record.success, record.shared = ok, [ctx.tg.names[j] for j in shared]
     return scores, ok
+
+
+def _moved(ctx: RunContext, state: RunState, basis, weights, motions: list, fewest: list,
+           ok: list) -> Optional[tuple]:
+    """The lost motion ``motions[0]``'s fewest fields S fitted with its users
+    (``motions[1:]``) by :func:`_joint` — once more without the users that fit loses, if
+    it reproduces the motion —, then they and every other reproduced motion with a
+    weight on S checked on the whole model (:func:`_kept`: a motion whose path amplifies
+    round-off may not pass on the whole basis what it passed on S and its users' fields):
+    (basis, weights, the motions whose programs changed), or None where any of them is
+    not reproduced."""
+    S = fewest[motions[0]]
+    trial = _joint(ctx, basis, weights, motions, [fewest[k] for k in motions], S)
+    if trial is not None and trial[2][0] and not all(trial[2]):
+        motions = [k for k, f in zip(motions, trial[2]) if f]
+        trial = _joint(ctx, basis, weights, motions, [fewest[k] for k in motions], S)
+    if trial is None or not all(trial[2]):
+        return None
+    nb, nw, _ = trial
+    others = [k for k in nw.used()[:, S].any(1).nonzero().flatten().tolist() if k not in motions]
+    if not _kept(ctx, state, nb, nw, motions + [k for k in others if ok[k]]):
+        return None
+    return nb, nw, motions + others
 
 
 def _kept(ctx: RunContext, state: RunState, basis, weights, motions: list) -> bool:
@@ -249,15 +266,16 @@ def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: l
     """``motions`` each on the fields it drives (``drives``: indices, per motion) alone,
     their NNLS weights on them, then the ``free`` fields and every motion's weights
     fitted to all their paths at once by multiple shooting, the other fields held
-    (:meth:`RunContext.shoot_fields`): (basis, weights) with the ``free`` fields moved and
-    those motions' weights on their fields alone, when simulation then reproduces every
-    one of ``motions``; else None."""
+    (:meth:`RunContext.shoot_fields`): (basis, weights, whether simulation reproduces
+    each of ``motions``) with the ``free`` fields moved and those motions' weights on
+    their fields alone; None where shooting of fields is off."""
     fields = list(dict.fromkeys(free + [i for d in drives for i in d]))
     tg, b = ctx.tg.select(motions), basis.select(fields)
     w = weights.select_motions(motions).select_fields(fields)
     torque.solve_weights(b, w, tg, weight_support([[i in d for i in fields] for d in drives], w.P))
-    if not ctx.shoot_fields(b, w, tg, free=tuple(range(len(free)))) or not all(ctx.check(b, w, tg)[1]):
+    if not ctx.shoot_fields(b, w, tg, free=tuple(range(len(free)))):
         return None
+    fine = ctx.check(b, w, tg)[1]
     eta, K = basis.eta.detach().clone(), basis.K().detach().clone()
     eta[free], K[free] = b.eta.detach()[:len(free)], b.K().detach()[:len(free)]
     nw = weights.select_motions(range(weights.N))
@@ -271,7 +289,7 @@ def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: l
                     target[j, fields] = fitted[i]
                 else:
                     target[j] = fitted[i]
-    return basis.like(eta, K), nw
+    return basis.like(eta, K), nw, fine
 
 
 def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
