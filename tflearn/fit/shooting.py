@@ -457,11 +457,14 @@ def _jacobians(prob: _Problem, theta, h, motions: list, result: ShootingResult) 
     return out
 
 
+_BACK_OFF = (0.5, 0.25, 0.125, 0.0625, 0.0)      # α of θ₀ + α(θ − θ₀), in order
+
+
 def _back_off(prob: _Problem, theta, start, cost, h, lost: list) -> None:
     """Move each ``lost`` motion, whose segments at horizon h cannot be simulated from its
     θ, back towards its starting θ₀: θ ← θ₀ + α(θ − θ₀) for the first α of 1/2, 1/4, …,
     1/16, 0 at which they can (θ, its cost and ``lost`` are updated in place)."""
-    for alpha in (0.5, 0.25, 0.125, 0.0625, 0.0):
+    for alpha in _BACK_OFF:
         if not lost:
             return
         trial = start[lost] + alpha * (theta[lost] - start[lost])
@@ -544,8 +547,8 @@ def _shared(prob: _Problem, callback) -> ShootingResult:
     """:func:`shooting_match` of several motions with the fields free and shared: one
     Levenberg–Marquardt problem over every motion's θ (module docstring, "Shared
     fields"); each horizon from the θ of the last, backed off towards θ₀ where it
-    cannot be simulated. Every motion's loss is ∞ and named in ``failures`` where one
-    cannot be simulated from θ₀."""
+    cannot be simulated. Where a motion cannot be simulated from θ₀ nothing is fitted:
+    the losses are those at θ₀ (∞ for it) and it is named in ``failures``."""
     tg, everyone = prob.tg, list(range(prob.tg.N))
     longest, theta = float(tg.duration.max()), prob.theta()
     start, result = theta.clone(), ShootingResult(loss=[])
@@ -557,12 +560,12 @@ def _shared(prob: _Problem, callback) -> ShootingResult:
         return result
     h, mu = min(prob.opts.horizon, longest), prob.opts.mu
     while True:
-        theta = _backed_off(prob, theta, start, h)
+        theta, cost = _backed_off(prob, theta, start, h)
         if theta is None:
             result.failures["fields"] = f"cannot be simulated at horizon {h:.3g} s"
             theta = start
             break
-        theta, mu = _shared_stage(prob, theta, mu, h, result, callback)
+        theta, mu = _shared_stage(prob, theta, cost, mu, h, result, callback)
         if h >= longest:
             break
         h = min(2 * h, longest)
@@ -574,23 +577,24 @@ def _shared(prob: _Problem, callback) -> ShootingResult:
     return result
 
 
-def _backed_off(prob: _Problem, theta, start, h):
-    """θ₀ + α(θ − θ₀) for the first α of 1, ½, ¼, …, 1/16, 0 at which every motion's
-    segments at horizon h can be simulated; None if none can."""
+def _backed_off(prob: _Problem, theta, start, h) -> tuple:
+    """(θ₀ + α(θ − θ₀), each motion's cost there) for the first α of 1, ½, ¼, …, 1/16, 0
+    at which every motion's segments at horizon h can be simulated; (None, None) if
+    none can."""
     everyone = list(range(prob.tg.N))
-    for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0):
+    for alpha in (1.0,) + _BACK_OFF:
         trial = start + alpha * (theta - start)
-        if torch.isfinite(prob.cost(trial, h, everyone)).all():
-            return trial
-    return None
+        cost = prob.cost(trial, h, everyone)
+        if torch.isfinite(cost).all():
+            return trial, cost
+    return None, None
 
 
-def _shared_stage(prob: _Problem, theta, mu: float, h: float, result: ShootingResult, callback):
-    """The Levenberg–Marquardt iterations of one horizon on (θ_1, …, θ_N, f) together:
-    (θ, μ) at the end; stops when the summed cost falls by less than ``tol``
-    relatively, is below N·``floor``, or no μ lowers it."""
+def _shared_stage(prob: _Problem, theta, cost, mu: float, h: float, result: ShootingResult, callback):
+    """The Levenberg–Marquardt iterations of one horizon on (θ_1, …, θ_N, f) together,
+    from θ and each motion's cost there: (θ, μ) at the end; stops when the summed cost
+    falls by less than ``tol`` relatively, is below N·``floor``, or no μ lowers it."""
     everyone, N, dw = list(range(prob.tg.N)), prob.tg.N, prob.dw
-    cost = prob.cost(theta, h, everyone)
     for it in range(prob.opts.iterations):
         total = float(cost.sum())
         if total <= N * prob.opts.floor:

@@ -279,17 +279,23 @@ def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: l
     eta, K = basis.eta.detach().clone(), basis.K().detach().clone()
     eta[free], K[free] = b.eta.detach()[:len(free)], b.K().detach()[:len(free)]
     nw = weights.select_motions(range(weights.N))
-    with torch.no_grad():
-        for key in MotionWeights.PER_FIELD + MotionWeights.WINDOWS:
-            target, fitted = getattr(nw, key), getattr(w, key).detach()
-            for i, j in enumerate(motions):
-                if key in ("a_raw", "b_raw", "c_raw"):
-                    target[j] = 0.0
-                if key in MotionWeights.PER_FIELD:
-                    target[j, fields] = fitted[i]
-                else:
-                    target[j] = fitted[i]
+    for i, j in enumerate(motions):
+        _put(nw, j, fields, w.timing(i, weights=True))
     return basis.like(eta, K), nw, fine
+
+
+@torch.no_grad()
+def _put(weights: MotionWeights, j: int, fields: list, arrays: dict) -> None:
+    """Motion j on ``fields`` (positions) alone: its a, b, c zero elsewhere, ``arrays``
+    (:meth:`MotionWeights.timing` with weights: per field, or per motion for the
+    windows) written into those fields' columns."""
+    for key in ("a_raw", "b_raw", "c_raw"):
+        getattr(weights, key)[j] = 0.0
+    for key, row in arrays.items():
+        if key in MotionWeights.WINDOWS:
+            getattr(weights, key)[j] = row
+        else:
+            getattr(weights, key)[j, fields] = row
 
 
 def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
@@ -318,18 +324,10 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
     rows = state.support or [[True] * M0 for _ in range(tg.N)]
     support = [row + [False] * (nb.M - M0) for row in rows]
     start = M0
-    with torch.no_grad():
-        for j, (eta, _, fit) in zip(lost, own):
-            for key in ("a_raw", "b_raw", "c_raw"):
-                getattr(nw, key)[j] = 0.0
-            for key, row in fit.items():
-                target = getattr(nw, key)
-                if key in MotionWeights.WINDOWS:
-                    target[j] = row
-                else:
-                    target[j, start:start + len(eta)] = row
-            support[j] = [start <= i < start + len(eta) for i in range(nb.M)]
-            start += len(eta)
+    for j, (eta, _, fit) in zip(lost, own):
+        _put(nw, j, list(range(start, start + len(eta))), fit)
+        support[j] = [start <= i < start + len(eta) for i in range(nb.M)]
+        start += len(eta)
     check, fine = ctx.check(nb, nw.select_motions(lost), tg.select(lost))
     scores, ok = _replaced(scores, lost, check), list(ok)
     for i, j in enumerate(lost):
