@@ -189,7 +189,8 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
     and every other reproduced motion with a weight on S (once its weights are
     path-matched on the moved fields where it must be, :func:`_kept`). The motion then costs
     no field of its own. Changes ``state.model`` and the pool's record (``shared``: the
-    motions so reproduced); returns the (scores, success) of every motion."""
+    motions so reproduced, by a last check of every motion whose program changed);
+    returns the (scores, success) of every motion."""
     limit, lost = ctx.cfg.solver.select.users, broken(state, ok)
     if not lost or not limit:
         return scores, ok
@@ -218,8 +219,8 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
         for j in shared:
             for i in fewest[j]:
                 state.support[j][i] = True
-    record = state.history.pool
-    record.success, record.shared = ok, [ctx.tg.names[j] for j in shared]
+    record = state.history.pool                       # those the check of all of them keeps
+    record.success, record.shared = ok, [ctx.tg.names[j] for j in shared if ok[j]] or None
     return scores, ok
 
 
