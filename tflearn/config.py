@@ -179,8 +179,9 @@ class SelectSection(Section):                   # the shared basis chosen among 
     # own fields back: a restored motion costs fields for good, an iteration only time
     shooting: int = Field(20, ge=0)
     # a motion still lost then has its fewest chosen fields fitted to its path and to the
-    # paths of up to this many reproduced motions that those fields alone serve, all at
-    # once, the fields free and shared, before it gets fields of its own; 0: off
+    # paths of up to this many reproduced motions whose fewest fields share one with them
+    # (those these fields alone serve first), all at once, the fields free and shared,
+    # before it gets fields of its own; 0: off
     users: int = Field(8, ge=0)
 
 

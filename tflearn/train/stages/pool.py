@@ -168,12 +168,10 @@ def shoot(ctx: RunContext, state: RunState, basis, weights, scores: Scores, ok: 
     weights by multiple shooting on the chosen basis (``solver.select.shooting``
     iterations, ``solver.shooting``'s other settings), ``weights`` changed in place;
     the (scores, success) of every motion after."""
-    motions, iterations = broken(state, ok), ctx.cfg.solver.select.shooting
-    if not motions or not iterations:
+    motions = broken(state, ok)
+    if not motions or not ctx.cfg.solver.select.shooting:
         return scores, ok
-    options = replace(ctx.cfg.solver.shooting.options(ctx.variable_phases), iterations=iterations)
-    ctx.shoot(state, basis, weights, motions, options)
-    check, fine = ctx.check(basis, weights.select_motions(motions), ctx.tg.select(motions))
+    check, fine = _path_matched(ctx, state, basis, weights, motions)
     ok = list(ok)
     for i, j in enumerate(motions):
         ok[j] = fine[i]
@@ -257,10 +255,17 @@ def _kept(ctx: RunContext, state: RunState, basis, weights, motions: list) -> bo
                                                   ctx.tg.select(motions))[1]) if not f]
     if not lost or not ctx.cfg.solver.select.shooting:
         return not lost
+    return all(_path_matched(ctx, state, basis, weights, lost)[1])
+
+
+def _path_matched(ctx: RunContext, state: RunState, basis, weights, motions: list) -> tuple:
+    """``motions``' weights path-matched on the basis by multiple shooting
+    (``solver.select.shooting`` iterations, ``solver.shooting``'s other settings),
+    ``weights`` changed in place: their (scores, success) after."""
     options = replace(ctx.cfg.solver.shooting.options(ctx.variable_phases),
                       iterations=ctx.cfg.solver.select.shooting)
-    ctx.shoot(state, basis, weights, lost, options)
-    return all(ctx.check(basis, weights.select_motions(lost), ctx.tg.select(lost))[1])
+    ctx.shoot(state, basis, weights, motions, options)
+    return ctx.check(basis, weights.select_motions(motions), ctx.tg.select(motions))
 
 
 def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: list) -> Optional[tuple]:
