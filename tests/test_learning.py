@@ -542,9 +542,9 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     leaves every weight as it was; the copy goes, come_here's weights re-solved (its own
     field takes the whole step, 3) and tuck's untouched bit for bit; tuck's only field
     stays (without it tuck is not reproduced). Once come_here counts as not reproduced,
-    elimination keeps its fields (0 and the copy) without a trial, and the unused field
-    still goes, as it is: no refit, no simulation; had its simulation failed, its fields
-    would be tried."""
+    elimination keeps the field it needs without a trial — one of the two copies, which
+    serve it alike, not both — and the unused field still goes, as it is: no refit, no
+    simulation; had its simulation failed, its fields would be tried."""
     programs = [gestures.GESTURES["come_here"], gestures.GESTURES["tuck"]]
     (m0, lb), (m1, _) = gestures.generate(gestures=programs)
     body = lb.body
@@ -578,17 +578,17 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     alone = reduce.held_trial(ctx, basis, weights, tg, state, 1)
     assert alone.motions == [1] and not reduce.accepts(ctx, state, alone, tg)
     assert alone.check[0].rmse[0] > 0.03
-    assert reduce.carried(weights, state) == set()
-    state.reference.ok = [False, True]             # come_here not reproduced: its fields stay
-    assert reduce.carried(weights, state) == {0, 3}
+    assert reduce.carried(ctx, basis, weights, state) == set()
+    state.reference.ok = [False, True]             # come_here not reproduced: the field it needs stays,
+    assert reduce.carried(ctx, basis, weights, state) == {0}    # one of two copies (the first)
     rmse, state.reference.rmse[0] = state.reference.rmse[0], math.inf
-    assert reduce.carried(weights, state) == set()   # a failed simulation: its fields are tried
+    assert reduce.carried(ctx, basis, weights, state) == set()   # a failed simulation: its fields are tried
     state.reference.rmse[0] = rmse
-    state.model, state.order, state.stage = model_state(basis, weights), [3, 2, 1, 0], "reduce"
+    state.model, state.order, state.stage = model_state(basis, weights), [0, 2, 1, 3], "reduce"
     (tmp_path / "run").mkdir()                     # where the checkpoint goes
-    reduce.run(ctx, state)                         # field 3: kept without a trial
-    assert state.history.to_dict()["reduce"] == [{"field": 3, "removed": False, "trial": "none", "M_after": 4,
-                                                  "refused": "used by a motion not reproduced"}]
+    reduce.run(ctx, state)                         # field 0: kept without a trial
+    assert state.history.to_dict()["reduce"] == [{"field": 0, "removed": False, "trial": "none", "M_after": 4,
+                                                  "refused": "needed by a motion not reproduced"}]
     assert state.cursor == 1 and state.ids == [0, 1, 2, 3]
     calls, iteration = sim_mod.calls, state.iteration
     reduce.run(ctx, state)                         # field 2: no motion uses it, it goes as it is

@@ -70,6 +70,36 @@ def test_each_motion_gets_its_fewest_chosen_fields_that_serve_it():
     assert all(c <= t for c, t in zip(s.costs, s.tolerance))
 
 
+def test_an_own_fit_whose_torques_are_no_motions_is_judged_by_its_fields():
+    """An own fit whose torques are no motion's (weights ten times too large, C_j > 1, as
+    path shooting with free fields can leave one) is held to its own fields' NNLS bar —
+    the bar of the fit with its exact weights —, not served by no field at all."""
+    basis, weights, tg, own = _copies(STIFF)
+    exact = select.select(basis, weights, tg, own)
+    weights.set_flat(("a_raw", "b_raw"), 10 * weights.flat(("a_raw", "b_raw")), list(range(4)))
+    assert all(c > 1 for c in torque.torque_costs(basis, weights, tg).tolist())
+    s = select.select(basis, weights, tg, own)
+    assert s.tolerance == pytest.approx(exact.tolerance, rel=1e-6) and max(s.tolerance) < 0.01
+    assert sorted(s.kept) == sorted(exact.kept) and s.support == exact.support and not s.unserved
+    bare, alone = own.clone(), MotionWeights.zeros(4, tg.duration, tg.names)
+    bare[0] = False                                          # no field of its own, no torque: C = 1
+    s = select.select(basis, alone, tg, bare)
+    assert s.tolerance[0] == pytest.approx(1 - select.SelectOptions().tol) and len(s.support[0]) == 1
+
+
+def test_a_motion_needs_one_of_two_copies_and_each_different_field():
+    """:func:`select.needed`: of a field, a copy of it and a field the motion has no use
+    for, the motion needs the field alone; of two fields that differ where it looks, it
+    needs the one its weights are on."""
+    basis, weights, tg, own = _copies(STIFF)
+    both = MotionWeights.zeros(4, tg.duration, tg.names)
+    torque.solve_weights(basis, both, tg)                    # every motion on every field
+    assert select.needed(basis, both, tg, 1, [1, 2, 3], 1e-4) == [1]
+    assert select.needed(basis, weights, tg, 0, [0, 1], 1e-4) == [0]
+    assert select.needed(basis, weights, tg, 1, [0, 1], 1e-4) == [1]
+    assert select.needed(basis, weights, tg, 1, [], 1e-4) == []
+
+
 def test_exact_copies_are_one_candidate():
     basis, weights, tg, own = _copies(STIFF)                 # fields 1, 2, 3: one field thrice
     s = select.select(basis, weights, tg, own)

@@ -15,8 +15,9 @@ motion j when C_j with k in place of i stays within the motion's tolerance — a
 in the metric G_j of the directions motion j excites, so copies that differ only where
 no motion looks are one field, and fields that differ where a motion looks are not.
 
-A subset S *serves* motion j when C_j(S) ≤ τ_j = c_j + δ, c_j the cost of its own fit
-and δ the tolerance (``SelectOptions.tol``). :func:`select` finds a small S serving
+A subset S *serves* motion j when C_j(S) ≤ τ_j = min(c_j + δ, 1 − δ), c_j the cost of
+its own fit (or of its own fields' NNLS weights, where lower) and δ the tolerance
+(``SelectOptions.tol``; no subset serves with no field). :func:`select` finds a small S serving
 every motion: greedy forward selection — the candidate that removes the most excess
 Σ_j max(C_j − τ_j, 0) joins, every motion's weights re-solved exactly (S-OMP's rule with
 NNLS refits in place of projections, Tropp, Gilbert & Strauss 2006; each candidate a
@@ -42,7 +43,7 @@ from .nnls import nnls
 from .targets import Targets
 from .torque import columns, normal_equations, quadratic_cost, torque_costs
 
-__all__ = ["SelectOptions", "Selection", "select"]
+__all__ = ["SelectOptions", "Selection", "needed", "select"]
 
 
 @dataclass(frozen=True)
@@ -119,10 +120,13 @@ def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.
              opts: SelectOptions, tolerance: Optional[list]) -> list:
     """Each motion's :class:`_Motion`: its candidates (reach or its own, ``own`` N×M
     bools; of exact copies the first alone) and their normal equations; τ_j as given, or
-    c_j + δ from its own fit's cost c_j on ``weights``."""
+    min(c_j + δ, 1 − δ), c_j its own fit's cost: on ``weights``, or the NNLS optimum on its
+    own fields where that is lower (path shooting with free fields fits the path, and can
+    leave weights whose torques are no motion's, C_j even above 1); at most 1 − δ, below
+    C_j(∅) = 1, so that every motion needs a field."""
     out = []
     if tolerance is None:
-        tolerance = (torque_costs(basis, weights, tg) + opts.tol).tolist()
+        current = torque_costs(basis, weights, tg).tolist()
     mine, first = _onto_first_copies(basis, own)
     for j in range(tg.N):
         peak = basis.gaussians(tg.q[j][tg.mask[j]]).max(0).values
@@ -130,7 +134,13 @@ def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.
         fields = near.nonzero().flatten().tolist()
         sub = weights.select_motions([j]).select_fields(fields)
         G, h = normal_equations(basis.select(fields), sub, tg.select([j], trim=True))
-        out.append(_Motion(fields, G[0], h[0], weights.P, tolerance[j]))
+        mo = _Motion(fields, G[0], h[0], weights.P, 0.0)
+        if tolerance is None:
+            c = min(current[j], float(mo.costs([mine[j].nonzero().flatten().tolist()])[0]))
+            mo.tau = min(c + opts.tol, 1 - opts.tol)
+        else:
+            mo.tau = tolerance[j]
+        out.append(mo)
     return out
 
 
@@ -233,6 +243,24 @@ def _fewest(mo: _Motion, kept: list) -> list:
         mine.append(free.pop(best))
         cost = float(trial[best])
     return mine
+
+
+@torch.no_grad()
+def needed(basis: FieldBasis, weights: MotionWeights, tg: Targets, j: int, fields: list,
+           tol: float) -> list:
+    """The fewest of ``fields`` (indices into ``basis``) that motion j needs, greedily
+    (:func:`_fewest`): the field that lowers C_j the most joins until C_j is within
+    ``tol`` of its optimum C_j(``fields``), weights re-solved by NNLS at each size. Of
+    two copies that serve the motion alike, one is needed. Returns those of ``fields``
+    needed, in the order they joined."""
+    if not fields:
+        return []
+    sub = weights.select_motions([j]).select_fields(fields)
+    G, h = normal_equations(basis.select(fields), sub, tg.select([j], trim=True))
+    mo = _Motion(fields, G[0], h[0], weights.P, 0.0)
+    mo.cost = float(mo.costs([fields])[0])
+    mo.tau = mo.cost + tol
+    return _fewest(mo, fields)
 
 
 def _merged(basis: FieldBasis, kept: list, motions: list, own: torch.Tensor) -> list:

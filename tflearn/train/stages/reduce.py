@@ -4,7 +4,7 @@ worse by simulation (:func:`no_worse`); the smallest M found is reported. One un
 field tried.
 
 With ``model.fields`` = 0 a field goes only if no motion gets worse; a field no motion
-uses goes as it is (:func:`idle`), and a field that a motion not reproduced uses is kept
+uses goes as it is (:func:`idle`), and a field that a motion not reproduced needs is kept
 without a trial (:func:`carried`). Any other is tried first with every field refitted
 by EM (:func:`refit_trial`; ``solver.reduce.refit``), then, if that breaks a motion or
 refitting is off, with every other field held where it is (:func:`held_trial`: only the
@@ -29,7 +29,7 @@ from typing import Callable, Optional
 import torch
 
 from ... import parallel
-from ...fit import search, torque
+from ...fit import search, select, torque
 from ...fit.targets import Targets
 from ...metrics import Scores, score_models
 from ...model.program import model_from_state, model_state
@@ -95,10 +95,10 @@ def run(ctx: RunContext, state: RunState) -> None:
     together = refit and not fixed and ctx.options.batch == "each" and parallel.size() == 1
     window = state.window if together else 1
     victims = state.order[k:total(basis.M)][:window]
-    carried_ = set() if fixed else carried(weights, state)
+    carried_ = set() if fixed else carried(ctx, basis, weights, state)
     idle_ = set() if fixed else idle(weights, state)
     if victims[0] in carried_:                     # kept without a trial
-        apply(ctx, state, Trial(victims[0], "none", refused="used by a motion not reproduced"), tg, total)
+        apply(ctx, state, Trial(victims[0], "none", refused="needed by a motion not reproduced"), tg, total)
         return
     if victims[0] in idle_:                        # removed as it is: nothing changes
         apply(ctx, state, held_trial(ctx, basis, weights, tg, state, victims[0]), tg, total)
@@ -119,17 +119,23 @@ def run(ctx: RunContext, state: RunState) -> None:
             return
 
 
-def carried(weights, state: RunState) -> set:
-    """The fields (ids) that a motion not reproduced, but simulated to its end, has a
-    weight on. Elimination keeps them: such a motion's path is still to be matched
-    (multiple shooting, the path stage), which needs its fields, and its simulation,
-    already off the path, cannot show what losing one costs (a removal judged by it
-    left straight_reach with two fields that shooting could not carry). The fields of
-    a motion whose simulation fails are still tried: a removal that lets it be
-    simulated is one that path matching needs."""
-    ref = state.reference
-    off = torch.tensor([not ok and math.isfinite(r) for ok, r in zip(ref.ok, ref.rmse)])
-    return {state.ids[i] for i in weights.used()[off].any(0).nonzero().flatten().tolist()}
+def carried(ctx: RunContext, basis, weights, state: RunState) -> set:
+    """The fields (ids) that a motion not reproduced, but simulated to its end, needs:
+    of the fields it has a weight on, the fewest whose torque cost stays within
+    ``solver.select.tol`` of its cost on all of them (:func:`~tflearn.fit.select.needed`).
+    Elimination keeps them: such a motion's path is still to be matched (multiple
+    shooting, the path stage), which needs its fields, and its simulation, already off
+    the path, cannot show what losing one costs (a removal judged by it left
+    straight_reach with two fields that shooting could not carry). The others it draws
+    on (copies of a needed field, fields its weights touch without need) are tried like
+    any field, as are the fields of a motion whose simulation fails: a removal that lets
+    it be simulated is one that path matching needs."""
+    ref, used, tol = state.reference, weights.used(), ctx.cfg.solver.select.tol
+    keep = set()
+    for j, (ok, r) in enumerate(zip(ref.ok, ref.rmse)):
+        if not ok and math.isfinite(r):
+            keep.update(select.needed(basis, weights, ctx.tg, j, used[j].nonzero().flatten().tolist(), tol))
+    return {state.ids[i] for i in keep}
 
 
 def idle(weights, state: RunState) -> set:
