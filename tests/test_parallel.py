@@ -21,7 +21,8 @@ import torch.multiprocessing as mp
 import tflearn
 from tflearn import parallel, train
 from tflearn.fit import path as path_fit
-from tflearn.fit import targets, torque
+from tflearn.fit import shooting, targets, torque
+from tflearn.fit.shooting import ShootingOptions
 from tflearn.fit.targets import prepare
 from tflearn.model.fields import FieldBasis
 from tflearn.model.program import model_state
@@ -208,7 +209,8 @@ def _path_problem():
 
 def _path_steps(distributed: bool) -> dict:
     """Two path-matching steps (the second from the first's Adam state) on
-    :func:`_path_problem`, and 6 EM steps towards its model from centres moved by 0.1,
+    :func:`_path_problem`, three iterations of shooting its fields (moved by 0.05) and
+    weights, and 6 EM steps towards its model from centres moved by 0.1,
     the three motions in one chunk ("em": every rank runs EM whole) and in a chunk each
     ("em_chunks", ``targets.CHUNK_BYTES`` 1: the ranks share the chunks)."""
     body, basis, weights, tg = _path_problem()
@@ -217,6 +219,12 @@ def _path_steps(distributed: bool) -> dict:
     second = path_fit.path_step(body, basis, weights, tg, first.lr, first.best, first.optimizer,
                                 options=options, distributed=distributed)
     out = {"loss": [first.loss, second.loss], "model": model_state(basis, weights)}
+    _, basis, weights, tg = _path_problem()                # the fields shared by the three motions' paths
+    with torch.no_grad():
+        basis.eta += 0.05
+    res = shooting.shooting_match(body, basis, weights, tg, sim=options, distributed=distributed,
+                                  options=ShootingOptions(fields=True, iterations=3))
+    out["shooting"], out["shooting_model"] = res.loss, model_state(basis, weights)
     for key, chunk_bytes in (("em", targets.CHUNK_BYTES), ("em_chunks", 1)):
         _, basis, weights, tg = _path_problem()               # EM from off the model that made tg.tau
         x = torch.cat([weights.a, weights.b], -1)
@@ -231,6 +239,16 @@ def _path_steps(distributed: bool) -> dict:
             targets.CHUNK_BYTES = saved
         out[f"{key}_model"] = model_state(basis, weights)
     return out
+
+
+def _path_shooting_start() -> list:
+    """The three motions' path losses at :func:`_path_steps`' shooting start."""
+    body, basis, weights, tg = _path_problem()
+    with torch.no_grad():
+        basis.eta += 0.05
+    options = SimOptions(method="rk4", solver_options={"step_size": 0.01})
+    return shooting.shooting_match(body, basis, weights, tg, sim=options,
+                                   options=ShootingOptions(fields=True, iterations=0)).loss
 
 
 def _rank_main(rank: int, size: int, port: int, data: str, out: str, steps: str) -> None:
@@ -267,7 +285,9 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
     process's do, to rounding (the ranks' gradients are summed in another grouping); EM
     takes one process's steps to the last bit, in one chunk (run whole by every rank) or
     in three (shared: each chunk's weights solved and its terms of JᵀJ and Jᵀr formed by
-    one rank, every rank adding them in chunk order);
+    one rank, every rank adding them in chunk order); multiple shooting of fields shared by
+    the three motions, each rank simulating its share of the segments, ends where one
+    process does, to the last bit;
     then both ranks fit the two motions of the small run in one round of ``each`` and
     stop at its checkpoint, written by rank 0 alone: the fits are those of one process
     stopped after the same two motions (each motion's search has its own seeded
@@ -277,15 +297,18 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
     shared, alone = torch.load(steps, weights_only=True), _path_steps(distributed=False)
     assert alone["loss"][1] < alone["loss"][0]                  # the steps did something
     assert shared["loss"] == pytest.approx(alone["loss"], rel=1e-12)
-    for em in ("em", "em_chunks"):
-        assert alone[em][-1] < 0.9 * alone[em][0] and shared[em] == alone[em]      # EM moved; the same steps
+    assert sum(alone["shooting"]) < 0.5 * sum(_path_shooting_start())      # the fields moved to the paths
+    assert shared["shooting"] == alone["shooting"]
+    for em in ("em", "em_chunks", "shooting"):
+        if em != "shooting":
+            assert alone[em][-1] < 0.9 * alone[em][0] and shared[em] == alone[em]  # EM moved; the same steps
         for part in ("basis", "weights"):
             for key, value in alone[f"{em}_model"][part].items():
                 assert torch.equal(shared[f"{em}_model"][part][key], value), key
     for part in ("basis", "weights"):
         for key, value in alone["model"][part].items():
             assert torch.allclose(shared["model"][part][key], value, rtol=1e-10, atol=1e-12), key
-    for model in ("model", "em_model", "em_chunks_model"):
+    for model in ("model", "em_model", "em_chunks_model", "shooting_model"):
         assert not torch.equal(alone[model]["basis"]["eta"], _path_problem()[1].eta.detach())
     assert sorted(p.name for p in out.iterdir()) == ["checkpoint.pt"]
     with pytest.raises(train.Interrupted):

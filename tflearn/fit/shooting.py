@@ -81,6 +81,7 @@ from typing import Callable, Optional
 
 import torch
 
+from .. import parallel
 from ..model.fields import FieldBasis, MotionFields
 from ..model.program import FieldProgram
 from ..model.weights import MotionWeights
@@ -157,6 +158,12 @@ class _Segments:
     index: torch.Tensor
     base: Optional[Bases] = None
 
+    def take(self, idx: torch.Tensor) -> _Segments:
+        """The segments ``idx`` (indices), on the same grid."""
+        return _Segments(self.motion[idx], self.t0[idx], self.q0[idx], self.v0[idx], self.sample[idx],
+                         self.weight[idx], self.grid, self.index[idx],
+                         None if self.base is None else self.base.take(idx))
+
 
 def segments(tg: Targets, horizon: float, motions=None) -> _Segments:
     """The multiple-shooting segments of length ``horizon`` (s) of ``motions`` (indices,
@@ -215,8 +222,10 @@ class _Problem:
     ``keys``, followed with ``opts.fields`` by the fields' :meth:`FieldBasis.free_vector`),
     their bounds, and the simulations of segments at one θ."""
 
-    def __init__(self, body, basis, weights, tg, keys, opts: ShootingOptions, sim: SimOptions):
+    def __init__(self, body, basis, weights, tg, keys, opts: ShootingOptions, sim: SimOptions,
+                 distributed: bool = False):
         self.body, self.basis, self.weights, self.tg = body, basis, weights, tg
+        self.distributed = distributed and parallel.size() > 1
         # the copies of a segment must share every step (one discrete map): one group each
         # (dopri5), else the whole batch on shared steps
         self.keys, self.opts = keys, opts
@@ -259,7 +268,33 @@ class _Problem:
 
     def _run(self, theta, seg: _Segments, rows, copies: int = 1):
         """Residuals (copies × B × R) of the segments, row b of copy c under θ[c, rows[b]]
-        (theta: copies × n_m × D). Raises SimulationFailed."""
+        (theta: copies × n_m × D); with ``distributed`` the segments dealt to the ranks
+        (:func:`~tflearn.parallel.mine`), each simulating its own with all their copies,
+        and gathered: where each segment steps on its own (dopri5, or a fixed step), what
+        one process gets. Raises SimulationFailed (on every rank, where any rank's fails)."""
+        if not self.distributed:
+            return self._simulated(theta, seg, rows, copies)
+        mine = torch.tensor(parallel.mine(len(seg.motion)), dtype=torch.long)
+        part = failed = None
+        try:
+            if len(mine):
+                part = self._simulated(theta, seg.take(mine), rows[mine], copies)
+        except SimulationFailed as err:
+            failed = (err.reason, err.message)
+        got = parallel.all_gather((part, failed))
+        for _, failure in got:
+            if failure is not None:
+                raise SimulationFailed(*failure)
+        parts = [(parallel.shard(len(seg.motion), r, len(got)), p) for r, (p, _) in enumerate(got)]
+        r = next(p for _, p in parts if p is not None)
+        out = r.new_empty(copies, len(seg.motion), r.shape[-1])
+        for idx, p in parts:
+            if idx:
+                out[:, idx] = p
+        return out
+
+    def _simulated(self, theta, seg: _Segments, rows, copies: int):
+        """:meth:`_run`'s residuals, every segment simulated here."""
         B = len(seg.motion)
         flat = theta[:, rows].reshape(copies * B, -1)
         w = self.weights.with_flat(self.keys, flat[:, :self.dw], seg.motion.repeat(copies))
@@ -368,7 +403,7 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
                    options: ShootingOptions = ShootingOptions(),
                    sim: SimOptions = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000),
                    motions: Optional[list] = None,
-                   callback: Optional[Callable] = None) -> ShootingResult:
+                   callback: Optional[Callable] = None, distributed: bool = False) -> ShootingResult:
     """Fit every motion's weights (and with ``options.phases`` its timing) to its path,
     the basis fixed — or with ``options.fields`` free (``basis`` is then changed in place;
     with several motions, fitted to all their paths at once) —, by multiple shooting and
@@ -377,19 +412,22 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     result's rows are these motions'). ``weights`` is changed in place;
     ``callback(horizon, iteration, cost (N))`` is called after each iteration. Returns
     a :class:`ShootingResult`. Whatever ``sim.batch`` says, the copies of a segment are
-    stepped together (the differences need one discrete map)."""
+    stepped together (the differences need one discrete map). ``distributed``: every
+    rank of a run (:mod:`tflearn.parallel`) calls this with the same problem, and each
+    simulates its share of the segments (:meth:`_Problem._run`)."""
     if motions is not None:
         sub = weights.select_motions(motions)
         result = shooting_match(body, basis, sub, tg.select(motions), options=options, sim=sim,
-                                callback=callback)
+                                callback=callback, distributed=distributed)
         weights.set_flat(keys_of(options), sub.flat(keys_of(options)), motions)
         return result
     if options.fields and tg.N > 1:
-        return _shared(_Problem(body, basis, weights, tg, keys_of(options), options, sim), callback)
+        return _shared(_Problem(body, basis, weights, tg, keys_of(options), options, sim, distributed),
+                       callback)
     if options.used and not options.fields:
-        return _on_used(body, basis, weights, tg, options, sim, callback)
+        return _on_used(body, basis, weights, tg, options, sim, callback, distributed)
     keys = keys_of(options)
-    prob = _Problem(body, basis, weights, tg, keys, options, sim)
+    prob = _Problem(body, basis, weights, tg, keys, options, sim, distributed)
     theta = prob.theta()
     start, everyone = theta.clone(), list(range(tg.N))
     longest = float(tg.duration.max())
@@ -415,7 +453,7 @@ def shooting_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     return result
 
 
-def _on_used(body, basis, weights, tg, options, sim, callback) -> ShootingResult:
+def _on_used(body, basis, weights, tg, options, sim, callback, distributed) -> ShootingResult:
     """:func:`shooting_match` of each motion alone on the fields it has a weight on
     (``options.used``); the results joined in motion order (each history row one
     motion's, its cost of length 1)."""
@@ -424,7 +462,8 @@ def _on_used(body, basis, weights, tg, options, sim, callback) -> ShootingResult
         used = rows[j].nonzero().flatten().tolist() or list(range(basis.M))  # no weight: every field
         sub = weights.select_motions([j]).select_fields(used)
         res = shooting_match(body, basis.select(used), sub, tg.select([j]),
-                             options=replace(options, used=False), sim=sim, callback=callback)
+                             options=replace(options, used=False), sim=sim, callback=callback,
+                             distributed=distributed)
         with torch.no_grad():
             for key in keys:                     # per field, or (windows) per motion
                 x = getattr(weights, key)

@@ -151,17 +151,21 @@ class RunContext:
         """Each motion's e-folds of local error growth along its path (:mod:`tflearn.fit.stability`)."""
         return stability.growth(self.body, basis, weights, tg).efolds.tolist()
 
-    def shoot_fields(self, basis, weights, tg: Targets, free: Optional[tuple] = None) -> bool:
+    def shoot_fields(self, basis, weights, tg: Targets, free: Optional[tuple] = None,
+                     distributed: bool = False) -> bool:
         """Motions' fields and weights fitted to their paths by multiple shooting with the
         fields free (``free``: those fields, indices; None: all; shared by the motions of
         ``tg``; ``solver.shooting``'s settings, its fields on), in place; False, with
-        nothing done, where ``solver.shooting.fields`` or ``iterations`` turn it off."""
+        nothing done, where ``solver.shooting.fields`` or ``iterations`` turn it off.
+        ``distributed``: every rank fits the same motions, each simulating its share of
+        their segments."""
         c = self.cfg.solver.shooting
         if not (c.fields and c.iterations):
             return False
         self.log.busy(shooting="fields")
         options = replace(c.options(self.variable_phases), fields=True, free=free)
-        shooting.shooting_match(self.body, basis, weights, tg, options=options, sim=self.options)
+        shooting.shooting_match(self.body, basis, weights, tg, options=options, sim=self.options,
+                                distributed=distributed)
         return True
 
     def shoot(self, state: RunState, basis, weights, motions: list, options=None) -> None:

@@ -272,14 +272,15 @@ def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: l
     """``motions`` each on the fields it drives (``drives``: indices, per motion) alone,
     their NNLS weights on them, then the ``free`` fields and every motion's weights
     fitted to all their paths at once by multiple shooting, the other fields held
-    (:meth:`RunContext.shoot_fields`): (basis, weights, whether simulation reproduces
-    each of ``motions``) with the ``free`` fields moved and those motions' weights on
-    their fields alone; None where shooting of fields is off."""
+    (:meth:`RunContext.shoot_fields`, every rank of a run simulating its share of the
+    segments): (basis, weights, whether simulation reproduces each of ``motions``) with
+    the ``free`` fields moved and those motions' weights on their fields alone; None
+    where shooting of fields is off."""
     fields = list(dict.fromkeys(free + [i for d in drives for i in d]))
     tg, b = ctx.tg.select(motions), basis.select(fields)
     w = weights.select_motions(motions).select_fields(fields)
     torque.solve_weights(b, w, tg, weight_support([[i in d for i in fields] for d in drives], w.P))
-    if not ctx.shoot_fields(b, w, tg, free=tuple(range(len(free)))):
+    if not ctx.shoot_fields(b, w, tg, free=tuple(range(len(free))), distributed=True):
         return None
     fine = ctx.check(b, w, tg)[1]
     eta, K = basis.eta.detach().clone(), basis.K().detach().clone()
