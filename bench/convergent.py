@@ -6,10 +6,14 @@ configs/convergent.yaml (antagonist pairs inside joint space, weights by NNLS on
 torques and the stiffness ω = 10 rad/s about the path, multiple shooting only on motions
 the NNLS leaves unreproduced), once with fewer weights (``sparsity=0.01``, no shooting:
 the NNLS alone) and once with the stiffness off (``frequency=0``, torque matching alone on
-the same fields). Printed per seed and setting: motions reproduced, the worst joint RMSE
-and hand-tip error, the worst relative torque error, the fields' median stiffness about
-the path (rad/s, :func:`tflearn.fit.impedance.path_stiffness`), the non-zero weights per
-second of motion, the largest centre |η| of a joint block, and the training wall time.
+the same fields), and once with fewer weights and multiple shooting on their support
+(``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0). Printed per
+seed and setting: motions reproduced, the worst joint RMSE and hand-tip error, the worst
+relative torque error, the fields' median stiffness about the path (rad/s,
+:func:`tflearn.fit.impedance.path_stiffness`), the non-zero weights per second of motion
+and the numbers per second that describe a motion (non-zero weights, its windows' onsets
+and durations, its initial state; the most of any motion), the largest centre |η| of a
+joint block, and the training wall time.
 With ``--push``, the first seed's motions are pushed at the hand (``tflearn perturb``:
 impulses 0.025–0.2 N·s along x, y, z at 0.5 s) under the fields and under ff+pd (Yin et
 al.'s feed-forward inverse dynamics plus low-gain feedback): per motion the largest ratio
@@ -41,6 +45,7 @@ from tflearn.io import basis as basis_io  # noqa: E402
 from tflearn.motions.motion import save  # noqa: E402
 
 SETTINGS = {"held": [], "held, sparse": ["solver.layout.sparsity=0.01", "solver.shooting.iterations=0"],
+            "held, sparse, shot": ["solver.layout.sparsity=0.01", "solver.shooting.sparse=true"],
             "torques only": ["solver.layout.frequency=0"]}
 
 
@@ -61,14 +66,17 @@ def row(run: Path, motions: list, metrics: dict, wall: float) -> dict:
     weights = lb.weights.select_motions([lb.index(n) for n in tg.names])
     stiff = impedance.path_stiffness(lb.body, lb.basis, weights, tg)
     per = [metrics["motions"][n] for n in tg.names]
-    nonzero = (weights.vector().abs() > 0).sum(-1).double() / tg.duration
+    used = (weights.vector().abs() > 0).sum(-1).double()
+    nonzero = used / tg.duration
+    numbers = (used + 2 * weights.P + 2 * lb.body.nv) / tg.duration    # + window times, initial state
     blocks = [lb.basis.eta[:, lb.body.slice(i)].detach().norm(dim=-1).max()
               for i in range(len(lb.body.links))]
     return {"reproduced": sum(bool(p["success"]) for p in per), "N": len(per),
             "rmse": max(p["rmse"] for p in per), "tip_cm": 100 * max(p["tip"] for p in per),
             "torque_err": max(p["torque_rel_rms"] for p in per),
             "stiffness": [round(float(s), 2) for s in stiff],
-            "weights_per_s": float(nonzero.max()), "max_centre": float(max(blocks)),
+            "weights_per_s": float(nonzero.max()), "numbers_per_s": float(numbers.max()),
+            "max_centre": float(max(blocks)),
             "M": lb.basis.M, "wall_s": wall}
 
 

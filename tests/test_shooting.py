@@ -195,6 +195,31 @@ def test_recovers_the_generating_weights(problem):
     assert horizons == sorted(horizons) and horizons[-1] >= 1.0
 
 
+def test_sparse_holds_the_zero_weights_where_they_start(problem):
+    """``ShootingOptions(sparse=True)``: the weights at 0 stay exactly 0 and the others are
+    fitted — from the generating support, to the generating weights (to 1e-3); with one generating
+    weight (twice's first window on field 0, 4.0) started at 0, it stays 0 and the path is
+    not matched, where the dense fit finds it."""
+    body, basis, weights, tg = problem
+    w = _perturbed(weights)
+    zero = [(getattr(w, k).detach() == 0).clone() for k in ("a", "b", "c")]
+    res = shooting.shooting_match(body, basis, w, tg, options=shooting.ShootingOptions(sparse=True))
+    assert max(res.loss) < 1e-9 and not res.failures
+    for k, z in zip(("a", "b", "c"), zero):
+        got = getattr(w, k).detach()
+        assert bool((got[z] == 0).all()) and torch.allclose(got, getattr(weights, k).detach(), atol=1e-3), k
+    losses = {}
+    for sparse in (True, False):
+        w = _perturbed(weights)
+        with torch.no_grad():
+            w.c_raw[1, 0, 0] = 0.0
+        losses[sparse] = shooting.shooting_match(body, basis, w, tg, options=shooting.ShootingOptions(
+            sparse=sparse)).loss[1]
+        assert (float(w.c[1, 0, 0]) == 0.0) == sparse
+    print("twice's path loss, its window weight held at 0 / free:", losses)
+    assert losses[True] > 1e-4 and losses[False] < 1e-9
+
+
 def test_used_fits_each_motion_on_the_fields_it_has_a_weight_on(problem, monkeypatch):
     """``ShootingOptions(used=True)`` with a third field, 2 rad from both paths, on which
     no motion has a weight: each motion is fitted alone on its two fields (Jacobians of
@@ -347,7 +372,7 @@ def test_shared_fields_are_fitted_to_every_motions_path_at_once(problem):
     z0, z1 = torch.zeros_like(J0[..., :dw]), torch.zeros_like(J1[..., :dw])
     stacked = torch.cat([torch.cat([J0[..., :dw], z0, J0[..., dw:]], -1).flatten(0, 1),
                          torch.cat([z1, J1[..., :dw], J1[..., dw:]], -1).flatten(0, 1)])
-    A, g, _, _ = shooting._arrow(*shooting._normal([(J0, r0), (J1, r1)]), theta, prob.lower, dw)
+    A, g, _, _, _ = shooting._arrow(*shooting._normal([(J0, r0), (J1, r1)]), theta, prob.lower, prob.held, dw)
     assert torch.allclose(A, stacked.T @ stacked, rtol=1e-12, atol=1e-12 * float(A.abs().max()))
     r = torch.cat([r0.flatten(), r1.flatten()])
     assert torch.allclose(g, stacked.T @ r, atol=1e-12 * float(g.abs().max()))

@@ -122,13 +122,16 @@ class ShootingSection(Section):
     # at 0 (len(θ) ∝ those fields, not M: for a basis of many fields; in rescue, the new
     # fields its weights start on; not in the per-motion stage, whose fields are its own)
     used: bool = False
+    # true: a weight at 0 when shooting starts stays at 0, so a sparse program
+    # (solver.layout.sparsity) keeps its support and only its non-zero weights move
+    sparse: bool = False
 
     def options(self, phases: bool):
         """These settings as :class:`tflearn.fit.shooting.ShootingOptions`."""
         from .fit.shooting import ShootingOptions
         return ShootingOptions(horizon=self.horizon, iterations=self.iterations, phases=phases,
                                velocity_weight=self.velocity_weight, tip_weight=self.tip_weight,
-                               broyden=self.broyden, used=self.used)
+                               broyden=self.broyden, used=self.used, sparse=self.sparse)
 
 
 class PoolSection(Section):

@@ -50,6 +50,7 @@ so the last stage always has a point to start from.
 durations ≥ 10 ms; a parameter at its bound whose gradient points out stays there), the
 step is projected onto the bounds and kept if it lowers the motion's cost (μ ÷ 3), else
 μ × 4 and the step is tried again. Every motion has its own μ and its own decisions.
+With ``ShootingOptions.sparse`` the weights at 0 when shooting starts are held there.
 
 **Jacobian.** Forward differences of D + 1 copies of every segment (D = len(θ_j)),
 simulated in one batch: the copies of a segment share every step of the adaptive solver
@@ -111,7 +112,9 @@ class ShootingOptions:
     formula instead of differences (module docstring); used: fit each motion alone on
     the fields it has a weight on (a, b or c > 0), its weights on the others held at 0:
     D ∝ those fields, not M, for a basis of many fields (not with ``fields``); free:
-    with ``fields``, the fields freed (indices; None: every field), the others held."""
+    with ``fields``, the fields freed (indices; None: every field), the others held;
+    sparse: a weight at 0 when shooting starts stays at 0, so that a sparse program
+    (``Impedance.sparsity``) keeps its support and only its non-zero weights move."""
 
     horizon: float = 0.25
     iterations: int = 6
@@ -126,6 +129,7 @@ class ShootingOptions:
     broyden: bool = False
     used: bool = False
     free: Optional[tuple] = None
+    sparse: bool = False
 
 
 @dataclass
@@ -240,6 +244,11 @@ class _Problem:
         if opts.fields:
             free = torch.full((len(self.free) * basis.free_size,), -math.inf, dtype=torch.float64)
             self.lower = torch.cat([self.lower, free])
+        weight = torch.cat([torch.full((d,), k in WEIGHTS) for k, d in layout]
+                           + [torch.zeros(len(self.lower) - self.dw, dtype=torch.bool)])
+        # the parameters held where they start (N×D): with opts.sparse, the weights at 0
+        self.held = (self.theta() == 0) & weight if opts.sparse else torch.zeros(
+            weights.N, len(self.lower), dtype=torch.bool)
 
     def theta(self) -> torch.Tensor:
         """θ (N×D) of the current weights (and freed fields)."""
@@ -381,9 +390,10 @@ def _rows(seg: _Segments, motions: list) -> torch.Tensor:
     return torch.tensor([where[int(j)] for j in seg.motion])
 
 
-def _lm_step(JtJ, Jtr, mu, theta, lower):
-    """The projected, damped Gauss–Newton step of each motion (see the module docstring)."""
-    free = ~((theta <= lower) & (Jtr > 0))                               # held at a bound otherwise
+def _lm_step(JtJ, Jtr, mu, theta, lower, held):
+    """The projected, damped Gauss–Newton step of each motion (see the module docstring);
+    the parameters ``held`` (bools like θ) do not move."""
+    free = ~((theta <= lower) & (Jtr > 0)) & ~held                       # held at a bound otherwise
     d = torch.diagonal(JtJ, dim1=-2, dim2=-1)
     scale = torch.maximum(d, 1e-12 * d.amax(-1, keepdim=True).clamp_min(1e-300))
     A = JtJ + torch.diag_embed(mu[:, None] * scale)
@@ -556,7 +566,7 @@ def _stage(prob: _Problem, theta, start, mu, h, active: list, result: ShootingRe
         todo = list(range(len(todo_stage)))
         for _ in range(8):                       # μ × 4 for the motions not yet improved
             idx = [todo_stage[i] for i in todo]
-            trial = _lm_step(JtJ[todo], Jtr[todo], mu[idx], theta[idx], prob.lower)
+            trial = _lm_step(JtJ[todo], Jtr[todo], mu[idx], theta[idx], prob.lower, prob.held[idx])
             c, rs = prob.residuals(trial, h, idx)
             for i, j, cj, th, rj in zip(list(todo), idx, c.tolist(), trial, rs):
                 if cj < float(cost[j]):
@@ -639,12 +649,14 @@ def _shared_stage(prob: _Problem, theta, cost, mu: float, h: float, result: Shoo
         if total <= N * prob.opts.floor:
             break
         try:
-            A, g, x, lower = _arrow(*prob.normal_equations(theta, h, everyone), theta, prob.lower, dw)
+            A, g, x, lower, held = _arrow(*prob.normal_equations(theta, h, everyone), theta, prob.lower,
+                                          prob.held, dw)
         except SimulationFailed as err:
             result.failures["fields"] = f"Jacobian not simulated: {err}"
             break
         for _ in range(8):
-            step = _lm_step(A[None], g[None], torch.tensor([mu], dtype=A.dtype), x[None], lower)[0]
+            mus = torch.tensor([mu], dtype=A.dtype)
+            step = _lm_step(A[None], g[None], mus, x[None], lower, held[None])[0]
             trial = torch.cat([step[:N * dw].reshape(N, dw), step[N * dw:].expand(N, -1)], -1)
             c = prob.cost(trial, h, everyone)
             if float(c.sum()) < total:
@@ -661,14 +673,16 @@ def _shared_stage(prob: _Problem, theta, cost, mu: float, h: float, result: Shoo
     return theta, mu
 
 
-def _arrow(JtJ, Jtr, theta, lower, dw: int):
+def _arrow(JtJ, Jtr, theta, lower, held, dw: int):
     """The joint normal equations of every motion's weights and the fields they share:
-    (A (n×n), Jᵀr (n), x (n), lower bounds (n)), n = N·dw + p, x = (θ_1[:dw], …,
-    θ_N[:dw], f) from each motion's (JᵀJ (N×D×D), Jᵀr (N×D)) over (its weights, f)."""
+    (A (n×n), Jᵀr (n), x (n), lower bounds (n), held (n)), n = N·dw + p, x = (θ_1[:dw],
+    …, θ_N[:dw], f) from each motion's (JᵀJ (N×D×D), Jᵀr (N×D)) over (its weights, f)
+    and its held parameters (N×D)."""
     N = len(theta)
     ww = torch.block_diag(*JtJ[:, :dw, :dw])
     wf = JtJ[:, :dw, dw:].reshape(N * dw, -1)
     A = torch.cat([torch.cat([ww, wf], 1), torch.cat([wf.T, JtJ[:, dw:, dw:].sum(0)], 1)], 0)
     g = torch.cat([Jtr[:, :dw].reshape(-1), Jtr[:, dw:].sum(0)])
     x = torch.cat([theta[:, :dw].reshape(-1), theta[0, dw:]])
-    return A, g, x, torch.cat([lower[:dw].repeat(N), lower[dw:]])
+    return (A, g, x, torch.cat([lower[:dw].repeat(N), lower[dw:]]),
+            torch.cat([held[:, :dw].reshape(-1), held[0, dw:]]))
