@@ -7,7 +7,8 @@ torques and the stiffness ω = 10 rad/s about the path, multiple shooting only o
 the NNLS leaves unreproduced), once with fewer weights (``sparsity=0.01``, no shooting:
 the NNLS alone) and once with the stiffness off (``frequency=0``, torque matching alone on
 the same fields), and once with fewer weights and multiple shooting on their support
-(``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0). Printed per
+(``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0), also with
+windows sized by each motion's length (``model.window_rate=4``). Printed per
 seed and setting: motions reproduced, the worst joint RMSE and hand-tip error, the worst
 relative torque error, the fields' median stiffness about the path (rad/s,
 :func:`tflearn.fit.impedance.path_stiffness`), the non-zero weights per second of motion
@@ -21,6 +22,7 @@ of the fields' peak hand deviation to ff+pd's, and how many pushes the fields re
 (hand back within 5 cm of its unpushed path within 1 s of the push's end).
 
     PYTHONPATH=. python bench/convergent.py [--seeds 1,2,3] [--motions 3] [--push] [--out DIR]
+        [--settings 'held;held, sparse, shot']
 """
 from __future__ import annotations
 
@@ -46,6 +48,8 @@ from tflearn.motions.motion import save  # noqa: E402
 
 SETTINGS = {"held": [], "held, sparse": ["solver.layout.sparsity=0.01", "solver.shooting.iterations=0"],
             "held, sparse, shot": ["solver.layout.sparsity=0.01", "solver.shooting.sparse=true"],
+            "held, sparse, shot, 4 windows/s": ["solver.layout.sparsity=0.01", "solver.shooting.sparse=true",
+                                                "model.window_rate=4"],
             "torques only": ["solver.layout.frequency=0"]}
 
 
@@ -68,7 +72,8 @@ def row(run: Path, motions: list, metrics: dict, wall: float) -> dict:
     per = [metrics["motions"][n] for n in tg.names]
     used = (weights.vector().abs() > 0).sum(-1).double()
     nonzero = used / tg.duration
-    numbers = (used + 2 * weights.P + 2 * lb.body.nv) / tg.duration    # + window times, initial state
+    inside = (weights.window_onset < tg.duration[:, None]).sum(-1)        # windows on the motion
+    numbers = (used + 2 * inside + 2 * lb.body.nv) / tg.duration       # + their times, initial state
     blocks = [lb.basis.eta[:, lb.body.slice(i)].detach().norm(dim=-1).max()
               for i in range(len(lb.body.links))]
     return {"reproduced": sum(bool(p["success"]) for p in per), "N": len(per),
@@ -86,13 +91,15 @@ def main() -> None:
     ap.add_argument("--motions", type=int, default=3)
     ap.add_argument("--push", action="store_true")
     ap.add_argument("--out", default="runs/bench/convergent")
+    ap.add_argument("--settings", default=";".join(SETTINGS), help="labels of SETTINGS, ';'-separated")
     args = ap.parse_args()
     torch.set_num_threads(1)
     out, rows = Path(args.out), []
     for seed in [int(s) for s in args.seeds.split(",")]:
         data = out / f"keys{seed}"
         motions = make(data, seed, args.motions)
-        for label, extra in SETTINGS.items():
+        for label in args.settings.split(";"):
+            extra = SETTINGS[label]
             run = out / f"run{seed}_{label.replace(', ', '_').replace(' ', '_')}"
             cfg = config.load(ROOT / "configs" / "convergent.yaml", [f"data={data}", f"out={run}", *extra])
             t0 = time.perf_counter()

@@ -224,3 +224,24 @@ def test_windows_per_second_follow_the_longest_motion(keyframes, tmp_path):
     assert sized_windows(config.load(None, ["model.windows=16"]), tg).model.windows == 16
     with pytest.raises(config.ConfigError, match="window_rate"):
         config.load(None, ["model.window_rate=-1"])
+
+
+def test_each_motion_uses_the_windows_its_length_asks(keyframes):
+    """With a rate, motion j is cut into ⌈rate·λ_j⌉ windows of the P, as it would be with
+    that many alone; the rest start 1 s after its end, where their pulses are 0 all along
+    it: their torque columns are 0 and NNLS leaves their weights at 0."""
+    body, tg = keyframes
+    basis = _pairs(body, tg)[0]
+    rate, P = 2.0, math.ceil(2.0 * float(tg.duration.max()))
+    onset, length = targets.submovement_windows(tg, P, rate=rate)
+    for j in range(tg.N):
+        mine = math.ceil(rate * float(tg.duration[j]))
+        alone = targets.submovement_windows(tg.select([j]), mine)
+        assert torch.equal(onset[j, :mine], alone[0][0]) and torch.equal(length[j, :mine], alone[1][0])
+        assert bool((onset[j, mine:] > tg.duration[j]).all())
+    assert any(math.ceil(rate * float(d)) < P for d in tg.duration)      # some motion has windows past its end
+    weights = MotionWeights.zeros(basis.M, tg.duration, tg.names, (onset, length))
+    torque.solve_weights(basis, weights, tg)
+    inert = onset > tg.duration[:, None]                                  # N×P
+    assert bool((weights.c.detach().permute(0, 2, 1)[inert] == 0).all())
+    assert bool((weights.c.detach().permute(0, 2, 1)[~inert].sum(-1) > 0).any())

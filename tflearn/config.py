@@ -48,8 +48,9 @@ class ModelSection(Section):
     # P: activation sequences, each motion cut into P sub-movement windows (at the slowest
     # minima of its joint speed) on which every field has a pulse weight (0: the thesis)
     windows: int = Field(0, ge=0)
-    # windows per second instead (> 0): P = ⌈rate × the longest motion's duration⌉, so
-    # that longer motions get more (tflearn.train.pipeline.sized_windows; 0: model.windows)
+    # windows per second instead (> 0): P = ⌈rate × the longest motion's duration⌉, and
+    # each motion uses ⌈rate × its own duration⌉ of them, the others past its end, inert
+    # (tflearn.train.pipeline.sized_windows, fit.targets.submovement_windows; 0: model.windows)
     window_rate: float = Field(0.0, ge=0, allow_inf_nan=False)
 
 

@@ -41,7 +41,8 @@ def run_config(run) -> tuple:
 def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
                shooting: Optional[ShootingOptions] = ShootingOptions(),
                options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02), *,
-               ridge: float = 0.0, held: impedance.Impedance = impedance.Impedance()) -> MotionWeights:
+               ridge: float = 0.0, held: impedance.Impedance = impedance.Impedance(),
+               window_rate: float = 0.0) -> MotionWeights:
     """Held-out synthesis (:mod:`tflearn.synthesis`): with the basis frozen, fit new
     motions' weights by NNLS on their torques (exact, or with a ``ridge``:
     :func:`~tflearn.fit.torque.solve_weights`; with ``held``, also on the stiffness about
@@ -56,9 +57,10 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     that cannot be simulated is farthest); where the kept fit's shooting stopped early, a
     :class:`~tflearn.fit.torque.DivergenceWarning` names the motion and why. The new
     motions get as many sub-movement windows as the basis' own motions have, placed from
-    their data (:func:`submovement_windows`)."""
+    their data (:func:`submovement_windows`; with a ``window_rate``, as many as their
+    length asks, up to that many)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
-                                  submovement_windows(tg, lb.weights.P))
+                                  submovement_windows(tg, lb.weights.P, rate=window_rate))
     impedance.solve_weights(lb.body, lb.basis, weights, tg, held, ridge=ridge)
     if shooting is None or not shooting.iterations:
         return weights
@@ -109,7 +111,7 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
                      base=torsos(source, group, cfg.torso))
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip),
-                              ridge=cfg.solver.ridge, held=held) if synth
+                              ridge=cfg.solver.ridge, held=held, window_rate=cfg.model.window_rate) if synth
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)

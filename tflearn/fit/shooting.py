@@ -337,16 +337,20 @@ class _Problem:
 
     def jacobian(self, theta: torch.Tensor, h: float, motions: list):
         """[(J (S_j×R×D), r (S_j×R)) of each motion's segments] at θ (n_m×D), J by
-        forward differences of D + 1 copies simulated in one batch. Raises
-        SimulationFailed."""
+        forward differences of d + 1 copies simulated in one batch, d the parameters
+        that some motion of the batch does not hold (:attr:`held`; a column held by all
+        is 0). Raises SimulationFailed."""
         D = theta.shape[1]
+        cols = (~self.held[motions]).any(0).nonzero().flatten()           # d columns differenced
+        d = len(cols)
         eps = self.opts.step * theta.abs().clamp_min(1.0)                 # n_m × D
-        copies = theta.unsqueeze(0).repeat(D + 1, 1, 1)                   # (D+1) × n_m × D
-        copies[1:] += torch.eye(D, dtype=theta.dtype)[:, None, :] * eps[None]
+        copies = theta.unsqueeze(0).repeat(d + 1, 1, 1)                   # (d+1) × n_m × D
+        copies[torch.arange(1, d + 1), :, cols] += eps[:, cols].T
         seg = segments(self.tg, h, motions)
         rows = _rows(seg, motions)
-        r = self._run(copies, seg, rows, D + 1)                           # (D+1) × B × R
-        J = ((r[1:] - r[:1]) / eps[rows].T[:, :, None]).permute(1, 2, 0)  # B × R × D
+        r = self._run(copies, seg, rows, d + 1)                           # (d+1) × B × R
+        J = r.new_zeros(len(seg.motion), r.shape[-1], D)                  # B × R × D
+        J[:, :, cols] = ((r[1:] - r[:1]) / eps[rows][:, cols].T[:, :, None]).permute(1, 2, 0)
         return [(J[rows == i], r[0][rows == i]) for i in range(len(motions))]
 
     def normal_equations(self, theta: torch.Tensor, h: float, motions: list):

@@ -1,6 +1,7 @@
 """Motions prepared for fitting: padded tensors of samples, velocities and torques."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields, is_dataclass, replace
 from typing import Optional
 
@@ -148,29 +149,35 @@ def on_samples(tg: Targets, x: torch.Tensor) -> torch.Tensor:
     return x.gather(1, tg.index.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
 
 
-def submovement_windows(tg: Targets, P: int, spread: float = 0.25):
+def submovement_windows(tg: Targets, P: int, spread: float = 0.25, rate: float = 0.0):
     """P sub-movement windows per motion from its joint speed s(t) = ‖v(t)‖ (onsets,
     durations: N×P each, for :class:`~tflearn.model.weights.MotionWeights`): the motion is cut at
     the P − 1 slowest interior local minima of s (a sub-movement ends where the limb
     nearly stops; minima within 5% of either end are ignored), the longest pieces halved
     while minima are missing, and window k spans its piece [t_k, t_{k+1}] widened by
     ``spread`` of its length on each side (a pulse peaks mid-piece and overlaps its
-    neighbours, so the windows' sum has no gaps)."""
+    neighbours, so the windows' sum has no gaps). With ``rate`` > 0 (windows per second)
+    motion j is cut into P_j = min(P, ⌈rate·λ_j⌉) pieces, λ_j its duration, and its other
+    P − P_j windows start 1 s after its end: their pulses are 0 all along it, so their
+    columns of the torque design are 0 and their weights stay 0 (a motion is described
+    by as many windows as its length asks, whatever the longest motion's P)."""
     onsets, lengths = [], []
     for j in range(tg.N if P else 0):
         m = tg.mask[j]
         t, speed = tg.t[j][m], tg.v[j][m].norm(dim=-1)
         T = len(t)
+        mine = min(P, max(1, math.ceil(rate * float(tg.duration[j]) - 1e-9))) if rate else P
         interior = [k for k in range(1, T - 1) if speed[k] < speed[k - 1] and speed[k] <= speed[k + 1]
                     and 0.05 * t[-1] < t[k] < 0.95 * t[-1]]
-        cuts = sorted(sorted(interior, key=lambda k: float(speed[k]))[:P - 1])
+        cuts = sorted(sorted(interior, key=lambda k: float(speed[k]))[:mine - 1])
         bounds = [float(t[0])] + [float(t[k]) for k in cuts] + [float(t[-1])]
-        while len(bounds) < P + 1:
+        while len(bounds) < mine + 1:
             k = max(range(len(bounds) - 1), key=lambda i: bounds[i + 1] - bounds[i])
             bounds.insert(k + 1, 0.5 * (bounds[k] + bounds[k + 1]))
         piece = [hi - lo for lo, hi in zip(bounds[:-1], bounds[1:])]
-        onsets.append([lo - spread * d for lo, d in zip(bounds[:-1], piece)])
-        lengths.append([(1 + 2 * spread) * d for d in piece])
+        after = P - mine                              # windows past its end
+        onsets.append([lo - spread * d for lo, d in zip(bounds[:-1], piece)] + [float(t[-1]) + 1.0] * after)
+        lengths.append([(1 + 2 * spread) * d for d in piece] + [1.0] * after)
     z = dict(dtype=torch.float64)
     return torch.tensor(onsets, **z).reshape(tg.N, P), torch.tensor(lengths, **z).reshape(tg.N, P)
 

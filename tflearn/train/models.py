@@ -41,7 +41,7 @@ def layout_model(cfg: Config, body, tg: Targets) -> tuple:
     each motion's ``model.windows`` sub-movement windows."""
     basis = layout_basis(cfg, body, tg)
     return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names,
-                                      submovement_windows(tg, cfg.model.windows))
+                                      submovement_windows(tg, cfg.model.windows, rate=cfg.model.window_rate))
 
 
 def final_model(state) -> tuple:

@@ -136,7 +136,7 @@ def reuse(ctx: RunContext, library: FieldBasis, tg: Targets, k: int) -> tuple:
     one, each = tg.select([k]), ctx.cfg.solver.each
     ctx.log.busy(motion=tg.names[k], reusing=library.M)
     w = MotionWeights.zeros(library.M, one.duration, one.names,
-                            submovement_windows(one, ctx.cfg.model.windows))
+                            submovement_windows(one, ctx.cfg.model.windows, rate=ctx.cfg.model.window_rate))
     tol = each.tol if each.reuse_tol is None else each.reuse_tol
     cost = float(torque.solve_weights(library, w, one)[0])
     used = w.used()[0].nonzero().flatten().tolist()
@@ -167,7 +167,8 @@ def fit_one(ctx: RunContext, tg: Targets, k: int, seed: int) -> MotionFit:
                                  candidates=c.init.candidates, stiffnesses=tuple(c.init.stiffness_grid),
                                  em_steps=c.em.steps, em_tol=c.em.tol, phases=ctx.variable_phases)
     b, w, costs = search.grow(one, ctx.template(), torch.Generator().manual_seed(seed), options,
-                              reproduced=reproduced, windows=submovement_windows(one, m.windows))
+                              reproduced=reproduced,
+                              windows=submovement_windows(one, m.windows, rate=m.window_rate))
     if b.M and checked.get("last", (None,))[0] is not b:
         reproduced(b, w)                         # grow stopped before checking its last basis
     if b.M and not all(checked["last"][2]) and shoot_alone(ctx, b, w, one, reproduced):
