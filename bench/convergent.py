@@ -8,7 +8,8 @@ the NNLS leaves unreproduced), once with fewer weights (``sparsity=0.01``, no sh
 the NNLS alone) and once with the stiffness off (``frequency=0``, torque matching alone on
 the same fields), and once with fewer weights and multiple shooting on their support
 (``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0), also with
-windows sized by each motion's length (``model.window_rate=4``). Printed per
+windows sized by each motion's length (``model.window_rate=4``), and with all weights
+free at 3 windows per second. Printed per
 seed and setting: motions reproduced, the worst joint RMSE and hand-tip error, the worst
 relative torque error, the fields' median stiffness about the path (rad/s,
 :func:`tflearn.fit.impedance.path_stiffness`), the non-zero weights per second of motion
@@ -50,6 +51,7 @@ SETTINGS = {"held": [], "held, sparse": ["solver.layout.sparsity=0.01", "solver.
             "held, sparse, shot": ["solver.layout.sparsity=0.01", "solver.shooting.sparse=true"],
             "held, sparse, shot, 4 windows/s": ["solver.layout.sparsity=0.01", "solver.shooting.sparse=true",
                                                 "model.window_rate=4"],
+            "held, 3 windows/s": ["model.window_rate=3"],
             "torques only": ["solver.layout.frequency=0"]}
 
 

@@ -58,7 +58,8 @@ simulated in one batch: the copies of a segment share every step of the adaptive
 solver other than dopri5 the whole batch shares them), so their differences are those
 of one discrete map — no step-size noise — and agree with backpropagation through
 ``odeint`` (tests/test_shooting.py). One simulation per Jacobian, whatever the number
-of motions. With ``ShootingOptions.broyden`` they are taken at each stage's start
+of motions; parameters that every motion of the batch holds (``ShootingOptions.sparse``)
+get no copy. With ``ShootingOptions.broyden`` they are taken at each stage's start
 only: after a step that lowers a motion's cost its J is updated by Broyden's rank-one
 formula from the residuals that step's trial already simulated,
 J ← J + (Δr − J δ) δᵀ / δᵀδ, so that an iteration costs one simulation of the segments
