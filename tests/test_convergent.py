@@ -239,7 +239,7 @@ def test_each_motion_uses_the_windows_its_length_asks(keyframes):
         alone = targets.submovement_windows(tg.select([j]), mine)
         assert torch.equal(onset[j, :mine], alone[0][0]) and torch.equal(length[j, :mine], alone[1][0])
         assert bool((onset[j, mine:] > tg.duration[j]).all())
-    assert any(math.ceil(rate * float(d)) < P for d in tg.duration)      # some motion has windows past its end
+    assert any(math.ceil(rate * float(d)) < P for d in tg.duration)      # windows past some motion's end
     weights = MotionWeights.zeros(basis.M, tg.duration, tg.names, (onset, length))
     torque.solve_weights(basis, weights, tg)
     inert = onset > tg.duration[:, None]                                  # N×P
