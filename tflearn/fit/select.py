@@ -131,10 +131,7 @@ def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.
     for j in range(tg.N):
         peak = basis.gaussians(tg.q[j][tg.mask[j]]).max(0).values
         near = ((peak >= opts.reach * _weakest(peak, own[j])) & first) | mine[j]
-        fields = near.nonzero().flatten().tolist()
-        sub = weights.select_motions([j]).select_fields(fields)
-        G, h = normal_equations(basis.select(fields), sub, tg.select([j], trim=True))
-        mo = _Motion(fields, G[0], h[0], weights.P, 0.0)
+        mo = _motion(basis, weights, tg, j, near.nonzero().flatten().tolist())
         if tolerance is None:
             c = min(current[j], float(mo.costs([mine[j].nonzero().flatten().tolist()])[0]))
             mo.tau = min(c + opts.tol, 1 - opts.tol)
@@ -142,6 +139,14 @@ def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.
             mo.tau = tolerance[j]
         out.append(mo)
     return out
+
+
+def _motion(basis: FieldBasis, weights: MotionWeights, tg: Targets, j: int, fields: list) -> _Motion:
+    """Motion j's :class:`_Motion` over ``fields`` (indices into ``basis``), its bar τ_j
+    still to be set."""
+    sub = weights.select_motions([j]).select_fields(fields)
+    G, h = normal_equations(basis.select(fields), sub, tg.select([j], trim=True))
+    return _Motion(fields, G[0], h[0], weights.P, 0.0)
 
 
 def _onto_first_copies(basis: FieldBasis, own: torch.Tensor) -> tuple:
@@ -255,9 +260,7 @@ def needed(basis: FieldBasis, weights: MotionWeights, tg: Targets, j: int, field
     needed, in the order they joined."""
     if not fields:
         return []
-    sub = weights.select_motions([j]).select_fields(fields)
-    G, h = normal_equations(basis.select(fields), sub, tg.select([j], trim=True))
-    mo = _Motion(fields, G[0], h[0], weights.P, 0.0)
+    mo = _motion(basis, weights, tg, j, fields)
     mo.cost = float(mo.costs([fields])[0])
     mo.tau = mo.cost + tol
     return _fewest(mo, fields)
