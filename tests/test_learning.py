@@ -533,6 +533,16 @@ def test_elimination_keeps_every_motion_as_good():
     # ... even against a reference that failed too: ∞ ≤ ∞ does not count
     assert not train.no_worse(Reference(rmse=[0.01, inf], tip=[0.005, inf], ok=[True, False]),
                               failed, [True, False])
+    # a motion not reproduced whose torque cost rose by at most δ is no worse, whatever its
+    # path: the fields it needs are kept, and its simulation cannot tell what another costs
+    costed = Reference(rmse=[0.01, 0.06], tip=[0.005, 0.05], ok=[True, False], cost=[1e-6, 0.02])
+    further = scores([0.01, 0.09], [0.005, 0.08])
+    assert not train.no_worse(costed, further, [True, False])
+    assert train.no_worse(costed, further, [True, False], [1e-6, 0.02 + 0.9e-4], 1e-4)
+    assert train.no_worse(costed, failed, [True, False], [1e-6, 0.02 + 0.9e-4], 1e-4)
+    assert not train.no_worse(costed, further, [True, False], [1e-6, 0.02 + 1.1e-4], 1e-4)
+    # ... a reproduced motion is held to its path, whatever its cost
+    assert not train.no_worse(costed, scores([0.04, 0.05], [0.01, 0.05]), [False, False], [1e-6, 0.02], 1e-4)
 
 
 def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):

@@ -165,6 +165,11 @@ class ReduceSection(Section):                   # backward elimination of pooled
     # would be after simulating them all); 0: all users in one check (for a field that
     # hundreds of motions use and none can lose: docs/benchmarks.md)
     chunk: int = Field(0, ge=0)
+    # a held trial that loses at most this many reproduced motions first path-matches
+    # them on the smaller basis by multiple shooting (solver.select.shooting iterations),
+    # and is judged after: a field whose users need only their weights moved goes; 0: a
+    # held trial is judged on its NNLS weights alone
+    shoot: int = Field(4, ge=0)
 
 
 class SelectSection(Section):                   # the shared basis chosen among pooled fields

@@ -63,6 +63,16 @@ class Scores:
                for r, f in zip(self.rmse, self.failure)]
         return sorted(range(len(key)), key=lambda j: -key[j])[:count]
 
+    def replaced(self, rows: Sequence[int], other: Scores) -> Scores:
+        """These scores with ``rows`` (indices, in order) those of ``other``."""
+        keys = ("rmse", "tip", "torque", "failure")
+        out = replace(self, q_sim=self.q_sim.clone(), **{k: list(getattr(self, k)) for k in keys})
+        for i, j in enumerate(rows):
+            for key in keys:
+                getattr(out, key)[j] = getattr(other, key)[i]
+            out.q_sim[j] = other.q_sim[i, :out.q_sim.shape[1]]
+        return out
+
     def succeeded(self, rmse: float, tip: float) -> list:
         """Per motion: simulated, joint RMSE ≤ rmse and maximum tip error ≤ tip."""
         return [f is None and r <= rmse and p <= tip

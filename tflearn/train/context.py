@@ -168,15 +168,28 @@ class RunContext:
                                 distributed=distributed)
         return True
 
-    def shoot(self, state: RunState, basis, weights, motions: list, options=None) -> None:
+    def shoot(self, state: Optional[RunState], basis, weights, motions: list, options=None) -> None:
         """Multiple-shooting path matching of ``motions``' programs, the basis fixed
         (:func:`tflearn.synthesis.shoot`; ``options``, by default ``solver.shooting``'s),
-        the motions shared by the ranks, ``weights`` changed in place; ``history.shooting``
-        records each motion's path loss left and why shooting stopped early."""
+        the motions shared by the ranks, ``weights`` changed in place; ``state``'s
+        ``history.shooting`` (unless None) records each motion's path loss left and why
+        shooting stopped early."""
         options = options or self.cfg.solver.shooting.options(self.variable_phases)
         self.log.busy(shooting=len(motions))
-        state.history.shooting = synthesis.shoot(self.body, basis, weights, self.tg, motions, options,
-                                                 self.options, distributed=True)
+        record = synthesis.shoot(self.body, basis, weights, self.tg, motions, options, self.options,
+                                 distributed=True)
+        if state is not None:
+            state.history.shooting = record
+
+    def path_matched(self, basis, weights, motions: list, state: Optional[RunState] = None) -> tuple:
+        """``motions``' weights (indices into the run's motions; ``weights`` holds them
+        all) path-matched on the basis by multiple shooting (``solver.select.shooting``
+        iterations per horizon, ``solver.shooting``'s other settings), in place
+        (:meth:`shoot`, recorded in ``state``): their (scores, success) after."""
+        options = replace(self.cfg.solver.shooting.options(self.variable_phases),
+                          iterations=self.cfg.solver.select.shooting)
+        self.shoot(state, basis, weights, motions, options)
+        return self.check(basis, weights.select_motions(motions), self.tg.select(motions))
 
     def em(self, basis, weights, tg: Targets, state: Optional[RunState] = None, tag: Optional[str] = None,
            support: Optional[list] = None, min_gain: float = 0.0) -> list:

@@ -16,7 +16,6 @@ own fit's. The pooled model is scored by simulation: the reference that eliminat
 """
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Optional
 
 import torch
@@ -171,11 +170,11 @@ def shoot(ctx: RunContext, state: RunState, basis, weights, scores: Scores, ok: 
     motions = broken(state, ok)
     if not motions or not ctx.cfg.solver.select.shooting:
         return scores, ok
-    check, fine = _path_matched(ctx, state, basis, weights, motions)
+    check, fine = ctx.path_matched(basis, weights, motions, state)
     ok = list(ok)
     for i, j in enumerate(motions):
         ok[j] = fine[i]
-    return _replaced(scores, motions, check), ok
+    return scores.replaced(motions, check), ok
 
 
 def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: list) -> tuple:
@@ -209,7 +208,7 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
         return scores, ok
     moved = sorted(touched)
     check, fine = ctx.check(basis, weights.select_motions(moved), ctx.tg.select(moved))
-    scores = _replaced(scores, moved, check)
+    scores = scores.replaced(moved, check)
     for k, f in zip(moved, fine):
         ok[k] = f
     state.model = model_state(basis, weights)
@@ -255,17 +254,7 @@ def _kept(ctx: RunContext, state: RunState, basis, weights, motions: list) -> bo
                                                   ctx.tg.select(motions))[1]) if not f]
     if not lost or not ctx.cfg.solver.select.shooting:
         return not lost
-    return all(_path_matched(ctx, state, basis, weights, lost)[1])
-
-
-def _path_matched(ctx: RunContext, state: RunState, basis, weights, motions: list) -> tuple:
-    """``motions``' weights path-matched on the basis by multiple shooting
-    (``solver.select.shooting`` iterations, ``solver.shooting``'s other settings),
-    ``weights`` changed in place: their (scores, success) after."""
-    options = replace(ctx.cfg.solver.shooting.options(ctx.variable_phases),
-                      iterations=ctx.cfg.solver.select.shooting)
-    ctx.shoot(state, basis, weights, motions, options)
-    return ctx.check(basis, weights.select_motions(motions), ctx.tg.select(motions))
+    return all(ctx.path_matched(basis, weights, lost, state)[1])
 
 
 def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: list) -> Optional[tuple]:
@@ -336,7 +325,7 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
         support[j] = [start <= i < start + len(eta) for i in range(nb.M)]
         start += len(eta)
     check, fine = ctx.check(nb, nw.select_motions(lost), tg.select(lost))
-    scores, ok = _replaced(scores, lost, check), list(ok)
+    scores, ok = scores.replaced(lost, check), list(ok)
     for i, j in enumerate(lost):
         ok[j] = fine[i]
     state.model, state.support = model_state(nb, nw), support
@@ -361,14 +350,3 @@ def _fitted_copies(ctx: RunContext, basis, weights, j: int, fields: list) -> Opt
     if not ctx.shoot_fields(b, w, one) or not all(ctx.check(b, w, one, distributed=False)[1]):
         return None
     return FieldFit(b.eta.detach().clone(), b.K().detach().clone(), w.timing(0, weights=True))
-
-
-def _replaced(scores: Scores, motions: list, check: Scores) -> Scores:
-    """``scores`` with the rows of ``motions`` those of ``check`` (their scores, in order)."""
-    keys = ("rmse", "tip", "torque", "failure")
-    out = replace(scores, q_sim=scores.q_sim.clone(), **{k: list(getattr(scores, k)) for k in keys})
-    for i, j in enumerate(motions):
-        for key in keys:
-            getattr(out, key)[j] = getattr(check, key)[i]
-        out.q_sim[j] = check.q_sim[i, :out.q_sim.shape[1]]
-    return out

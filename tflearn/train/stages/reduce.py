@@ -63,14 +63,21 @@ class Trial:
     efolds: Optional[list] = None
 
 
-def no_worse(reference: Reference, scores: Scores, ok: list) -> bool:
+def no_worse(reference: Reference, scores: Scores, ok: list, costs: Optional[list] = None,
+             tol: float = 0.0) -> bool:
     """Whether a smaller basis keeps every motion as good as ``reference``: a motion
     reproduced stays reproduced; one not reproduced is still simulated and has joint RMSE
     and tip error no larger than before (a failed simulation is never "no worse",
-    whatever the reference: ∞ ≤ ∞ does not count)."""
-    return all(now if was else (f is None and r <= r0 and p <= p0)
-               for was, now, f, r, r0, p, p0 in zip(reference.ok, ok, scores.failure, scores.rmse,
-                                                    reference.rmse, scores.tip, reference.tip))
+    whatever the reference: ∞ ≤ ∞ does not count), or its relative torque cost C_j
+    (``costs``, where given) rose by at most ``tol`` (δ): the fields such a motion needs
+    are kept (:func:`carried`), and its simulation, already off its path, cannot tell
+    what losing another costs it. Over k removals its C_j may so rise by k·δ at most."""
+    costs = costs if costs is not None and reference.cost is not None else [None] * len(ok)
+    bars = reference.cost or [None] * len(ok)
+    return all(now if was else (f is None and r <= r0 and p <= p0) or (c is not None and c <= c0 + tol)
+               for was, now, f, r, r0, p, p0, c, c0 in zip(reference.ok, ok, scores.failure, scores.rmse,
+                                                            reference.rmse, scores.tip, reference.tip,
+                                                            costs, bars))
 
 
 def run(ctx: RunContext, state: RunState) -> None:
@@ -182,8 +189,8 @@ def refit_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, v
 def held_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, victim: int) -> Trial:
     """The basis without field ``victim``, every other field held: the motions with a
     weight on it (a, b or c) get their weights re-solved by NNLS over the fields left
-    and are checked by simulation (:func:`held_check`); the others keep their weights,
-    paths and scores."""
+    and are checked by simulation (:func:`held_check`, which may path-match a few of
+    them); the others keep their weights, paths and scores."""
     pos, keep, nb, nw, support = without(ctx, basis, weights, state, victim, tg)
     users = weights.used()[:, pos].nonzero().flatten().tolist()
     ctx.log.busy(M=basis.M, holding=victim, motions=len(users))
@@ -197,33 +204,49 @@ def held_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, vi
         costs = costs.copy()
         for j, x in zip(users, after.tolist()):
             costs[j] = x
-        users, check = held_check(ctx, state, users, (nb, sub), one, after)
+        users, check, shot = held_check(ctx, state, users, (nb, nw), after, costs)
+        if shot:                                     # their weights moved off the NNLS optimum
+            for j, x in zip(shot, torque.torque_costs(nb, nw.select_motions(shot), tg.select(shot)).tolist()):
+                costs[j] = x
     return Trial(victim, "held", model=(nb, nw), keep=keep, support=support, cost=math.fsum(costs),
                  costs=costs, check=check, motions=users)
 
 
-def held_check(ctx: RunContext, state: RunState, users: list, new: tuple, one: Targets,
-               costs: torch.Tensor) -> tuple:
-    """(the motions simulated, their (scores, success)) for a held trial of ``users``
-    (their targets ``one``): ``new`` (basis, their weights) the model without the
-    field; all in one check, or with ``solver.reduce.chunk`` c > 0, c at a time, those
-    whose torque cost rose most (``costs``: theirs on ``new``, over their reference's)
-    first, until a chunk holds a motion worse than its reference: the trial is then
-    refused, as it would be had every user been simulated."""
-    c, (basis, weights) = ctx.cfg.solver.reduce.chunk, new
-    if not c:
-        return users, ctx.check(basis, weights, one, until_failure=True)
-    rise = costs / torch.tensor([state.reference.cost[j] for j in users]).clamp_min(1e-300)
-    order = torch.argsort(rise, descending=True, stable=True).tolist()
-    done, parts = [], []
-    for lo in range(0, len(order), c):
-        part = order[lo:lo + c]
-        scores, ok = ctx.check(basis, weights.select_motions(part), one.select(part), until_failure=True)
-        done, parts = done + [users[i] for i in part], parts + [scores]
-        if not no_worse(state.reference.select([users[i] for i in part]), scores, ok):
+def held_check(ctx: RunContext, state: RunState, users: list, new: tuple, after: torch.Tensor,
+               costs: list) -> tuple:
+    """(the motions simulated, their (scores, success), those path-matched) for a held
+    trial of ``users``: ``new`` (basis, weights of every motion) the model without the
+    field, ``after`` the users' torque costs on it and ``costs`` every motion's. All
+    users in one check, or with ``solver.reduce.chunk`` c > 0, c at a time, those whose
+    torque cost rose most first, until a chunk holds a motion worse than its reference:
+    the trial is then refused, as it would be had every user been simulated. Reproduced
+    motions that a check loses, up to ``solver.reduce.shoot`` in all, are first
+    path-matched on the smaller basis (:meth:`RunContext.path_matched`, their weights
+    in ``new`` changed in place)."""
+    c, (basis, weights), ref = ctx.cfg.solver.reduce.chunk, new, state.reference
+    limit, tol = ctx.cfg.solver.reduce.shoot, ctx.cfg.solver.select.tol
+    order = list(range(len(users)))
+    if c:
+        rise = after / torch.tensor([ref.cost[j] for j in users]).clamp_min(1e-300)
+        order = torch.argsort(rise, descending=True, stable=True).tolist()
+    done, parts, shot = [], [], []
+    step = c or len(order)
+    for lo in range(0, len(order), step):
+        part = [users[i] for i in order[lo:lo + step]]
+        scores, ok = ctx.check(basis, weights.select_motions(part), ctx.tg.select(part),
+                               until_failure=not limit)
+        lost = [j for j, o in zip(part, ok) if ref.ok[j] and not o]
+        if lost and len(shot) + len(lost) <= limit:
+            matched, fine = ctx.path_matched(basis, weights, lost)
+            scores, ok = scores.replaced([part.index(j) for j in lost], matched), list(ok)
+            shot += lost
+            for j, f in zip(lost, fine):
+                ok[part.index(j)] = f
+        done, parts = done + part, parts + [scores]
+        if not no_worse(ref.select(part), scores, ok, [costs[j] for j in part], tol):
             break
     scores = Scores.join(parts)
-    return done, (scores, scores.succeeded(ctx.cfg.success.rmse, ctx.cfg.success.tip))
+    return done, (scores, scores.succeeded(ctx.cfg.success.rmse, ctx.cfg.success.tip)), shot
 
 
 def checks(ctx: RunContext, models: list, tg: Targets) -> list:
@@ -246,7 +269,12 @@ def accepts(ctx: RunContext, state: RunState, trial: Trial, tg: Targets) -> bool
         return False
     if trial.check is None:
         return True
-    if not no_worse(state.reference.select(trial.motions), *trial.check):
+    ref = state.reference.select(trial.motions)
+    costs = trial.costs
+    if costs is None and not all(ref.ok):             # a refitted trial: every motion's costs moved
+        costs = torque.torque_costs(*trial.model, tg).tolist()
+    if not no_worse(ref, *trial.check, None if costs is None else [costs[j] for j in trial.motions],
+                    ctx.cfg.solver.select.tol):
         return False
     allow = ctx.cfg.solver.reduce.growth
     if allow is None:
