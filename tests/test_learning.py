@@ -608,6 +608,42 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
     assert torch.equal(model_from_state(state.model)[1].a, a[:, [0, 1, 3]])
 
 
+def test_held_trial_path_matches_the_motions_it_loses(tmp_path):
+    """``solver.reduce.shoot``: come_here made by field A, with two copies of A moved
+    along one direction (A + 0.3v, A − 0.15v) beside it. Without A, come_here's NNLS
+    weights on the copies fit its torques closely (C_j = 0.003) but leave its path
+    0.033 rad off, and the trial is refused; path-matched on the copies (multiple
+    shooting of its weights) it is reproduced, and the field goes, with the shot weights
+    and their torque cost in the trial. The joint RMSE alone is judged here
+    (success.tip = 0.1 m)."""
+    (m0, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
+    lib, w0, _ = gestures.library_model([gestures.GESTURES["come_here"]], lb.body)
+    v = 0.3 * torch.tensor([[1.0, -1.0, 0.5, 0.0, 1.0, 0.0, 0.0]], dtype=DT)
+    eta, K = lib.eta.detach(), lib.K().detach()
+    basis = FieldBasis(torch.cat([eta, eta + v, eta - 0.5 * v]), torch.cat([K, K, K]), kind="diag")
+    a = torch.tensor([[3.0, 0.0, 0.0]], dtype=DT)
+    weights = MotionWeights(a, torch.zeros_like(a), w0.duration, names=["come_here"])
+    tg = targets.prepare(lb.body, [m0])
+    trials = {}
+    for shoot in (0, 4):
+        cfg = small_config("gestures", tmp_path / f"s{shoot}", f"solver.reduce.shoot={shoot}",
+                           "success.tip=0.1")
+        ctx = train.new_context(cfg, tg)
+        scores, ok = ctx.check(basis, weights, tg)
+        assert ok == [True]
+        costs = torque.torque_costs(basis, weights, tg).tolist()
+        state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(),
+                               reference=Reference.of(scores, ok, cost=costs), ids=[0, 1, 2])
+        trial = reduce.held_trial(ctx, basis, weights, tg, state, 0)
+        trials[shoot] = (trial, reduce.accepts(ctx, state, trial, tg))
+        assert trial.cost == pytest.approx(float(torque.torque_costs(*trial.model, tg).sum()), rel=1e-9)
+    (nnls, refused), (shot, accepted) = trials[0], trials[4]
+    print("NNLS:", nnls.check[0].rmse, nnls.cost, "shot:", shot.check[0].rmse, shot.cost)
+    assert not refused and nnls.check[0].rmse[0] > 0.031
+    assert accepted and shot.check[0].rmse[0] < 0.025
+    assert not torch.equal(shot.model[1].a, nnls.model[1].a) and shot.cost > nnls.cost  # NNLS: the least cost
+
+
 @pytest.mark.slow
 def test_held_trial_in_chunks_stops_at_the_first_motion_worse_than_before(tmp_path):
     """``solver.reduce.chunk``: a held trial simulates its users c at a time, the one
