@@ -117,6 +117,24 @@ def test_reach_is_relative_to_the_motions_own_fields():
     assert 0 in s.candidates[1] and len(s.kept) == 1
 
 
+@pytest.mark.parametrize("axis", [SOFT, STIFF])
+def test_a_screen_by_blocks_chooses_what_the_whole_selection_does(axis):
+    """Blocks of two motions, each choosing among its own motions' fields, then every
+    motion among the blocks' choices: the same fields and supports as one selection
+    over all candidates, each motion seeing no more candidates than there — and not a
+    pooled field that is no motion's own (here a copy of field 1 moved 1e-3 rad), which
+    no block chooses."""
+    basis, weights, tg, own = _copies(axis)
+    basis = basis.extend(basis.eta.detach()[1:2] + 1e-3, basis.K().detach()[1:2])
+    weights, own = weights.extend_fields(1), torch.cat([own, torch.zeros(4, 1, dtype=torch.bool)], 1)
+    whole = select.select(basis, weights, tg, own, select.SelectOptions(block=0))
+    screened = select.select(basis, weights, tg, own, select.SelectOptions(block=2))
+    assert sorted(screened.kept) == sorted(whole.kept) and screened.support == whole.support
+    assert screened.costs == pytest.approx(whole.costs, rel=1e-9) and not screened.unserved
+    assert all(set(a) <= set(b) for a, b in zip(screened.candidates, whole.candidates))
+    assert any(4 in c for c in whole.candidates) and not any(4 in c for c in screened.candidates)
+
+
 @pytest.mark.slow
 def test_a_planted_library_of_three_fields_in_twelve_motions_gives_back_three(tmp_path):
     data = tmp_path / "data"

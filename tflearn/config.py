@@ -183,6 +183,10 @@ class SelectSection(Section):                   # the shared basis chosen among 
     # reaches this on the motion's path (or it is one of its own), relative to the
     # peak of the motion's weakest own field there
     reach: float = Field(1e-4, ge=0, le=1)
+    # with more motions than this, a screen first: the motions in blocks of this many,
+    # each block choosing among its own motions' fields, then every motion among the
+    # fields some block chose (memory ∝ N, not N·F²); 0: one selection over all
+    block: int = Field(100, ge=0)
     # multiple-shooting iterations per horizon (solver.shooting's other settings) for a
     # motion its own fields reproduced and the chosen basis does not, before it gets its
     # own fields back: a restored motion costs fields for good, an iteration only time

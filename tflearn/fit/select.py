@@ -28,7 +28,11 @@ forward path gives each size's summed cost and count served (the knee of
 ``SelectOptions.reach`` on its path (and its own), so the cost grows with the motions,
 not with their product with the candidates; the reach is relative to the motion's
 weakest own field, since a field centred far from the path (its Gaussian 10⁻⁵ there,
-its weights large) drives a motion as well as a near one.
+its weights large) drives a motion as well as a near one. With many motions, candidates
+in reach still grow with N (copies of each field from every motion): a screen
+(``SelectOptions.block``) first lets blocks of motions choose among their own fields,
+and every motion then chooses among the blocks' choices, the same screen for every
+motion.
 """
 from __future__ import annotations
 
@@ -52,11 +56,15 @@ class SelectOptions:
     its own fit's; reach: a candidate is one of motion j's when its Gaussian
     exp(−½ dᵀKd) reaches this at one of its samples (or it is one of its own), relative
     to the weakest of its own fields (that field's peak on the path); beyond: the
-    candidates added after every motion is served, for the knee (:attr:`Selection.path`)."""
+    candidates added after every motion is served, for the knee (:attr:`Selection.path`);
+    block: with more motions than this, a screen first (:func:`_screen`): the motions in
+    blocks of this many, each block's selection among its own motions' fields, and the
+    selection over every motion among the fields some block kept (0: no screen)."""
 
     tol: float = 1e-4
     reach: float = 1e-4
     beyond: int = 2
+    block: int = 100
 
 
 @dataclass
@@ -117,9 +125,10 @@ class _Motion:
 
 
 def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
-             opts: SelectOptions, tolerance: Optional[list]) -> list:
-    """Each motion's :class:`_Motion`: its candidates (reach or its own, ``own`` N×M
-    bools; of exact copies the first alone) and their normal equations; τ_j as given, or
+             opts: SelectOptions, tolerance: Optional[list], among: Optional[torch.Tensor]) -> list:
+    """Each motion's :class:`_Motion`: its candidates (reach, within ``among`` (M bools)
+    where given, or its own, ``own`` N×M bools; of exact copies the first alone) and their
+    normal equations; τ_j as given, or
     min(c_j + δ, 1 − δ), c_j its own fit's cost: on ``weights``, or the NNLS optimum on its
     own fields where that is lower (path shooting with free fields fits the path, and can
     leave weights whose torques are no motion's, C_j even above 1); at most 1 − δ, below
@@ -128,6 +137,8 @@ def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.
     if tolerance is None:
         current = torque_costs(basis, weights, tg).tolist()
     mine, first = _onto_first_copies(basis, own)
+    if among is not None:
+        first = first & among
     for j in range(tg.N):
         peak = basis.gaussians(tg.q[j][tg.mask[j]]).max(0).values
         near = ((peak >= opts.reach * _weakest(peak, own[j])) & first) | mine[j]
@@ -181,7 +192,34 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
     instead of c_j + δ (a selection among refined fields keeps the first one's bar).
     ``progress(m)``: called as each candidate joins."""
     opts = options or SelectOptions()
-    motions = _motions(basis, weights, tg, own, opts, tolerance)
+    among = _screen(basis, weights, tg, own, opts, tolerance) if 0 < opts.block < tg.N else None
+    return _select(basis, weights, tg, own, opts, progress, tolerance, among)
+
+
+def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
+            opts: SelectOptions, tolerance: Optional[list]) -> torch.Tensor:
+    """The candidates that some block keeps (M bools): the motions in blocks of
+    ``opts.block``, in order, each block's selection (:func:`_select`) among its own
+    motions' fields alone. A motion's normal equations then span its block's fields and
+    the blocks' choices, not every pooled field in reach: memory grows with N, not N·F².
+    A field that many motions need is chosen in every block that holds some of them."""
+    mine = _onto_first_copies(basis, own)[0]
+    keep = torch.zeros(basis.M, dtype=torch.bool)
+    for lo in range(0, tg.N, opts.block):
+        part = list(range(lo, min(tg.N, lo + opts.block)))
+        bar = None if tolerance is None else [tolerance[j] for j in part]
+        sel = _select(basis, weights.select_motions(part), tg.select(part), own[part], opts, None, bar,
+                      mine[part].any(0))
+        keep[sel.kept] = True
+    return keep
+
+
+def _select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
+            opts: SelectOptions, progress, tolerance: Optional[list], among: Optional[torch.Tensor]
+            ) -> Selection:
+    """:func:`select` among the candidates ``among`` (M bools; None: all) and each
+    motion's own."""
+    motions = _motions(basis, weights, tg, own, opts, tolerance, among)
     users = [[] for _ in range(basis.M)]
     for j, mo in enumerate(motions):
         for f in mo.fields:

@@ -117,7 +117,7 @@ def _chosen(*args, **kwargs) -> select.Selection:
 
 def _options(ctx: RunContext) -> select.SelectOptions:
     o = ctx.cfg.solver.select
-    return select.SelectOptions(tol=o.tol, reach=o.reach)
+    return select.SelectOptions(tol=o.tol, reach=o.reach, block=o.block)
 
 
 def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tolerance: list) -> tuple:
