@@ -21,7 +21,7 @@ import torch.multiprocessing as mp
 import tflearn
 from tflearn import parallel, train
 from tflearn.fit import path as path_fit
-from tflearn.fit import shooting, targets, torque
+from tflearn.fit import select, shooting, targets, torque
 from tflearn.fit.shooting import ShootingOptions
 from tflearn.fit.targets import prepare
 from tflearn.model.fields import FieldBasis
@@ -251,6 +251,15 @@ def _path_shooting_start() -> list:
                                    options=ShootingOptions(fields=True, iterations=0)).loss
 
 
+def _screened_selection(distributed: bool) -> dict:
+    """The selection of four motions' fields (tests/test_select.py's copies) screened in
+    blocks of two, as a dict: the blocks shared by the ranks, the choice made on rank 0."""
+    from test_select import STIFF, _copies
+    basis, weights, tg, own = _copies(STIFF)
+    return dataclasses.asdict(select.select(basis, weights, tg, own, select.SelectOptions(block=2),
+                                            distributed=distributed))
+
+
 def _rank_main(rank: int, size: int, port: int, data: str, out: str, steps: str) -> None:
     """One of two gloo ranks: the collectives, two distributed path-matching steps (rank 0
     saves them to ``steps``), then training stopped after its first checkpoint (the first
@@ -266,6 +275,7 @@ def _rank_main(rank: int, size: int, port: int, data: str, out: str, steps: str)
         assert parallel.gather_motions(5, [f"m{j}" for j in parallel.mine(5)]) == [f"m{j}" for j in range(5)]
         torch.set_num_threads(1)
         result = _path_steps(distributed=True)
+        result["selection"] = _screened_selection(distributed=True)
         if rank == 0:
             torch.save(result, steps)
         try:
@@ -287,7 +297,8 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
     in three (shared: each chunk's weights solved and its terms of JᵀJ and Jᵀr formed by
     one rank, every rank adding them in chunk order); multiple shooting of fields shared by
     the three motions, each rank simulating its share of the segments, ends where one
-    process does, to the last bit;
+    process does, to the last bit; the selection screened in blocks, a block per rank,
+    chooses what one process does;
     then both ranks fit the two motions of the small run in one round of ``each`` and
     stop at its checkpoint, written by rank 0 alone: the fits are those of one process
     stopped after the same two motions (each motion's search has its own seeded
@@ -299,6 +310,7 @@ def test_two_ranks_share_path_steps_em_and_a_round_of_each(run_dir, tmp_path):
     assert shared["loss"] == pytest.approx(alone["loss"], rel=1e-12)
     assert sum(alone["shooting"]) < 0.5 * sum(_path_shooting_start())      # the fields moved to the paths
     assert shared["shooting"] == alone["shooting"]
+    assert shared["selection"] == _screened_selection(distributed=False)     # a block per rank
     for em in ("em", "em_chunks", "shooting"):
         if em != "shooting":
             assert alone[em][-1] < 0.9 * alone[em][0] and shared[em] == alone[em]  # EM moved; the same steps

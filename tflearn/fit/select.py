@@ -41,6 +41,7 @@ from typing import Optional
 
 import torch
 
+from .. import parallel
 from ..model.fields import FieldBasis
 from ..model.weights import MotionWeights
 from .nnls import nnls
@@ -185,33 +186,40 @@ def _weakest(peak: torch.Tensor, own: torch.Tensor) -> float:
 @torch.no_grad()
 def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
            options: Optional[SelectOptions] = None, progress=None,
-           tolerance: Optional[list] = None) -> Selection:
+           tolerance: Optional[list] = None, distributed: bool = False) -> Selection:
     """The fewest candidates of ``basis`` found greedily that serve every motion (module
     docstring). ``weights`` hold each motion's own fit on its own candidates (``own``,
     N×M bools), giving c_j; they are left unchanged. ``tolerance``: each motion's τ_j
     instead of c_j + δ (a selection among refined fields keeps the first one's bar).
-    ``progress(m)``: called as each candidate joins."""
+    ``progress(m)``: called as each candidate joins. ``distributed``: the screen's blocks
+    shared by the ranks of a run, the choice then made on rank 0 alone (it holds every
+    motion's normal equations) and broadcast."""
     opts = options or SelectOptions()
-    among = _screen(basis, weights, tg, own, opts, tolerance) if 0 < opts.block < tg.N else None
-    return _select(basis, weights, tg, own, opts, progress, tolerance, among)
+    among = _screen(basis, weights, tg, own, opts, tolerance, distributed) if 0 < opts.block < tg.N else None
+    if not distributed:
+        return _select(basis, weights, tg, own, opts, progress, tolerance, among)
+    return parallel.broadcast(_select(basis, weights, tg, own, opts, progress, tolerance, among)
+                              if parallel.rank() == 0 else None)
 
 
 def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
-            opts: SelectOptions, tolerance: Optional[list]) -> torch.Tensor:
+            opts: SelectOptions, tolerance: Optional[list], distributed: bool) -> torch.Tensor:
     """The candidates that some block keeps (M bools): the motions in blocks of
     ``opts.block``, in order, each block's selection (:func:`_select`) among its own
     motions' fields alone. A motion's normal equations then span its block's fields and
     the blocks' choices, not every pooled field in reach: memory grows with N, not N·F².
-    A field that many motions need is chosen in every block that holds some of them."""
+    A field that many motions need is chosen in every block that holds some of them.
+    ``distributed``: each rank chooses for its share of the blocks."""
     mine = _onto_first_copies(basis, own)[0]
     keep = torch.zeros(basis.M, dtype=torch.bool)
-    for lo in range(0, tg.N, opts.block):
-        part = list(range(lo, min(tg.N, lo + opts.block)))
+    starts = list(range(0, tg.N, opts.block))
+    for b in (parallel.mine(len(starts)) if distributed else range(len(starts))):
+        part = list(range(starts[b], min(tg.N, starts[b] + opts.block)))
         bar = None if tolerance is None else [tolerance[j] for j in part]
         sel = _select(basis, weights.select_motions(part), tg.select(part), own[part], opts, None, bar,
                       mine[part].any(0))
         keep[sel.kept] = True
-    return keep
+    return torch.stack(parallel.all_gather(keep)).any(0) if distributed else keep
 
 
 def _select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,

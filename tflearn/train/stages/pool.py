@@ -88,8 +88,8 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     own`` a motion may use the chosen fields among its candidates."""
     pooled = basis.M
     ctx.log.busy(pooled=pooled, choosing="fields")
-    sel = _chosen(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
-                  progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m))
+    sel = select.select(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
+                        progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m), distributed=True)
     weights = weights.select_fields(sel.kept)
     state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
                      if ctx.cfg.solver.pool.sharing == "own" else None)
@@ -107,14 +107,6 @@ def _positions(kept: list, support: list) -> list:
     return [[where[f] for f in mine] for mine in support]
 
 
-def _chosen(*args, **kwargs) -> select.Selection:
-    """:func:`~tflearn.fit.select.select` on rank 0 alone, its result broadcast: the
-    selection holds every motion's normal equations over its candidates (memory ∝ N·F²),
-    which each rank of a parallel run would otherwise build again."""
-    sel = select.select(*args, **kwargs) if parallel.rank() == 0 else None
-    return parallel.broadcast(sel)
-
-
 def _options(ctx: RunContext) -> select.SelectOptions:
     o = ctx.cfg.solver.select
     return select.SelectOptions(tol=o.tol, reach=o.reach, block=o.block)
@@ -127,7 +119,7 @@ def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tol
     chosen again; if fewer remain, EM again. Returns (basis, weights, each motion's
     fewest fields); ``chosen`` records the count (``refined``)."""
     used = weights.used() | torch.tensor(state.support or [[False] * basis.M] * ctx.tg.N)
-    sel = _chosen(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance)
+    sel = select.select(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance, distributed=True)
     chosen["refined"] = len(sel.kept)
     keep = sorted(sel.kept)
     fewest = _positions(keep, sel.support)
