@@ -30,7 +30,7 @@ from tflearn.motions import motion as motion_mod
 from tflearn.motions import spline
 from tflearn.simulation import simulate as sim_mod
 from tflearn.simulation.simulate import SimOptions
-from tflearn.train.models import weight_support
+from tflearn.train.models import weight_support, without_idle
 from tflearn.train.stages import each, pool, reduce
 from tflearn.train.state import EachRecord, FieldFit, History, ModelRecord, Reference
 
@@ -606,6 +606,29 @@ def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):
                                                       "M_after": 3}
     assert state.ids == [0, 1, 3] and sim_mod.calls == calls and state.iteration == iteration + 1
     assert torch.equal(model_from_state(state.model)[1].a, a[:, [0, 1, 3]])
+
+
+def test_the_result_leaves_out_fields_no_motion_uses():
+    """:func:`without_idle`: of come_here's field, a field no motion has a weight on and a
+    copy with a window weight alone (c > 0), the unused field goes; every motion's
+    torques stay as they were; a basis whose every field is used comes back as it is."""
+    (m0, lb), = gestures.generate(gestures=[gestures.GESTURES["come_here"]])
+    lib, w0, _ = gestures.library_model([gestures.GESTURES["come_here"]], lb.body)
+    eta, K = lib.eta.detach(), lib.K().detach()
+    basis = FieldBasis(torch.cat([eta, eta + 1.0, eta + 0.1]), torch.cat([K, K, K]), kind="diag")
+    a = torch.tensor([[3.0, 0.0, 0.0]], dtype=DT)
+    c = torch.zeros(1, 3, 2, dtype=DT)
+    c[0, 2, 1] = 0.5
+    weights = MotionWeights(a, torch.zeros_like(a), w0.duration, names=["come_here"], c=c,
+                            window_onset=torch.tensor([[0.0, 0.4]], dtype=DT),
+                            window_duration=torch.tensor([[0.4, 0.4]], dtype=DT))
+    tg = targets.prepare(lb.body, [m0])
+    nb, nw = without_idle(basis, weights)
+    assert nb.M == 2 and torch.equal(nb.eta.detach(), basis.eta.detach()[[0, 2]])
+    assert torch.equal(nw.c.detach(), c[:, [0, 2]])
+    assert torch.allclose(torque.torque_costs(nb, nw, tg), torque.torque_costs(basis, weights, tg),
+                          rtol=1e-12, atol=0)
+    assert without_idle(nb, nw)[0] is nb
 
 
 def test_held_trial_path_matches_the_motions_it_loses(tmp_path):

@@ -1,6 +1,7 @@
-"""The end of a run (stage ``done``): the result (:func:`~tflearn.train.models.final_model`)
-scored by simulation — one iteration, logged with the paths' figures — and, by rank 0,
-the artefacts: ``basis.json`` (:mod:`tflearn.io.basis`), ``metrics.json`` (per motion
+"""The end of a run (stage ``done``): the result (:func:`~tflearn.train.models.final_model`;
+with ``model.fields`` 0, without the fields no motion has a weight on) scored by
+simulation — one iteration, logged with the paths' figures — and, by rank 0, the
+artefacts: ``basis.json`` (:mod:`tflearn.io.basis`), ``metrics.json`` (per motion
 and overall scores, error growth, torque resolution, simulations, the history, the data
 files skipped and, for data that carries its generating fields, each matched to a
 learned one: :mod:`tflearn.fit.identity`), ``config.yaml``, ``figures/NAME.png``,
@@ -23,7 +24,7 @@ from ..io import basis as basis_io
 from ..io.files import write_text
 from ..metrics import Scores, summarize
 from .context import RunContext
-from .models import final_model
+from .models import final_model, without_idle
 from .state import DONE, RunState
 
 
@@ -31,6 +32,8 @@ def finish(ctx: RunContext, state: RunState) -> dict:
     """Score the result, write the artefacts (rank 0); metrics.json's dict."""
     tg = ctx.tg
     basis, weights = final_model(state)
+    if not ctx.cfg.model.fields:                    # M found, not given: no idle field in it
+        basis, weights = without_idle(basis, weights)
     scores, ok = ctx.check(basis, weights, tg)
     if not state.finished:
         step = ctx.tick(state)

@@ -48,3 +48,14 @@ def final_model(state) -> tuple:
     """The run's result (basis, weights): the current model, or path matching's best point."""
     best = state.path.best if state.path is not None else None
     return model_from_state(best["model"] if best is not None else state.model)
+
+
+def without_idle(basis, weights) -> tuple:
+    """(basis, weights) without the fields on which no motion has a weight (a, b or c):
+    their torque is zero on every motion, so every motion's program is unchanged (path
+    matching can leave unused a field that elimination kept)."""
+    used = weights.used().any(0)
+    if bool(used.all()) or not bool(used.any()):
+        return basis, weights
+    keep = used.nonzero().flatten().tolist()
+    return basis.select(keep), weights.select_fields(keep)

@@ -94,6 +94,7 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
                      if ctx.cfg.solver.pool.sharing == "own" else None)
     record = {"pooled": pooled, "kept": len(sel.kept), "pruned": len(sel.pruned),
+              "candidates": sum(map(len, sel.candidates)) / max(len(sel.candidates), 1),
               "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved]}
     if ctx.log.writer is not None:
         ctx.log.figure("model/knee", knee(sel.path, len(sel.kept), ctx.tg.N), state.iteration)
