@@ -8,7 +8,8 @@ uses goes as it is (:func:`idle`), and a field that a motion not reproduced need
 without a trial (:func:`carried`). Any other is tried first with every field refitted
 by EM (:func:`refit_trial`; ``solver.reduce.refit``), then, if that breaks a motion or
 refitting is off, with every other field held where it is (:func:`held_trial`: only the
-motions that used it re-solve their weights and are simulated again). With ``sharing:
+motions that used it re-solve their weights and are simulated again, and the few it
+loses are path-matched on the smaller basis, ``solver.reduce.shoot``). With ``sharing:
 own`` a motion that loses one of its fields may then use every field left (or those in
 reach, ``solver.reduce.reach``). With ``model.fields`` = M the smallest-share fields go
 until M remain (refitted).
