@@ -47,7 +47,8 @@ class Trial:
     ``held``, or ``none``: kept without a trial, ``refused`` saying why), the positions
     kept, the model without it (basis, weights) and the fields each motion may then use
     (``support``), its summed torque cost Σ_j C_j (``costs``: per motion, for a held
-    trial), its EM steps, and its check — (scores, success) of the ``motions`` simulated
+    trial, and for a refitted one once judged where a motion was not reproduced), its EM
+    steps, and its check — (scores, success) of the ``motions`` simulated
     — with, once judged under ``solver.reduce.growth``, their e-folds of error growth."""
 
     victim: int
@@ -205,7 +206,7 @@ def held_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, vi
         costs = costs.copy()
         for j, x in zip(users, after.tolist()):
             costs[j] = x
-        users, check, shot = held_check(ctx, state, users, (nb, nw), after, costs)
+        users, check, shot = held_check(ctx, state, users, (nb, nw), costs)
         if shot:                                     # their weights moved off the NNLS optimum
             for j, x in zip(shot, torque.torque_costs(nb, nw.select_motions(shot), tg.select(shot)).tolist()):
                 costs[j] = x
@@ -213,11 +214,10 @@ def held_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, vi
                  costs=costs, check=check, motions=users)
 
 
-def held_check(ctx: RunContext, state: RunState, users: list, new: tuple, after: torch.Tensor,
-               costs: list) -> tuple:
+def held_check(ctx: RunContext, state: RunState, users: list, new: tuple, costs: list) -> tuple:
     """(the motions simulated, their (scores, success), those path-matched) for a held
     trial of ``users``: ``new`` (basis, weights of every motion) the model without the
-    field, ``after`` the users' torque costs on it and ``costs`` every motion's. All
+    field, ``costs`` every motion's torque cost on it. All
     users in one check, or with ``solver.reduce.chunk`` c > 0, c at a time, those whose
     torque cost rose most first, until a chunk holds a motion worse than its reference:
     the trial is then refused, as it would be had every user been simulated. Reproduced
@@ -228,7 +228,8 @@ def held_check(ctx: RunContext, state: RunState, users: list, new: tuple, after:
     limit, tol = ctx.cfg.solver.reduce.shoot, ctx.cfg.solver.select.tol
     order = list(range(len(users)))
     if c:
-        rise = after / torch.tensor([ref.cost[j] for j in users]).clamp_min(1e-300)
+        rise = (torch.tensor([costs[j] for j in users], dtype=torch.float64)
+                / torch.tensor([ref.cost[j] for j in users], dtype=torch.float64).clamp_min(1e-300))
         order = torch.argsort(rise, descending=True, stable=True).tolist()
     done, parts, shot = [], [], []
     step = c or len(order)
@@ -271,11 +272,10 @@ def accepts(ctx: RunContext, state: RunState, trial: Trial, tg: Targets) -> bool
     if trial.check is None:
         return True
     ref = state.reference.select(trial.motions)
-    costs = trial.costs
-    if costs is None and not all(ref.ok):             # a refitted trial: every motion's costs moved
-        costs = torque.torque_costs(*trial.model, tg).tolist()
-    if not no_worse(ref, *trial.check, None if costs is None else [costs[j] for j in trial.motions],
-                    ctx.cfg.solver.select.tol):
+    if trial.costs is None and not all(ref.ok):       # a refitted trial: every motion's costs moved
+        trial.costs = torque.torque_costs(*trial.model, tg).tolist()    # once, for _adopt too
+    costs = None if trial.costs is None else [trial.costs[j] for j in trial.motions]
+    if not no_worse(ref, *trial.check, costs, ctx.cfg.solver.select.tol):
         return False
     allow = ctx.cfg.solver.reduce.growth
     if allow is None:
