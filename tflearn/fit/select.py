@@ -195,7 +195,9 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
     shared by the ranks of a run, the choice then made on rank 0 alone (it holds every
     motion's normal equations) and broadcast."""
     opts = options or SelectOptions()
-    among = _screen(basis, weights, tg, own, opts, tolerance, distributed) if 0 < opts.block < tg.N else None
+    among = None
+    if 0 < opts.block < tg.N:
+        among, tolerance = _screen(basis, weights, tg, own, opts, tolerance, distributed)
     if not distributed:
         return _select(basis, weights, tg, own, opts, progress, tolerance, among)
     return parallel.broadcast(_select(basis, weights, tg, own, opts, progress, tolerance, among)
@@ -203,23 +205,27 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
 
 
 def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
-            opts: SelectOptions, tolerance: Optional[list], distributed: bool) -> torch.Tensor:
-    """The candidates that some block keeps (M bools): the motions in blocks of
+            opts: SelectOptions, tolerance: Optional[list], distributed: bool) -> tuple:
+    """(the candidates that some block keeps (M bools), each motion's bar τ_j as its block
+    set it): the motions in blocks of
     ``opts.block``, in order, each block's selection (:func:`_select`) among its own
     motions' fields alone. A motion's normal equations then span its block's fields and
     the blocks' choices, not every pooled field in reach: memory grows with N, not N·F².
     A field that many motions need is chosen in every block that holds some of them.
     ``distributed``: each rank chooses for its share of the blocks."""
     mine = _onto_first_copies(basis, own)[0]
-    keep = torch.zeros(basis.M, dtype=torch.bool)
+    keep, bars = torch.zeros(basis.M, dtype=torch.bool), {}
     starts = list(range(0, tg.N, opts.block))
     for b in (parallel.mine(len(starts)) if distributed else range(len(starts))):
         part = list(range(starts[b], min(tg.N, starts[b] + opts.block)))
         bar = None if tolerance is None else [tolerance[j] for j in part]
         sel = _select(basis, weights.select_motions(part), tg.select(part), own[part], opts, None, bar,
                       mine[part].any(0))
-        keep[sel.kept] = True
-    return torch.stack(parallel.all_gather(keep)).any(0) if distributed else keep
+        keep[sel.kept], bars[b] = True, sel.tolerance
+    if distributed:
+        parts = parallel.all_gather((keep, bars))
+        keep, bars = torch.stack([k for k, _ in parts]).any(0), {b: t for _, d in parts for b, t in d.items()}
+    return keep, [t for b in range(len(starts)) for t in bars[b]]
 
 
 def _select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
