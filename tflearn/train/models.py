@@ -36,12 +36,18 @@ def layout_basis(cfg: Config, body, tg: Targets, c=None) -> FieldBasis:
     return layout.spanning_basis(body, tg, empty_basis(cfg, body), c.radius, c.stiffness, c.shape)
 
 
+def windows(cfg: Config, tg: Targets) -> tuple:
+    """Each motion's sub-movement windows (onsets, durations: N×P) as the config asks:
+    ``model.windows`` of them, each motion using as many as its length asks at
+    ``model.window_rate`` (:func:`~tflearn.fit.targets.submovement_windows`)."""
+    return submovement_windows(tg, cfg.model.windows, rate=cfg.model.window_rate)
+
+
 def layout_model(cfg: Config, body, tg: Targets) -> tuple:
     """The ``layout`` stage's model before NNLS: :func:`layout_basis` and zero weights on
     each motion's ``model.windows`` sub-movement windows."""
     basis = layout_basis(cfg, body, tg)
-    return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names,
-                                      submovement_windows(tg, cfg.model.windows, rate=cfg.model.window_rate))
+    return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names, windows(cfg, tg))
 
 
 def final_model(state) -> tuple:

@@ -24,11 +24,12 @@ import torch
 
 from ... import parallel
 from ...fit import search, torque
-from ...fit.targets import Targets, submovement_windows
+from ...fit.targets import Targets
 from ...metrics import Scores
 from ...model.fields import FieldBasis
 from ...model.weights import MotionWeights
 from ..context import RunContext
+from ..models import windows
 from ..state import EachRecord, FieldFit, RunState
 
 NAME, TITLE, UNIT = "each", "each motion alone", "motions"
@@ -136,7 +137,7 @@ def reuse(ctx: RunContext, library: FieldBasis, tg: Targets, k: int) -> tuple:
     one, each = tg.select([k]), ctx.cfg.solver.each
     ctx.log.busy(motion=tg.names[k], reusing=library.M)
     w = MotionWeights.zeros(library.M, one.duration, one.names,
-                            submovement_windows(one, ctx.cfg.model.windows, rate=ctx.cfg.model.window_rate))
+                            windows(ctx.cfg, one))
     tol = each.tol if each.reuse_tol is None else each.reuse_tol
     cost = float(torque.solve_weights(library, w, one)[0])
     used = w.used()[0].nonzero().flatten().tolist()
@@ -155,7 +156,7 @@ def reuse(ctx: RunContext, library: FieldBasis, tg: Targets, k: int) -> tuple:
 def fit_one(ctx: RunContext, tg: Targets, k: int, seed: int) -> MotionFit:
     """Motion k's own search (:func:`tflearn.fit.search.grow`) with a generator seeded
     ``seed``, then, if its fields do not reproduce it, :func:`shoot_alone`."""
-    c, m = ctx.cfg.solver, ctx.cfg.model
+    c = ctx.cfg.solver
     one = tg.select([k])
     ctx.log.busy(motion=tg.names[k])
     checked = {}
@@ -168,7 +169,7 @@ def fit_one(ctx: RunContext, tg: Targets, k: int, seed: int) -> MotionFit:
                                  em_steps=c.em.steps, em_tol=c.em.tol, phases=ctx.variable_phases)
     b, w, costs = search.grow(one, ctx.template(), torch.Generator().manual_seed(seed), options,
                               reproduced=reproduced,
-                              windows=submovement_windows(one, m.windows, rate=m.window_rate))
+                              windows=windows(ctx.cfg, one))
     if b.M and checked.get("last", (None,))[0] is not b:
         reproduced(b, w)                         # grow stopped before checking its last basis
     if b.M and not all(checked["last"][2]) and shoot_alone(ctx, b, w, one, reproduced):
