@@ -45,7 +45,7 @@ DT = torch.float64
 # base temp folder (~30 s on the test machine).
 
 SMALL_OVERRIDES = ["log.progress=false", "log.tensorboard=false", "solver.init.candidates=16",
-                   "solver.em.steps=30", "solver.path.steps=2"]
+                   "solver.em.steps=30", "solver.path.steps=2", "solver.method=pipeline"]
 SMALL_GESTURES = dict(count=2, seed=5, ranges={"duration": (1.0, 1.2)})
 
 

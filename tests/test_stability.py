@@ -236,13 +236,14 @@ def test_elimination_refuses_a_removal_that_adds_error_growth(tmp_path):
     reproduced = (Scores([0.0] * 2, [0.0] * 2, [0.0] * 2, tg.q, [None] * 2), [True, True])
     state = train.RunState(config={}, stage="reduce", rng=torch.zeros(1), reference=Reference(
         rmse=[0.01] * 2, tip=[0.01] * 2, ok=[True] * 2, efolds=[0.0, 0.0]))
-    ctx = train.new_context(config.load(None, [f"out={tmp_path}", "solver.reduce.growth=1.0"]), tg)
+    ctx = train.new_context(config.load(None, [f"out={tmp_path}", "solver.reduce.growth=1.0",
+                                                "solver.method=pipeline"]), tg)
     trial = reduce.Trial(0, "refit", check=reproduced, motions=[0, 1], model=(basis, weights))
     assert not reduce.accepts(ctx, state, trial, tg)
     assert trial.efolds == efolds
     state.reference.efolds[1] = efolds[1] - 0.9          # within one e-fold of the reference
     assert reduce.accepts(ctx, state, trial, tg)
     state.reference.efolds[1] = 0.0
-    plain = train.new_context(config.load(None, [f"out={tmp_path}"]), tg)
+    plain = train.new_context(config.load(None, [f"out={tmp_path}", "solver.method=pipeline"]), tg)
     assert reduce.accepts(plain, state, reduce.Trial(0, "refit", check=reproduced, motions=[0, 1],
                                                      model=(basis, weights)), tg)

@@ -260,12 +260,23 @@ class RescueSection(Layout):
     velocity_weight: float = Field(0.01, ge=0)                       # and β
 
 
+class AutoSection(Section):
+    # method auto (tflearn.train.choice): each of up to `probes` motions, spread over the
+    # data, searched alone on torques (solver.each.max_fields fields, no simulation); the
+    # pipeline when at least half reach a relative torque cost ≤ tol (motions a few fields
+    # made reach 1e-5; keyframed and recorded motion stays at 1e-2–1e-1), else CONVERGENT
+    tol: float = Field(1e-3, gt=0, allow_inf_nan=False)
+    probes: int = Field(3, ge=1)
+
+
 class SolverSection(Section):
-    # pipeline | slsqp: the thesis' baseline, SLSQP with numerical derivatives on the
+    # auto: the pipeline or convergent pairs (CONVERGENT), decided from the data (solver.auto)
+    # | pipeline | slsqp: the thesis' baseline, SLSQP with numerical derivatives on the
     # torque cost from a seeded random guess (needs model.fields ≥ 1, diag K) | layout:
     # a fixed basis of fields spanning joint space around the motions, weights by
     # NNLS, then path matching (tflearn.fit.layout; for recorded and keyframed motion)
-    method: Literal["pipeline", "slsqp", "layout"] = "pipeline"
+    method: Literal["auto", "pipeline", "slsqp", "layout"] = "auto"
+    auto: AutoSection = AutoSection()
     # the torque costs' coordinate weights: uniform (the thesis) | inertia (each joint's
     # torque error over its mean inertia: errors counted by the accelerations they cause)
     torque_weight: Literal["uniform", "inertia"] = "uniform"
@@ -285,6 +296,18 @@ class SolverSection(Section):
     slsqp: SlsqpSection = SlsqpSection()
     layout: LayoutSection = LayoutSection()
     rescue: RescueSection = RescueSection()
+
+
+#: What ``solver.method: auto`` sets when a few fields do not explain the motions' torques:
+#: antagonist pairs inside joint space held on the path (configs/convergent.yaml holds
+#: the same keys; docs/model.md, "Convergent pairs and impedance").
+CONVERGENT = {
+    "model": {"fields": 0, "stiffness": "diag", "field_damping": 0.1, "windows": 16},
+    "solver": {"method": "layout",
+               "layout": {"shape": "pairs", "radius": 2.0, "stiffness": 0.25, "frequency": 10.0,
+                          "deviation": 0.1},
+               "path": {"steps": 0, "rtol": 1e-6, "atol": 1e-8, "batch": "shared"}},
+}
 
 
 class SuccessSection(Section):

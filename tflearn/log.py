@@ -273,9 +273,10 @@ def summary_table(metrics: dict, out=None) -> str:
     """The results of a run as a table (metrics.json's dict): per motion joint RMSE
     (rad), maximum tip error (cm), relative RMS torque error (%), the e-folds of error
     growth along its path and whether it was reproduced; then M, the overall figures, the
-    wall time, the generating fields matched (:func:`identity_line`, for data that
-    carries them), the bad data files skipped and, given ``out`` (the run folder), where
-    the artefacts were written. No trailing newline."""
+    wall time, the method ``solver.method: auto`` chose (:func:`method_line`), the
+    generating fields matched (:func:`identity_line`, for data that carries them), the
+    bad data files skipped and, given ``out`` (the run folder), where the artefacts were
+    written. No trailing newline."""
     rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "growth (e-folds)", "reproduced")]
     for name, m in metrics["motions"].items():
         ok = "yes" if m["success"] else ("no: simulation failed" if m.get("failure") else "no")
@@ -295,6 +296,8 @@ def summary_table(metrics: dict, out=None) -> str:
     lines = [line(rows[0]), rule, *map(line, rows[1:-1]), rule, line(rows[-1]), ""]
     verdict = "every motion reproduced" if o["success"] else "not all motions reproduced"
     lines.append(f"M = {o['M']} fields, {verdict}, wall time {_duration(o['wall_time_s'])}")
+    if "method" in metrics.get("history", {}):
+        lines.append(method_line(metrics["history"]["method"]))
     if "identity" in metrics:
         lines.append(identity_line(metrics["identity"]))
     for skip in metrics.get("skipped", []):
@@ -303,6 +306,18 @@ def summary_table(metrics: dict, out=None) -> str:
         lines.append(f"artefacts in {out}: basis.json, metrics.json, config.yaml, figures/"
                      + (", tensorboard/" if (Path(out) / "tensorboard").is_dir() else ""))
     return "\n".join(lines)
+
+
+def method_line(decision: dict) -> str:
+    """One line of what ``solver.method: auto`` chose (metrics.json's ``history.method``,
+    :func:`tflearn.train.choice.choose`) and why."""
+    costs = decision["probes"].values()
+    span = f"{min(costs):.1e}" + (f"–{max(costs):.1e}" if len(costs) > 1 else "")
+    why = f"relative torque cost of the probed motions on a few fields {span}, bar {decision['tol']:g}"
+    if decision["method"] == "pipeline":
+        return f"method: the pipeline learned the shared basis (solver.method auto; {why})"
+    return (f"method: convergent antagonist pairs held on the path (solver.method auto; {why}: "
+            f"no few fields made these motions)")
 
 
 def identity_line(identity: dict, listed: int = 3) -> str:

@@ -136,9 +136,12 @@ class ExperimentConfig(Section):
         return doc
 
     def training(self, method: str) -> Config:
-        """The training config of ``method``: ``train`` for the pipeline, ``train`` ←
-        ``layout`` with solver.method layout for the layout."""
-        return layout_config(self.train, self.layout) if method == "layout" else self.train
+        """The training config of ``method``: ``train`` with solver.method pipeline for the
+        pipeline (not decided from the data: the experiments compare the methods),
+        ``train`` ← ``layout`` with solver.method layout for the layout."""
+        if method == "layout":
+            return layout_config(self.train, self.layout)
+        return self.train.replace(solver={"method": "pipeline"})
 
 
 def layout_config(train: Config, layout: dict) -> Config:

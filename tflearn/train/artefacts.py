@@ -2,7 +2,8 @@
 with ``model.fields`` 0, without the fields no motion has a weight on) scored by
 simulation — one iteration, logged with the paths' figures — and, by rank 0, the
 artefacts: ``basis.json`` (:mod:`tflearn.io.basis`), ``metrics.json`` (per motion
-and overall scores, error growth, torque resolution, simulations, the history, the data
+and overall scores, error growth, torque resolution, simulations, the history — with
+the method ``solver.method: auto`` chose —, the data
 files skipped and, for data that carries its generating fields, each matched to a
 learned one: :mod:`tflearn.fit.identity`), ``config.yaml``, ``figures/NAME.png``,
 ``knee.png`` (how the shared basis was chosen: :func:`tflearn.plots.model.knee`),
@@ -47,6 +48,8 @@ def finish(ctx: RunContext, state: RunState) -> dict:
         metrics["motions"][name]["torque_resolution"] = eps
     metrics["overall"]["simulations"] = ctx.checkpoints.simulations(state)
     metrics["history"] = state.history.to_dict()
+    if ctx.decision is not None:
+        metrics["history"]["method"] = ctx.decision
     metrics["skipped"] = ctx.skipped
     generating = generating_bases(ctx.cfg.data, ctx.body, tg.names)
     if generating:

@@ -1,0 +1,108 @@
+"""``solver.method: auto`` (tflearn.train.choice): the pipeline for motions a few fields
+made, convergent pairs for motion none made, decided from the motions' torques.
+
+The probe's relative torque costs on field-made gestures and on eased keyframe splines
+lie orders of magnitude apart; the decision follows the majority of the probed motions;
+the convergent settings it takes are configs/convergent.yaml's; and the default config
+trains keyframed motion into a convergent basis that reproduces it.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from tflearn import config, train
+from tflearn.data import gestures
+from tflearn.data.keyframes import random_keyframes
+from tflearn.fit import targets
+from tflearn.motions.motion import save
+from tflearn.physics import body as tb
+from tflearn.train.choice import choose, probed
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+@pytest.fixture(scope="module")
+def motions():
+    """{name: Motion}: two gestures a field made and two eased keyframe animations."""
+    body = tb.arm()
+    made = {m.name: m for m, _ in gestures.generate(body, gestures=[gestures.GESTURES[n]
+                                                                     for n in ("come_here", "tuck")])}
+    keys = {m.name: m for m in random_keyframes(body, 2, seed=11)}
+    return body, {**made, **keys}
+
+
+def _targets(body, motions, names):
+    return targets.prepare(body, [motions[n] for n in names])
+
+
+def test_probe_tells_field_made_motion_from_keyframes(motions):
+    """A field-made gesture's torques on a few fields are exact to 1e-6; a keyframe
+    spline's stay above 5e-3 (the bar is 1e-3)."""
+    body, ms = motions
+    cfg = config.load(CONFIGS / "gestures.yaml", ["solver.auto.probes=4"])
+    costs = probed(cfg, body, _targets(body, ms, list(ms)))
+    assert set(costs) == set(ms)
+    assert costs["come_here"] < 1e-6 and costs["tuck"] < 1e-6
+    assert costs["keys11_0"] > 5e-3 and costs["keys11_1"] > 5e-3
+
+
+@pytest.mark.parametrize("names, method", [
+    (["come_here", "tuck", "keys11_0"], "pipeline"),
+    (["come_here", "keys11_0", "keys11_1"], "convergent"),
+])
+def test_the_majority_of_the_probes_decides(motions, names, method):
+    """Three probes: two field-made of three give the pipeline, one of three the
+    convergent pairs; the decision names every probed motion's cost."""
+    body, ms = motions
+    cfg = config.load(CONFIGS / "gestures.yaml")
+    chosen, decision = choose(cfg, body, _targets(body, ms, names))
+    assert decision["method"] == method and list(decision["probes"]) == names
+    assert chosen.solver.method == ("pipeline" if method == "pipeline" else "layout")
+    if method == "pipeline":                                 # nothing else changes
+        assert chosen.model_dump() == cfg.replace(solver={"method": "pipeline"}).model_dump()
+
+
+def test_convergent_choice_is_configs_convergent(motions):
+    """The settings auto takes for keyframes are configs/convergent.yaml's, key for key
+    (but data, out and log); any method but auto is left as it is."""
+    body, ms = motions
+    tg = _targets(body, ms, ["keys11_0"])
+    chosen, _ = choose(config.load(CONFIGS / "gestures.yaml"), body, tg)
+    want = config.load(CONFIGS / "convergent.yaml").model_dump()
+    got = chosen.model_dump()
+    for key in ("data", "out", "log"):
+        got.pop(key), want.pop(key)
+    assert got == want
+    cfg = config.load(CONFIGS / "gestures.yaml", ["solver.method=pipeline"])
+    assert choose(cfg, body, tg) == (cfg, None)
+
+
+@pytest.mark.slow
+def test_default_train_holds_keyframes_with_convergent_fields(motions, tmp_path):
+    """``train configs/gestures.yaml data=DIR`` on two keyframe animations: convergent
+    pairs chosen, both reproduced (≤ 0.03 rad, ≤ 2 cm), every centre a posture (each
+    joint block's angle < π), the choice in metrics.json and config.yaml; run again,
+    the finished run keeps it."""
+    body, ms = motions
+    data = tmp_path / "keys"
+    data.mkdir()
+    for name in ("keys11_0", "keys11_1"):
+        save(ms[name], data / f"{name}.npz")
+    cfg = config.load(CONFIGS / "gestures.yaml", [f"data={data}", f"out={tmp_path / 'run'}",
+                                                  "log.tensorboard=false"])
+    metrics = train.run(cfg, progress=False)
+    assert metrics["history"]["method"]["method"] == "convergent"
+    assert all(m["success"] and m["rmse"] <= 0.03 and m["tip"] <= 0.02 for m in metrics["motions"].values())
+    basis = json.loads((tmp_path / "run" / "basis.json").read_text())
+    eta = torch.tensor([f["eta"] for f in basis["fields"]], dtype=torch.float64)
+    assert eta.shape[0] == 2 * body.nv
+    assert all(float(eta[:, body.slice(i)].norm(dim=-1).max()) < math.pi for i in range(len(body.links)))
+    assert config.load(tmp_path / "run" / "config.yaml").solver.method == "layout"
+    again = train.run(cfg, progress=False)
+    assert again["history"]["method"] == metrics["history"]["method"]
+    assert again["motions"] == metrics["motions"]

@@ -1,0 +1,60 @@
+"""``solver.method: auto`` — which model suits a run's motions, decided from the motions.
+
+The pipeline learns a few fields that made the motions; motion no few fields made
+(keyframed, recorded) is held on its path by convergent antagonist pairs instead
+(:data:`tflearn.config.CONVERGENT`, docs/model.md). What tells them apart is the
+pipeline's own first step: a motion searched alone on torques (:func:`tflearn.fit.search.grow`,
+``solver.each.max_fields`` fields, no simulation) reaches a relative torque cost C_j
+near rounding when a few fields made it (1e-8–1e-5 on the gestures and on planted
+libraries) and stays at 1e-2–1e-1 when none did (keyframe splines, recorded windows).
+``solver.auto.probes`` motions spread over the data are probed; the pipeline is chosen
+when at least half of them reach ``solver.auto.tol``.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..config import CONVERGENT, Config
+from ..fit import search
+from ..fit.targets import Targets
+from ..physics.body import Body
+from .models import empty_basis, windows
+
+__all__ = ["choose", "probed"]
+
+
+def probed(cfg: Config, body: Body, tg: Targets) -> dict:
+    """{name: C_j} of the probed motions: ``solver.auto.probes`` of them at evenly spaced
+    positions in the data, each searched alone on torques (seeded by ``seed`` and its
+    position: the same on every rank), stopping at ``solver.auto.tol``."""
+    c, count = cfg.solver, min(cfg.solver.auto.probes, tg.N)
+    picks = sorted({round(i * (tg.N - 1) / max(count - 1, 1)) for i in range(count)})
+    options = search.GrowOptions(max_fields=c.each.max_fields, tol=c.auto.tol, candidates=c.init.candidates,
+                                 stiffnesses=tuple(c.init.stiffness_grid), em_steps=c.em.steps,
+                                 em_tol=c.em.tol, phases=cfg.model.phases == "variable")
+    costs = {}
+    for k in picks:
+        one = tg.select([k])
+        generator = torch.Generator().manual_seed(cfg.seed + k)
+        costs[tg.names[k]] = float(search.grow(one, empty_basis(cfg, body), generator, options,
+                                               windows=windows(cfg, one))[2][0])
+    return costs
+
+
+def choose(cfg: Config, body: Body, tg: Targets) -> tuple:
+    """(the config to run, the decision or None): with ``solver.method: auto``, ``cfg``
+    with method pipeline when at least half the :func:`probed` motions reach
+    ``solver.auto.tol``, else ``cfg`` ← :data:`~tflearn.config.CONVERGENT`; the decision
+    {"method", "tol", "probes": {name: C_j}} goes into metrics.json (``history.method``).
+    Any other method: (``cfg``, None)."""
+    if cfg.solver.method != "auto":
+        return cfg, None
+    costs = probed(cfg, body, tg)
+    made = sum(cost <= cfg.solver.auto.tol for cost in costs.values())
+    pipeline = made >= math.ceil(len(costs) / 2)
+    chosen = cfg.replace(solver={"method": "pipeline"}) if pipeline else cfg.replace(**CONVERGENT)
+    return chosen, {"method": "pipeline" if pipeline else "convergent", "tol": cfg.solver.auto.tol,
+                    "probes": costs}
+
