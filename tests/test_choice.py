@@ -42,7 +42,7 @@ def _targets(body, motions, names):
 
 def test_probe_tells_field_made_motion_from_keyframes(motions):
     """A field-made gesture's torques on a few fields are exact to 1e-6; a keyframe
-    spline's stay above 5e-3 (the bar is 1e-3)."""
+    spline's stay above 5e-3 (the bar is 2e-3)."""
     body, ms = motions
     cfg = config.load(CONFIGS / "gestures.yaml", ["solver.auto.probes=4"])
     costs = probed(cfg, body, _targets(body, ms, list(ms)))

@@ -264,9 +264,9 @@ class AutoSection(Section):
     # method auto (tflearn.train.choice): each of up to `probes` motions, spread over the
     # data, searched alone on torques (solver.each.max_fields fields, no simulation); the
     # pipeline when at least half reach a relative torque cost ≤ tol (motions a few fields
-    # made reach 1e-5; keyframed and recorded motion stays at 1e-2–1e-1), else CONVERGENT
-    tol: float = Field(1e-3, gt=0, allow_inf_nan=False)
-    probes: int = Field(3, ge=1)
+    # made: ≤ 8.4e-4; keyframed and recorded motion: ≥ 4.2e-3, docs/model.md), else CONVERGENT
+    tol: float = Field(2e-3, gt=0, allow_inf_nan=False)
+    probes: int = Field(5, ge=1)
 
 
 class SolverSection(Section):

@@ -4,9 +4,10 @@ The pipeline learns a few fields that made the motions; motion no few fields mad
 (keyframed, recorded) is held on its path by convergent antagonist pairs instead
 (:data:`tflearn.config.CONVERGENT`, docs/model.md). What tells them apart is the
 pipeline's own first step: a motion searched alone on torques (:func:`tflearn.fit.search.grow`,
-``solver.each.max_fields`` fields, no simulation) reaches a relative torque cost C_j
-near rounding when a few fields made it (1e-8–1e-5 on the gestures and on planted
-libraries) and stays at 1e-2–1e-1 when none did (keyframe splines, recorded windows).
+``solver.each.max_fields`` fields, no simulation) reaches a small relative torque cost
+C_j when a few fields made it (at most 8.4e-4 on the gestures and 100 planted programs)
+and stays above it when none did (at least 4.2e-3 on keyframe splines and recorded
+windows; docs/model.md, "Which model").
 ``solver.auto.probes`` motions spread over the data are probed; the pipeline is chosen
 when at least half of them reach ``solver.auto.tol``.
 """
