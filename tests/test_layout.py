@@ -240,7 +240,7 @@ def _spline_run(tmp_path, *overrides):
                        "model.phases=variable", "model.field_damping=0.2", "model.windows=2",
                        "solver.each.max_fields=1", "solver.init.candidates=8", "solver.em.steps=20",
                        "solver.path.steps=1", "log.tensorboard=false", "log.progress=false",
-                       *overrides])
+                       "solver.method=pipeline", *overrides])
 
 
 @pytest.mark.slow
