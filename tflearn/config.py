@@ -300,7 +300,7 @@ class SolverSection(Section):
 
 #: What ``solver.method: auto`` sets when a few fields do not explain the motions' torques:
 #: antagonist pairs inside joint space held on the path (configs/convergent.yaml holds
-#: the same keys; docs/model.md, "Convergent pairs and impedance").
+#: the same keys; docs/model.md, "Convergent pairs held on the path").
 CONVERGENT = {
     "model": {"fields": 0, "stiffness": "diag", "field_damping": 0.1, "windows": 16},
     "solver": {"method": "layout",

@@ -58,4 +58,3 @@ def choose(cfg: Config, body: Body, tg: Targets) -> tuple:
     chosen = cfg.replace(solver={"method": "pipeline"}) if pipeline else cfg.replace(**CONVERGENT)
     return chosen, {"method": "pipeline" if pipeline else "convergent", "tol": cfg.solver.auto.tol,
                     "probes": costs}
-
