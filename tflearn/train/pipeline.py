@@ -45,7 +45,6 @@ def run(cfg: Config, restart: bool = False, stop_after: Optional[int] = None,
         torch.manual_seed(cfg.seed)
         tg, resolution, skipped = load(cfg, body)
         cfg, decision = choose(cfg, body, tg)
-        check_config(cfg)
         cfg = sized_windows(cfg, tg)
         checkpoints = Checkpoints(cfg, device, stop_after)
         with on_device(device):
