@@ -126,13 +126,22 @@ class ShootingSection(Section):
     # true: a weight at 0 when shooting starts stays at 0, so a sparse program
     # (solver.layout.sparsity) keeps its support and only its non-zero weights move
     sparse: bool = False
+    # a motion with sub-movement windows (model.windows, model.window_rate) longer than
+    # this (s) has its window weights fitted one window at a time, each from where its
+    # own simulation arrives, with `ahead` windows after it (tflearn.fit.receding): time
+    # linear in its length, for whole recorded clips (the horizon, fields, broyden and
+    # used settings do not apply to it); shorter ones by horizons doubled up to the whole
+    # motion. null: never; 0: every motion with windows
+    receding: Optional[float] = Field(None, ge=0, allow_inf_nan=False)
+    ahead: int = Field(1, ge=0)
 
     def options(self, phases: bool):
         """These settings as :class:`tflearn.fit.shooting.ShootingOptions`."""
         from .fit.shooting import ShootingOptions
         return ShootingOptions(horizon=self.horizon, iterations=self.iterations, phases=phases,
                                velocity_weight=self.velocity_weight, tip_weight=self.tip_weight,
-                               broyden=self.broyden, used=self.used, sparse=self.sparse)
+                               broyden=self.broyden, used=self.used, sparse=self.sparse,
+                               receding=self.receding, ahead=self.ahead)
 
 
 class PoolSection(Section):
@@ -306,7 +315,8 @@ CONVERGENT = {
     "solver": {"method": "layout",
                "layout": {"shape": "pairs", "radius": 2.0, "stiffness": 0.25, "frequency": 10.0,
                           "deviation": 0.1},
-               "path": {"steps": 0, "rtol": 1e-6, "atol": 1e-8, "batch": "shared"}},
+               "path": {"steps": 0, "rtol": 1e-6, "atol": 1e-8, "batch": "shared", "max_evals": 100000},
+               "shooting": {"receding": 2.0, "tip_weight": 100.0}},
 }
 
 

@@ -22,6 +22,7 @@ from typing import Callable, Optional
 import torch
 
 from . import parallel
+from .fit.receding import receding_match
 from .fit.shooting import ShootingOptions, keys_of, shooting_match
 from .fit.targets import Targets
 from .fit.torque import torque_costs
@@ -47,21 +48,34 @@ def shoot(body, basis, weights: MotionWeights, tg: Targets, motions: list, optio
           sim: SimOptions, distributed: bool = False) -> dict:
     """Multiple-shooting path matching of ``motions``' programs (indices; ``options``'
     arrays: weights, and timing with ``options.phases``), the basis fixed, ``weights``
-    changed in place. ``distributed``: the motions shared by the ranks of a run and the
-    results gathered, so that every rank holds every motion's. Returns, per motion name,
+    changed in place; those longer than ``options.receding`` (s) window by window
+    (:func:`tflearn.fit.receding.receding_match`). ``distributed``: the motions shared by
+    the ranks of a run and the results gathered, so that every rank holds every
+    motion's. Returns, per motion name,
     {"loss": the path loss left (None: ∞), "failure": why shooting stopped early, or None}."""
     keys = keys_of(options)
     mine = [motions[i] for i in parallel.mine(len(motions))] if distributed else list(motions)
-    rows = []
-    if mine:
-        res = shooting_match(body, basis, weights, tg, options=options, sim=sim, motions=mine)
-        rows = [{"theta": x.tolist(), "loss": loss if loss < float("inf") else None,
-                 "failure": res.failures.get(tg.names[j])}
-                for j, x, loss in zip(mine, weights.flat(keys)[mine], res.loss)]
+    rows = {}
+    for fit, part in _by_method(options, weights, tg, mine):
+        res = fit(body, basis, weights, tg, options=options, sim=sim, motions=part)
+        rows.update({j: {"theta": x.tolist(), "loss": loss if loss < float("inf") else None,
+                         "failure": res.failures.get(tg.names[j])}
+                     for j, x, loss in zip(part, weights.flat(keys)[part], res.loss)})
+    rows = [rows[j] for j in mine]
     if distributed:
         rows = parallel.gather_motions(len(motions), rows)
         weights.set_flat(keys, torch.tensor([r["theta"] for r in rows], dtype=torch.float64), motions)
     return {tg.names[j]: {"loss": r["loss"], "failure": r["failure"]} for j, r in zip(motions, rows)}
+
+
+def _by_method(options: ShootingOptions, weights: MotionWeights, tg: Targets, motions: list) -> list:
+    """[(fit, motions)]: the motions with windows longer than ``options.receding`` (s) to
+    :func:`~tflearn.fit.receding.receding_match`, the others to
+    :func:`~tflearn.fit.shooting.shooting_match` (none left out; empty groups dropped)."""
+    long = [] if options.receding is None or not weights.P else \
+        [j for j in motions if float(tg.duration[j]) > options.receding]
+    rest = [j for j in motions if j not in long]
+    return [(f, part) for f, part in ((shooting_match, rest), (receding_match, long)) if part]
 
 
 def closer(rmse: list, after: Scores, ok: Optional[list] = None) -> list:

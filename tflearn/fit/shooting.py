@@ -115,7 +115,13 @@ class ShootingOptions:
     D ∝ those fields, not M, for a basis of many fields (not with ``fields``); free:
     with ``fields``, the fields freed (indices; None: every field), the others held;
     sparse: a weight at 0 when shooting starts stays at 0, so that a sparse program
-    (``Impedance.sparsity``) keeps its support and only its non-zero weights move."""
+    (``Impedance.sparsity``) keeps its support and only its non-zero weights move;
+    windows: only the weights of these sub-movement windows move (indices; None: every
+    weight), a, b, the other windows and the timing held; receding: a motion with
+    windows longer than this (s; None: none) is fitted window by window from its own
+    simulation instead (:func:`.receding.receding_match`, where ``horizon``, ``phases``,
+    ``fields``, ``broyden`` and ``used`` do not apply; :func:`tflearn.synthesis.shoot`
+    sends it there), ``ahead`` windows beyond each fitted with it."""
 
     horizon: float = 0.25
     iterations: int = 6
@@ -131,6 +137,9 @@ class ShootingOptions:
     used: bool = False
     free: Optional[tuple] = None
     sparse: bool = False
+    windows: Optional[tuple] = None
+    receding: Optional[float] = None
+    ahead: int = 1
 
 
 @dataclass
@@ -247,9 +256,12 @@ class _Problem:
             self.lower = torch.cat([self.lower, free])
         weight = torch.cat([torch.full((d,), k in WEIGHTS) for k, d in layout]
                            + [torch.zeros(len(self.lower) - self.dw, dtype=torch.bool)])
-        # the parameters held where they start (N×D): with opts.sparse, the weights at 0
+        # the parameters held where they start (N×D): with opts.sparse, the weights at 0;
+        # with opts.windows, all but those windows' weights
         self.held = (self.theta() == 0) & weight if opts.sparse else torch.zeros(
             weights.N, len(self.lower), dtype=torch.bool)
+        if opts.windows is not None:
+            self.held |= _outside_windows(layout, weights, opts.windows, len(self.lower))
 
     def theta(self) -> torch.Tensor:
         """θ (N×D) of the current weights (and freed fields)."""
@@ -358,6 +370,19 @@ class _Problem:
         """(JᵀJ (n_m×D×D), Jᵀr (n_m×D)) of each motion at θ (n_m×D), J from
         :meth:`jacobian`. Raises SimulationFailed."""
         return _normal(self.jacobian(theta, h, motions))
+
+
+def _outside_windows(layout: list, weights: MotionWeights, windows: tuple, D: int) -> torch.Tensor:
+    """(N×D) True for every parameter of θ (``layout``: (key, size) in order) but the
+    weights c of ``windows``."""
+    free = []
+    for key, d in layout:
+        x = torch.zeros(getattr(weights, key).shape[1:], dtype=torch.bool)
+        if key == "c_raw":
+            x[:, list(windows)] = True
+        free.append(x.reshape(d))
+    free = torch.cat(free + [torch.zeros(D - sum(d for _, d in layout), dtype=torch.bool)])
+    return (~free).expand(weights.N, -1)
 
 
 def _normal(linear: list):

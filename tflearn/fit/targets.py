@@ -182,7 +182,8 @@ def submovement_windows(tg: Targets, P: int, spread: float = 0.25, rate: float =
     return torch.tensor(onsets, **z).reshape(tg.N, P), torch.tensor(lengths, **z).reshape(tg.N, P)
 
 
-def _trapezoid(t: torch.Tensor) -> torch.Tensor:
+def trapezoid(t: torch.Tensor) -> torch.Tensor:
+    """The trapezoid rule's weights at sample times t (T): Σ w f ≈ ∫ f dt."""
     dt = t[1:] - t[:-1]
     w = torch.zeros_like(t)
     w[:-1] += dt / 2
@@ -219,7 +220,7 @@ def prepare(body: Body, motions: list, trim: int = 5, weight: str = "uniform",
         t[j, :k] = tj - tj[0]
         t[j, k:] = t[j, k - 1]
         mask[j, :k] = True
-        w[j, :k] = _trapezoid(tj)
+        w[j, :k] = trapezoid(tj)
         q[j, :k] = torch.as_tensor(m.q, **z)
         v[j, :k] = torch.as_tensor(m.qd, **z) if m.qd is not None else vel_j
         tau[j, :k] = tau_j
