@@ -143,22 +143,30 @@ def _step(body, basis, weights: MotionWeights, tg: Targets, live: list, k: int, 
     res = shooting.shooting_match(body, basis, sub, piece, sim=sim,
                                   options=replace(opts, windows=tuple(range(k, last + 1))))
     weights.set_flat(("c_raw",), sub.flat(("c_raw",)), live)
-    result.simulations += res.simulations + 1
-    try:
-        q, v = simulate_targets(body, basis, sub, piece, sim)
-    except SimulationFailed as err:
-        for j in live:
-            result.failures[tg.names[j]] = f"piece {k} not simulated: {err}"
-            at.pop(j)
-        return res.loss
-    for r, j in enumerate(live):
+    result.simulations += res.simulations
+    for r, (j, path) in enumerate(zip(live, _paths(body, basis, sub, piece, sim, result))):
         nxt = _sample_at(tg, j, float(weights.window_onset[j, k + 1])) if k + 1 < weights.P else None
-        if nxt is None or nxt >= int(tg.mask[j].sum()) - 1:
+        if isinstance(path, SimulationFailed):
+            result.failures[tg.names[j]] = f"piece {k} not simulated: {path}"
+        if nxt is None or nxt >= int(tg.mask[j].sum()) - 1 or isinstance(path, SimulationFailed):
             at.pop(j)
         else:
-            nxt = max(nxt, first[r] + 1)
-            at[j] = (nxt, q[r, nxt - first[r]], v[r, nxt - first[r]])
+            i = max(nxt, first[r] + 1) - first[r]
+            at[j] = (first[r] + i, path[0][i], path[1][i])
     return res.loss
+
+
+def _paths(body, basis, sub: MotionWeights, piece: Targets, sim: SimOptions, result) -> list:
+    """Each piece's simulated (q, v) (its samples × n each), or the SimulationFailed that
+    stopped it: the pieces simulated together, then one by one where their batch fails."""
+    result.simulations += 1
+    try:
+        return list(zip(*simulate_targets(body, basis, sub, piece, sim)))
+    except SimulationFailed as err:
+        if piece.N == 1:
+            return [err]
+    return [_paths(body, basis, sub.select_motions([r]), piece.select([r]), sim, result)[0]
+            for r in range(piece.N)]
 
 
 def _losses(body, basis, weights, tg, motions, sim, beta: float) -> list:
