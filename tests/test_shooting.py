@@ -588,7 +588,7 @@ def test_synthesis_keeps_the_nearest_program_when_no_fit_comes_closer(monkeypatc
     def wild(body, basis, weights, tg, options, sim, motions=None):
         with torch.no_grad():
             weights.a_raw[list(range(weights.N)) if motions is None else motions] = 1e4
-        return shooting.ShootingResult(loss=[])
+        return shooting.ShootingResult(loss=[math.inf] * (weights.N if motions is None else len(motions)))
     monkeypatch.setattr(synthesis, "shooting_match", wild)
     from tflearn.fit.torque import DivergenceWarning
     with pytest.warns(DivergenceWarning, match="no fit came closer than the nearest trained program"):
