@@ -148,6 +148,14 @@ def test_motions_longer_than_receding_are_fitted_there(twice, monkeypatch, reced
     assert seen == [(f"{method}_match", [0])] and record == {"twice": {"loss": 0.0, "failure": None}}
 
 
+def test_shoot_tells_which_window_it_is_on(twice):
+    body, basis, weights, tg = twice
+    told = []
+    opts = dataclasses.replace(shooting.ShootingOptions(iterations=2), receding=0.0)
+    synthesis.shoot(body, basis, weights.select_motions([0]), tg, [0], opts, SIM, progress=told.append)
+    assert told == ["window 1/2", "window 2/2"]
+
+
 @pytest.mark.slow
 def test_a_whole_recorded_clip_is_one_simulation(mocap, tmp_path):
     """A whole recorded clip (the bye, 3.7 s, imported at 50 Hz on a fixed chest) under

@@ -585,7 +585,7 @@ def test_synthesis_keeps_the_nearest_program_when_no_fit_comes_closer(monkeypatc
     tg = targets.prepare(lb.body, [tuck])
     sim = SimOptions(max_evals=2000)
 
-    def wild(body, basis, weights, tg, options, sim, motions=None):
+    def wild(body, basis, weights, tg, options, sim, motions=None, callback=None):
         with torch.no_grad():
             weights.a_raw[list(range(weights.N)) if motions is None else motions] = 1e4
         return shooting.ShootingResult(loss=[math.inf] * (weights.N if motions is None else len(motions)))

@@ -45,19 +45,22 @@ def unreproduced(body, basis, weights: MotionWeights, tg: Targets, sim: SimOptio
 
 
 def shoot(body, basis, weights: MotionWeights, tg: Targets, motions: list, options: ShootingOptions,
-          sim: SimOptions, distributed: bool = False) -> dict:
+          sim: SimOptions, distributed: bool = False,
+          progress: Optional[Callable[[str], None]] = None) -> dict:
     """Multiple-shooting path matching of ``motions``' programs (indices; ``options``'
     arrays: weights, and timing with ``options.phases``), the basis fixed, ``weights``
     changed in place; those longer than ``options.receding`` (s) window by window
     (:func:`tflearn.fit.receding.receding_match`). ``distributed``: the motions shared by
     the ranks of a run and the results gathered, so that every rank holds every
-    motion's. Returns, per motion name,
+    motion's. ``progress(where)`` is told where the fits are ("horizon 0.5 s",
+    "window 3/40") after each iteration or window. Returns, per motion name,
     {"loss": the path loss left (None: ∞), "failure": why shooting stopped early, or None}."""
     keys = keys_of(options)
     mine = [motions[i] for i in parallel.mine(len(motions))] if distributed else list(motions)
     rows = {}
     for fit, part in _by_method(options, weights, tg, mine):
-        res = fit(body, basis, weights, tg, options=options, sim=sim, motions=part)
+        res = fit(body, basis, weights, tg, options=options, sim=sim, motions=part,
+                  callback=_told(progress, fit, weights.P))
         rows.update({j: {"theta": x.tolist(), "loss": loss if loss < float("inf") else None,
                          "failure": res.failures.get(tg.names[j])}
                      for j, x, loss in zip(part, weights.flat(keys)[part], res.loss)})
@@ -66,6 +69,15 @@ def shoot(body, basis, weights: MotionWeights, tg: Targets, motions: list, optio
         rows = parallel.gather_motions(len(motions), rows)
         weights.set_flat(keys, torch.tensor([r["theta"] for r in rows], dtype=torch.float64), motions)
     return {tg.names[j]: {"loss": r["loss"], "failure": r["failure"]} for j, r in zip(motions, rows)}
+
+
+def _told(progress: Optional[Callable[[str], None]], fit, P: int) -> Optional[Callable]:
+    """``fit``'s callback that tells ``progress`` where it is (None without one)."""
+    if progress is None:
+        return None
+    if fit is receding_match:
+        return lambda k, loss: progress(f"window {k + 1}/{P}")
+    return lambda h, it, cost: progress(f"horizon {h:.3g} s")
 
 
 def _by_method(options: ShootingOptions, weights: MotionWeights, tg: Targets, motions: list) -> list:

@@ -179,7 +179,8 @@ class RunContext:
         options = options or self.cfg.solver.shooting.options(self.variable_phases)
         self.log.busy(shooting=len(motions))
         record = synthesis.shoot(self.body, basis, weights, self.tg, motions, options, self.options,
-                                 distributed=True)
+                                 distributed=True,
+                                 progress=lambda where: self.log.busy(shooting=len(motions), at=where))
         if state is not None:
             state.history.shooting = record
 
