@@ -20,6 +20,7 @@ from test_shooting import TIGHT, _truth
 
 from tflearn import synthesis
 from tflearn.fit import receding, shooting, targets
+from tflearn.fit.path import path_loss
 from tflearn.model.program import FieldProgram
 from tflearn.motions.motion import Motion
 from tflearn.physics.body import chain
@@ -85,7 +86,8 @@ def test_window_weights_are_recovered_window_by_window(twice):
     g = torch.Generator().manual_seed(1)
     with torch.no_grad():
         w.c_raw.mul_(1 + 0.4 * (2 * torch.rand(w.c_raw.shape, generator=g, dtype=DT) - 1))
-    start = float(receding._losses(body, basis, w, tg, [0], SIM, 0.1)[0])
+    with torch.no_grad():
+        start = float(path_loss(body, *targets.simulate_targets(body, basis, w, tg, SIM), tg)[0])
     steps = []
     opts = shooting.ShootingOptions(receding=0.0, iterations=8)
     res = receding.receding_match(body, basis, w, tg, options=opts, sim=SIM,

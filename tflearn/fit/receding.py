@@ -39,7 +39,6 @@ from ..model.weights import MotionWeights
 from ..physics.body import Body
 from ..simulation.simulate import SimOptions, SimulationFailed
 from . import shooting
-from .path import path_loss
 from .targets import Targets, simulate_targets, trapezoid, union_grid
 
 __all__ = ["pieces", "receding_match"]
@@ -97,17 +96,19 @@ def receding_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     velocity and tip weights and ``ahead``), the basis, a, b and the timing fixed;
     ``weights`` changed in place. The motions' k-th pieces are simulated together.
     ``callback(k, loss)`` after each step (loss: the pieces' path losses). Returns a
-    :class:`~.shooting.ShootingResult`: each motion's path loss at the end (single
-    shooting; ∞ where the whole motion cannot be simulated) and why a motion's fit
-    stopped early."""
+    :class:`~.shooting.ShootingResult`: each motion's cost at the end (single shooting,
+    as :func:`~.shooting.shooting_match` reports it: the path loss, plus γ times the
+    hand's with a tip weight; ∞ where the whole motion cannot be simulated) and why a
+    motion's fit stopped early."""
     motions = list(range(tg.N)) if motions is None else list(motions)
     if weights.P and not bool((weights.window_onset.diff(dim=1) >= 0).all()):
         raise ValueError("receding_match: every motion's windows must be in order of onset")
-    beta = options.velocity_weight
-    start = weights.flat(("c_raw",))[motions].clone()
-    before = _losses(body, basis, weights, tg, motions, sim, beta)
     piece_opts = replace(options, horizon=math.inf, phases=False, fields=False, broyden=False, used=False,
                          receding=None)
+    whole = shooting._Problem(body, basis, weights, tg, ("c_raw",), piece_opts, sim)   # single shooting
+    longest = 2 * float(tg.duration.max())
+    start = whole.theta()[motions]
+    before = whole.cost(start, longest, motions).tolist()
     result = shooting.ShootingResult(loss=[])
     at = {j: (0, tg.q0[j], tg.qd0[j]) for j in motions}    # each piece's first sample and state
     for k in range(weights.P):
@@ -117,12 +118,12 @@ def receding_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
         loss = _step(body, basis, weights, tg, live, k, at, piece_opts, sim, result)
         if callback:
             callback(k, loss)
-    after = _losses(body, basis, weights, tg, motions, sim, beta)
+    after = whole.cost(whole.theta()[motions], longest, motions).tolist()
     for r, j in enumerate(motions):
         if not after[r] <= before[r]:                       # never end further from the path
             weights.set_flat(("c_raw",), start[r:r + 1], [j])
             after[r] = before[r]
-    result.loss = after
+    result.loss, result.simulations = after, result.simulations + whole.simulations
     return result
 
 
@@ -167,16 +168,3 @@ def _paths(body, basis, sub: MotionWeights, piece: Targets, sim: SimOptions, res
             return [err]
     return [_paths(body, basis, sub.select_motions([r]), piece.select([r]), sim, result)[0]
             for r in range(piece.N)]
-
-
-def _losses(body, basis, weights, tg, motions, sim, beta: float) -> list:
-    """Each of ``motions``' path loss (single shooting, velocity weight ``beta``; ∞ where
-    its simulation fails)."""
-    sub, part = weights.select_motions(motions), tg.select(motions)
-    try:
-        q, v = simulate_targets(body, basis, sub, part, sim)
-    except SimulationFailed:
-        if len(motions) == 1:
-            return [math.inf]
-        return [x for j in motions for x in _losses(body, basis, weights, tg, [j], sim, beta)]
-    return path_loss(body, q, v, part, beta).tolist()
