@@ -22,8 +22,9 @@ piece about (A + 1) windows long, so a motion costs time linear in its length, a
 result is one simulation: every piece starts where the motion's simulation under the
 weights already fitted arrives, not on the target (tests/test_receding.py checks that a
 piece so started continues that simulation). The starting weights need not simulate
-the whole motion, only each piece; a motion whose path loss (single shooting) ends
-above where it started gets its starting weights back. A piece that cannot be
+the whole motion, only each piece; a motion whose single-shooting cost (the path
+loss, and the hand's distance with a tip weight) ends above where it started gets its
+starting weights back. A piece that cannot be
 simulated ends its motion's fit there.
 """
 from __future__ import annotations
