@@ -97,6 +97,28 @@ def test_window_weights_are_recovered_window_by_window(twice):
     assert res.loss[0] < 1e-8 < start
 
 
+@pytest.mark.slow
+def test_windows_out_of_order_are_fitted_in_order_of_onset_and_kept_in_theirs(twice):
+    """Window widths that differ put a later window's onset before an earlier one's
+    (``submovement_windows`` at a few windows a second): the windows given in reverse
+    order are fitted as in order of onset, and come back in the order given."""
+    body, basis, weights, tg = twice
+    opts = shooting.ShootingOptions(receding=0.0, iterations=8)
+    ordered, backwards = weights.select_motions([0]), weights.select_motions([0])
+    with torch.no_grad():
+        for w in (ordered, backwards):
+            w.c_raw.mul_(1.3)
+        for key in ("window_onset", "window_duration"):
+            getattr(backwards, key).copy_(getattr(backwards, key).flip(1))
+        backwards.c_raw.copy_(backwards.c_raw.flip(2))
+    onsets = backwards.window_onset.clone()
+    receding.receding_match(body, basis, ordered, tg, options=opts, sim=SIM)
+    receding.receding_match(body, basis, backwards, tg, options=opts, sim=SIM)
+    assert torch.equal(backwards.window_onset, onsets)
+    assert torch.allclose(backwards.c.flip(2), ordered.c, atol=1e-12)
+    assert torch.allclose(ordered.c, weights.c, atol=1e-4)
+
+
 def test_a_fit_that_ends_further_from_the_path_gives_its_start_back(twice, monkeypatch):
     """Each piece fitted well but the whole simulated worse than at the start (a fit
     made to move window 0's weights away): the starting weights come back."""
@@ -115,6 +137,7 @@ def test_a_fit_that_ends_further_from_the_path_gives_its_start_back(twice, monke
     assert torch.equal(w.c, weights.c) and res.loss[0] < 1e-8
 
 
+@pytest.mark.slow
 def test_a_batch_of_pieces_that_fails_is_simulated_piece_by_piece(twice, monkeypatch):
     """Two motions whose pieces cannot be simulated together (a simulation of more than
     one motion made to fail) are each fitted as they would be alone."""

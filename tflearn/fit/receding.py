@@ -92,7 +92,7 @@ def receding_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
                    motions: Optional[list] = None,
                    callback: Optional[Callable] = None) -> shooting.ShootingResult:
     """Fit the window weights of ``motions`` (indices, default all; their P windows in
-    order of onset, as :func:`~.targets.submovement_windows` gives them) window by
+    order of their onsets, whatever their order in ``weights``) window by
     window (module docstring; ``options``' iterations, tol, floor, mu, step, sparse,
     velocity and tip weights and ``ahead``), the basis, a, b and the timing fixed;
     ``weights`` changed in place. The motions' k-th pieces are simulated together.
@@ -102,8 +102,25 @@ def receding_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     hand's with a tip weight; ∞ where the whole motion cannot be simulated) and why a
     motion's fit stopped early."""
     motions = list(range(tg.N)) if motions is None else list(motions)
-    if weights.P and not bool((weights.window_onset.diff(dim=1) >= 0).all()):
-        raise ValueError("receding_match: every motion's windows must be in order of onset")
+    order = weights.window_onset.argsort(dim=1, stable=True)
+    _permute_windows(weights, order)                         # in order of onset while fitted
+    try:
+        return _match(body, basis, weights, tg, options, sim, motions, callback)
+    finally:
+        _permute_windows(weights, order.argsort(dim=1))
+
+
+def _permute_windows(weights: MotionWeights, order: torch.Tensor) -> None:
+    """Reorder every motion's windows in place: window k becomes its window order[j, k]
+    (onsets, durations and the weights c together; N×P)."""
+    for key in MotionWeights.WINDOWS:
+        getattr(weights, key).copy_(getattr(weights, key).gather(1, order))
+    weights.c_raw.copy_(weights.c_raw.gather(2, order[:, None, :].expand_as(weights.c_raw)))
+
+
+def _match(body, basis, weights: MotionWeights, tg: Targets, options, sim, motions: list,
+           callback) -> shooting.ShootingResult:
+    """:func:`receding_match` on weights whose windows are in order of onset."""
     piece_opts = replace(options, horizon=math.inf, phases=False, fields=False, broyden=False, used=False,
                          receding=None)
     whole = shooting._Problem(body, basis, weights, tg, ("c_raw",), piece_opts, sim)   # single shooting
