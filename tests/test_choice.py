@@ -40,6 +40,7 @@ def _targets(body, motions, names):
     return targets.prepare(body, [motions[n] for n in names])
 
 
+@pytest.mark.slow
 def test_probe_tells_field_made_motion_from_keyframes(motions):
     """A field-made gesture's torques on a few fields are exact to 1e-6; a keyframe
     spline's stay above 5e-3 (the bar is 2e-3)."""
@@ -80,6 +81,24 @@ def test_convergent_choice_is_configs_convergent(motions):
     assert got == want
     cfg = config.load(CONFIGS / "gestures.yaml", ["solver.method=pipeline"])
     assert choose(cfg, body, tg) == (cfg, None)
+
+
+def test_convergent_choice_keeps_the_command_lines_keys(motions):
+    """Keys given on the command line stay when auto takes the convergent settings (a
+    section named in part keeps its other keys from configs/convergent.yaml); the
+    config file's keys are replaced."""
+    body, ms = motions
+    tg = _targets(body, ms, ["keys11_0"])
+    given = ["solver.shooting.receding=null", "solver.layout.radius=1.5", "solver.path.max_evals=30000"]
+    chosen, decision = choose(config.load(CONFIGS / "gestures.yaml", given), body, tg)
+    assert decision["method"] == "convergent"
+    assert chosen.solver.shooting.receding is None and chosen.solver.path.max_evals == 30000
+    assert chosen.solver.layout.radius == 1.5 and chosen.solver.layout.shape == "pairs"
+    assert chosen.solver.shooting.tip_weight == config.CONVERGENT["solver"]["shooting"]["tip_weight"]
+    assert chosen.solver.path.rtol == config.CONVERGENT["solver"]["path"]["rtol"]
+    assert chosen.model.windows == config.CONVERGENT["model"]["windows"]
+    assert chosen.given == {"solver": {"shooting": {"receding": None}, "layout": {"radius": 1.5},
+                                       "path": {"max_evals": 30000}}}
 
 
 @pytest.mark.slow

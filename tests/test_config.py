@@ -28,6 +28,7 @@ def test_defaults_and_shipped_config():
     shipped = config.load(ROOT / "configs" / "gestures.yaml")
     assert set(shipped.model_dump()) == set(config.Config.model_fields)
     assert shipped.data == "gestures" and shipped.model.stiffness == "diag"
+    assert shipped == cfg                             # the defaults are the main job's
     assert shipped.solver.path.rtol == 1e-7 and shipped.solver.each.tol == 1e-5
 
 
@@ -318,3 +319,17 @@ def test_config_reference_lists_every_key_with_its_default(schema):
         else:
             documented = yaml.load(rows[key].strip("`"), Loader=config._Loader)
             assert documented == field.default, (key, rows[key], field.default)
+
+
+def test_without_drops_the_given_keys_only():
+    """``without``: a key given is dropped, a section given in part loses only those keys
+    (and goes when none is left), ``body`` counts as one key; ``given`` is the overrides'."""
+    doc = {"model": {"fields": 0, "windows": 16}, "solver": {"layout": {"radius": 2.0}},
+           "body": {"preset": "arm"}}
+    assert config.without(doc, {"model": {"windows": 4}, "solver": {"layout": {"radius": 1.0}},
+                                "body": {"preset": "chain"}}) == {"model": {"fields": 0}}
+    assert config.without(doc, {}) == doc and config.without(doc, {"model": 1}) == {
+        "solver": {"layout": {"radius": 2.0}}, "body": {"preset": "arm"}}
+    cfg = config.load(None, ["model.windows=4", "solver.em.steps=7", "model.fields=2"])
+    assert cfg.given == {"model": {"windows": 4, "fields": 2}, "solver": {"em": {"steps": 7}}}
+    assert cfg.replace(seed=3).given == cfg.given and config.Config().given == {}

@@ -201,6 +201,7 @@ def test_layout_config_refusals(tmp_path):
     assert not tmp_path.joinpath("checkpoint.pt").exists()
 
 
+@pytest.mark.slow
 def test_layout_carries_a_recorded_window(mocap):
     """A recorded 0.8 s window (the wave's busiest, 100 Hz): the spanning layout with 16
     windows and inertia-weighted NNLS alone, no search and no path matching, stays within
@@ -228,9 +229,10 @@ def test_layout_carries_a_recorded_window(mocap):
 def _spline_run(tmp_path, *overrides):
     """The config of a three-keyframe come-here spline that the pipeline cannot reproduce
     with one field of its own (``solver.each.max_fields=1``, one Adam step). Its
-    simulations stop at 4,000 evaluations: the pipeline's model needs more than 20,000
-    (the Adam step's fails at either budget, rescue's models need fewer), so the tests
-    take a quarter of the time without changing what they see."""
+    simulations stop at 4,000 evaluations at tolerances 1e-6 / 1e-8: the pipeline's model
+    needs more than 20,000 (the Adam step's fails at either budget, rescue's models need
+    fewer), so the tests take a quarter of the time without changing what they see (at
+    the default 1e-7 / 1e-9 rescue's models need more than 4,000 too)."""
     from tflearn.data.keyframes import keyframe_motion
     from tflearn.physics.body import arm
     body = arm()
@@ -242,7 +244,8 @@ def _spline_run(tmp_path, *overrides):
     return load(None, [f"data={tmp_path / 'come_here_keys.npz'}", f"out={tmp_path / 'run'}",
                        "model.phases=variable", "model.field_damping=0.2", "model.windows=2",
                        "solver.each.max_fields=1", "solver.init.candidates=8", "solver.em.steps=20",
-                       "solver.path.steps=1", "solver.path.max_evals=4000", "log.tensorboard=false",
+                       "solver.path.steps=1", "solver.path.max_evals=4000", "solver.path.rtol=1e-6",
+                       "solver.path.atol=1e-8", "log.tensorboard=false",
                        "log.progress=false", "solver.method=pipeline", *overrides])
 
 

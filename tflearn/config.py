@@ -22,6 +22,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    PrivateAttr,
     ValidationError,
     field_validator,
     model_validator,
@@ -84,12 +85,14 @@ class PathSection(Section):                     # simulation options and path ma
     steps: int = Field(20, ge=0)
     lr: float = Field(0.003, ge=0)
     method: Literal[SOLVERS] = "dopri5"
-    rtol: float = Field(1e-6, ge=0)
-    atol: float = Field(1e-8, ge=0)
+    rtol: float = Field(1e-7, ge=0)
+    atol: float = Field(1e-9, ge=0)
     max_evals: int = Field(20000, ge=1)          # right-hand-side evaluations; past it: failed
     adjoint: bool = False
     velocity_weight: float = Field(0.1, ge=0)
-    batch: Literal["shared", "each"] = "shared"  # each: every motion its own steps (dopri5)
+    # each: every motion its own steps (dopri5; compiled where no gradient is carried);
+    # shared: the batch stepped together (torchdiffeq)
+    batch: Literal["shared", "each"] = "each"
     # the path stage's Adam steps: all = every motion simulated, fields and weights moved;
     # unreproduced = only the motions not reproduced when it starts, their weights only
     # (the fields held, so the reproduced motions stay exactly as they are: for many motions)
@@ -424,9 +427,26 @@ class Config(Section):
     success: SuccessSection = SuccessSection()
     log: LogSection = LogSection()
 
+    # the keys the command line gave (:func:`load`'s overrides, as one nested mapping):
+    # what ``solver.method: auto`` leaves as they are (:func:`without`)
+    _given: dict = PrivateAttr(default_factory=dict)
+
+    def __eq__(self, other) -> bool:            # the values alone: what was given is provenance
+        return type(other) is type(self) and self.__dict__ == other.__dict__
+
+    __hash__ = Section.__hash__
+
+    @property
+    def given(self) -> dict:
+        """The keys :func:`load`'s overrides set, nested ({} for a config built otherwise)."""
+        return copy.deepcopy(self._given)
+
     def replace(self, **changes) -> Config:
-        """A validated copy with top-level keys replaced (nested sections as mappings)."""
-        return validate(merge(self.model_dump(), changes), type(self))
+        """A validated copy with top-level keys replaced (nested sections as mappings);
+        it keeps :attr:`given`."""
+        out = validate(merge(self.model_dump(), changes), type(self))
+        out._given = self._given
+        return out
 
 
 # ----------------------------------------------------------------------------- perturb
@@ -641,6 +661,19 @@ def merge(base: dict, new: dict) -> dict:
     return out
 
 
+def without(doc: dict, given: dict) -> dict:
+    """``doc`` less every key ``given`` sets (recursively: a section ``given`` names in
+    part loses only those keys; "body" is one key)."""
+    out = {}
+    for key, val in doc.items():
+        if key not in given:
+            out[key] = copy.deepcopy(val)
+        elif isinstance(val, dict) and isinstance(given[key], dict) and key != "body":
+            if rest := without(val, given[key]):
+                out[key] = rest
+    return out
+
+
 def layer(doc: dict, overrides, schema: Type[BaseModel]) -> dict:
     """``doc`` with each override applied in turn, each checked (errors name it)."""
     for text in overrides:
@@ -651,12 +684,17 @@ def layer(doc: dict, overrides, schema: Type[BaseModel]) -> dict:
 
 def load(path=None, overrides=(), schema: Type[BaseModel] = Config):
     """The defaults ← the YAML file at ``path`` ← dotted overrides, as a validated
-    ``schema`` instance. Raises :class:`ConfigError`."""
+    ``schema`` instance (a :class:`Config` remembers the overrides' keys:
+    :attr:`Config.given`). Raises :class:`ConfigError`."""
     doc = {}
     if path is not None:
         doc = read(path)
         validate(doc, schema, str(path))
-    return validate(layer(doc, overrides, schema), schema)
+    cfg = validate(layer(doc, overrides, schema), schema)
+    if isinstance(cfg, Config):
+        for text in overrides:
+            cfg._given = merge(cfg._given, parse_override(text))
+    return cfg
 
 
 def dump(cfg: BaseModel, path) -> None:

@@ -17,7 +17,7 @@ import math
 
 import torch
 
-from ..config import CONVERGENT, Config
+from ..config import CONVERGENT, Config, without
 from ..fit import search
 from ..fit.targets import Targets
 from ..physics.body import Body
@@ -47,7 +47,8 @@ def probed(cfg: Config, body: Body, tg: Targets) -> dict:
 def choose(cfg: Config, body: Body, tg: Targets) -> tuple:
     """(the config to run, the decision or None): with ``solver.method: auto``, ``cfg``
     with method pipeline when at least half the :func:`probed` motions reach
-    ``solver.auto.tol``, else ``cfg`` ← :data:`~tflearn.config.CONVERGENT`; the decision
+    ``solver.auto.tol``, else ``cfg`` ← :data:`~tflearn.config.CONVERGENT` but the keys the
+    command line gave (:attr:`Config.given <tflearn.config.Config.given>`); the decision
     {"method", "tol", "probes": {name: C_j}} goes into metrics.json (``history.method``).
     Any other method: (``cfg``, None)."""
     if cfg.solver.method != "auto":
@@ -55,6 +56,7 @@ def choose(cfg: Config, body: Body, tg: Targets) -> tuple:
     costs = probed(cfg, body, tg)
     made = sum(cost <= cfg.solver.auto.tol for cost in costs.values())
     pipeline = made >= math.ceil(len(costs) / 2)
-    chosen = cfg.replace(solver={"method": "pipeline"}) if pipeline else cfg.replace(**CONVERGENT)
+    chosen = (cfg.replace(solver={"method": "pipeline"}) if pipeline
+              else cfg.replace(**without(CONVERGENT, cfg.given)))
     return chosen, {"method": "pipeline" if pipeline else "convergent", "tol": cfg.solver.auto.tol,
                     "probes": costs}
