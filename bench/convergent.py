@@ -76,15 +76,13 @@ def row(run: Path, motions: list, metrics: dict, wall: float) -> dict:
     per = [metrics["motions"][n] for n in tg.names]
     used = (weights.vector().abs() > 0).sum(-1).double()
     nonzero = used / tg.duration
-    inside = (weights.window_onset < tg.duration[:, None]).sum(-1)        # windows on the motion
-    numbers = (used + 2 * inside + 2 * lb.body.nv) / tg.duration       # + their times, initial state
     blocks = [lb.basis.eta[:, lb.body.slice(i)].detach().norm(dim=-1).max()
               for i in range(len(lb.body.links))]
     return {"reproduced": sum(bool(p["success"]) for p in per), "N": len(per),
             "rmse": max(p["rmse"] for p in per), "tip_cm": 100 * max(p["tip"] for p in per),
             "torque_err": max(p["torque_rel_rms"] for p in per),
             "stiffness": [round(float(s), 2) for s in stiff],
-            "weights_per_s": float(nonzero.max()), "numbers_per_s": float(numbers.max()),
+            "weights_per_s": float(nonzero.max()), "numbers_per_s": metrics["overall"]["numbers_per_s"],
             "max_centre": float(max(blocks)),
             "M": lb.basis.M, "wall_s": wall}
 

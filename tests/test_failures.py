@@ -113,7 +113,8 @@ def test_one_failing_motion_leaves_the_others_scored(pair, batch):
     assert s.rmse[0] < 1e-3 and s.rmse[1] == float("inf")
     assert s.succeeded(0.03, 0.02) == [True, False]
     summary = metrics.summarize(s, s.succeeded(0.03, 0.02), tg, basis.M, 0.0,
-                                stability.growth(body, basis, wild, tg), torch.zeros(2))
+                                stability.growth(body, basis, wild, tg), torch.zeros(2),
+                                metrics.numbers(wild, tg, body.nv))
     assert "failure" in summary["motions"]["tuck"] and "failure" not in summary["motions"]["come_here"]
     # the growth along the target path needs no simulation: the failed motion has it too
     assert math.isfinite(summary["motions"]["tuck"]["growth_rate"])

@@ -336,19 +336,41 @@ def test_summarize_has_a_units_block():
     tg = prepare(tb.arm(), [m])
     s = metrics.Scores([0.01], [0.005], [0.02], tg.q.clone(), [None])
     growth = Growth(torch.tensor([[1.0, 2.0]]), torch.tensor([2.5]), torch.tensor([0.75]))
-    doc = metrics.summarize(s, [True], tg, 3, 1.5, growth, torch.tensor([4.0]))
+    doc = metrics.summarize(s, [True], tg, 3, 1.5, growth, torch.tensor([4.0]), torch.tensor([30.0]))
     assert doc["units"] == {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
                             "wall_time_s": "s", "torque_resolution": "fraction", "growth_rate": "1/s",
                             "growth_efolds": "e-folds (natural log of an error's growth factor)",
                             "path_stiffness":
-                                "rad/s (natural frequency of the fields' stiffness about the path)"}
+                                "rad/s (natural frequency of the fields' stiffness about the path)",
+                            "numbers": "count (non-zero weights, onset and duration of each window in the "
+                                       "motion, initial state)",
+                            "numbers_per_s": "1/s (numbers per second of motion)"}
+    rate = 30.0 / float(tg.duration[0])
     assert doc["motions"]["come_here"] == {"rmse": 0.01, "tip": 0.005, "torque_rel_rms": 0.02,
                                            "growth_rate": 2.5, "growth_efolds": 0.75, "path_stiffness": 4.0,
-                                           "success": True}
+                                           "numbers": 30, "numbers_per_s": rate, "success": True}
     assert set(doc["overall"]) == {"rmse", "tip", "torque_rel_rms", "growth_rate", "growth_efolds",
-                                   "path_stiffness", "success", "M", "wall_time_s"}
+                                   "path_stiffness", "numbers_per_s", "success", "M", "wall_time_s"}
+    assert doc["overall"]["numbers_per_s"] == rate
     doc["units"]["tip"] = "cm"
     assert metrics.UNITS["tip"] == "m"         # a copy per document
+
+
+def test_numbers_count_weights_windows_and_the_initial_state():
+    """``numbers``: non-zero weights, two per window starting inside the motion, 2 nv."""
+    from tflearn import metrics
+    from tflearn.fit.targets import prepare
+    from tflearn.model.weights import MotionWeights
+    body = tb.arm()
+    (m, _), = gestures.generate(body, gestures=[gestures.GESTURES["come_here"]])
+    tg = prepare(body, [m])
+    T = float(tg.duration[0])
+    a, b = torch.tensor([[1.0, 0.0, 2.0]]), torch.zeros(1, 3)
+    c = torch.zeros(1, 3, 4)
+    c[0, 1, 0] = c[0, 2, 3] = 0.5
+    onsets = torch.tensor([[0.0, T / 3, 2 * T / 3, T + 0.1]])      # the last starts after the motion
+    w = MotionWeights(a, b, tg.duration, c=c, window_onset=onsets)
+    assert metrics.numbers(w, tg, body.nv).tolist() == [4 + 2 * 3 + 2 * 7]
 
 
 def test_figures_of_the_motions_furthest_from_their_paths(tmp_path):
@@ -425,7 +447,7 @@ def test_gif_frames_are_large_and_evaluation_has_units(tiny_run, tmp_path):
     from tflearn import evaluate, metrics
     doc = evaluate.evaluate_run(tiny_run["run"], out=tmp_path / "evaluation.json")
     assert doc["units"] == metrics.UNITS
-    assert set(doc["overall"]) == {"rmse", "tip", "success", "M"}
+    assert set(doc["overall"]) == {"rmse", "tip", "numbers_per_s", "success", "M"}
 
 
 def test_frame_samples():

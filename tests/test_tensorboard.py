@@ -194,5 +194,7 @@ def test_progress_and_summary(tb_run, capsys):
     row = next(line for line in lines if line.startswith(tb_run["name"]))
     efolds = tb_run["metrics"]["motions"][tb_run["name"]]["growth_efolds"]
     assert row.split()[4] == f"{efolds:.2f}" and "growth (e-folds)" in lines[0]
-    assert f"M = {tb_run['metrics']['overall']['M']} fields" in table
+    o = tb_run["metrics"]["overall"]
+    assert f"M = {o['M']} fields" in table and f"at most {o['numbers_per_s']:.0f} numbers per second" in table
+    assert o["numbers_per_s"] == max(m["numbers_per_s"] for m in tb_run["metrics"]["motions"].values()) > 0
     assert str(tb_run["out"]) in lines[-1] and "tensorboard/" in lines[-1]

@@ -22,7 +22,7 @@ from .io import basis as basis_io
 from .io.basis import LearnedBasis
 from .io.files import write_text
 from .log import progress_bar
-from .metrics import UNITS, pooled_rmse, score, summarize
+from .metrics import UNITS, numbers, pooled_rmse, score, summarize
 from .mocap.clips import import_like
 from .model.program import FieldProgram
 from .model.weights import MotionWeights
@@ -116,7 +116,8 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
         summary = summarize(s, ok, tg, lb.basis.M, 0.0, stability.growth(lb.body, lb.basis, weights, tg),
-                            impedance.path_stiffness(lb.body, lb.basis, weights, tg))
+                            impedance.path_stiffness(lb.body, lb.basis, weights, tg),
+                            numbers(weights, tg, lb.body.nv))
         for j, (name, row) in enumerate(summary["motions"].items()):
             results[name] = {**row, "synthesized": synth, "torque_resolution": resolution[name]}
             counts[name] = int(tg.mask[j].sum())
@@ -158,6 +159,7 @@ def _write(out: Path, results: dict, counts: dict, M: int, complete: bool) -> di
     """Write the evaluation so far (over all samples of all motions, as in metrics.json)."""
     overall = {"rmse": pooled_rmse([r["rmse"] for r in results.values()], list(counts.values())),
                "tip": max(r["tip"] for r in results.values()),
+               "numbers_per_s": max(r["numbers_per_s"] for r in results.values()),
                "success": all(r["success"] for r in results.values()), "M": M}
     doc = {"motions": results, "overall": overall, "units": dict(UNITS), "complete": complete}
     write_text(out, json.dumps(doc, indent=1))

@@ -273,10 +273,10 @@ def summary_table(metrics: dict, out=None) -> str:
     """The results of a run as a table (metrics.json's dict): per motion joint RMSE
     (rad), maximum tip error (cm), relative RMS torque error (%), the e-folds of error
     growth along its path and whether it was reproduced; then M, the overall figures, the
-    wall time, the method ``solver.method: auto`` chose (:func:`method_line`), the
-    generating fields matched (:func:`identity_line`, for data that carries them), the
-    bad data files skipped and, given ``out`` (the run folder), where the artefacts were
-    written. No trailing newline."""
+    most numbers per second of motion that describe a motion, the wall time, the method
+    ``solver.method: auto`` chose (:func:`method_line`), the generating fields matched
+    (:func:`identity_line`, for data that carries them), the bad data files skipped and,
+    given ``out`` (the run folder), where the artefacts were written. No trailing newline."""
     rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "growth (e-folds)", "reproduced")]
     for name, m in metrics["motions"].items():
         ok = "yes" if m["success"] else ("no: simulation failed" if m.get("failure") else "no")
@@ -295,7 +295,8 @@ def summary_table(metrics: dict, out=None) -> str:
     rule = "-" * len(line(rows[0]))
     lines = [line(rows[0]), rule, *map(line, rows[1:-1]), rule, line(rows[-1]), ""]
     verdict = "every motion reproduced" if o["success"] else "not all motions reproduced"
-    lines.append(f"M = {o['M']} fields, {verdict}, wall time {_duration(o['wall_time_s'])}")
+    lines.append(f"M = {o['M']} fields, {verdict}, at most {o['numbers_per_s']:.0f} numbers per second of "
+                 f"motion, wall time {_duration(o['wall_time_s'])}")
     if "method" in metrics.get("history", {}):
         lines.append(method_line(metrics["history"]["method"]))
     if "identity" in metrics:

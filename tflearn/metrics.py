@@ -202,7 +202,10 @@ def _scores(body, basis, weights, tg, q_sim, failure) -> Scores:
 UNITS = {"rmse": "rad", "tip": "m", "torque_rel_rms": "fraction of the RMS torque",
          "wall_time_s": "s", "torque_resolution": "fraction", "growth_rate": "1/s",
          "growth_efolds": "e-folds (natural log of an error's growth factor)",
-         "path_stiffness": "rad/s (natural frequency of the fields' stiffness about the path)"}
+         "path_stiffness": "rad/s (natural frequency of the fields' stiffness about the path)",
+         "numbers": ("count (non-zero weights, onset and duration of each window in the motion, "
+                     "initial state)"),
+         "numbers_per_s": "1/s (numbers per second of motion)"}
 
 
 def pooled_rmse(rmse: list, counts: list) -> float:
@@ -211,26 +214,39 @@ def pooled_rmse(rmse: list, counts: list) -> float:
     return math.sqrt(sum(r * r * c for r, c in zip(rmse, counts)) / sum(counts))
 
 
+def numbers(weights: MotionWeights, tg: Targets, nv: int) -> torch.Tensor:
+    """(N,) how many numbers describe each motion on its basis: its non-zero weights, the
+    onset and duration of each window that starts inside it, and its initial state (2 nv)."""
+    used = (weights.vector().abs() > 0).sum(-1)
+    inside = (weights.window_onset < tg.duration[:, None]).sum(-1)
+    return (used + 2 * inside + 2 * nv).to(tg.duration.dtype)
+
+
 def summarize(scores: Scores, ok: list, tg: Targets, M: int, wall: float, growth: Growth,
-              stiffness: torch.Tensor) -> dict:
+              stiffness: torch.Tensor, count: torch.Tensor) -> dict:
     """metrics.json's content: per motion and overall joint RMSE (rad), maximum tip error
     (m), relative RMS torque error, the local error growth along the path (``growth``,
     :mod:`tflearn.fit.stability`: peak rate, e-folds), the fields' stiffness about the
     path (``stiffness`` N, :func:`tflearn.fit.impedance.path_stiffness`: 0 where they push
-    the limb off it), success, and the failure of a failed simulation, and the units of
+    the limb off it), the numbers that describe each motion and their rate per second of
+    motion (``count`` N, :func:`numbers`), success, and the failure of a failed simulation, and the units of
     these numbers (:data:`UNITS`). The overall RMSE is over all samples of all motions;
-    the overall growth the largest, the overall stiffness the least."""
+    the overall growth the largest, the overall stiffness the least, the overall rate the
+    largest."""
     per = {}
     peak, efolds, held = growth.peak.tolist(), growth.efolds.tolist(), stiffness.tolist()
+    rate = (count / tg.duration).tolist()
     for j, name in enumerate(tg.names):
         per[name] = {"rmse": scores.rmse[j], "tip": scores.tip[j],
                      "torque_rel_rms": scores.torque[j], "growth_rate": peak[j],
-                     "growth_efolds": efolds[j], "path_stiffness": held[j], "success": ok[j]}
+                     "growth_efolds": efolds[j], "path_stiffness": held[j], "numbers": int(count[j]),
+                     "numbers_per_s": rate[j], "success": ok[j]}
         if scores.failure[j]:
             per[name]["failure"] = scores.failure[j]
     return {"motions": per,
             "overall": {"rmse": pooled_rmse(scores.rmse, tg.mask.sum(-1).tolist()), "tip": max(scores.tip),
                         "torque_rel_rms": max(scores.torque), "growth_rate": max(peak),
-                        "growth_efolds": max(efolds), "path_stiffness": min(held), "success": all(ok),
+                        "growth_efolds": max(efolds), "path_stiffness": min(held),
+                        "numbers_per_s": max(rate), "success": all(ok),
                         "M": M, "wall_time_s": wall},
             "units": dict(UNITS)}

@@ -23,7 +23,7 @@ from ..fit import identity, impedance, stability
 from ..fit.targets import Targets
 from ..io import basis as basis_io
 from ..io.files import write_text
-from ..metrics import Scores, summarize
+from ..metrics import Scores, numbers, summarize
 from .context import RunContext
 from .models import final_model, without_idle
 from .state import DONE, RunState
@@ -43,7 +43,8 @@ def finish(ctx: RunContext, state: RunState) -> dict:
     lb = basis_io.LearnedBasis(ctx.body, basis, weights, tg.q0, tg.qd0, tg.rate)
     metrics = summarize(scores, ok, tg, basis.M, ctx.checkpoints.elapsed(state),
                         stability.growth(ctx.body, basis, weights, tg),
-                        impedance.path_stiffness(ctx.body, basis, weights, tg))
+                        impedance.path_stiffness(ctx.body, basis, weights, tg),
+                        numbers(weights, tg, ctx.body.nv))
     for name, eps in zip(tg.names, ctx.resolution):
         metrics["motions"][name]["torque_resolution"] = eps
     metrics["overall"]["simulations"] = ctx.checkpoints.simulations(state)
