@@ -59,6 +59,7 @@ def _holder(out: Path) -> subprocess.Popen:
     return proc
 
 
+@pytest.mark.slow
 def test_a_second_train_into_a_locked_folder_is_refused(tmp_path):
     """While another process writes into OUT, ``train ... out=OUT`` exits with status 2
     and one line naming OUT and the holder's pid, and touches nothing there."""
@@ -159,6 +160,7 @@ def test_ctrl_c_is_one_line_and_status_130(case):
     assert err == "tflearn: interrupted\n"
 
 
+@pytest.mark.slow
 def test_ctrl_c_during_training(tmp_path):
     """``tflearn train`` interrupted while it fits: one line saying that re-running
     resumes, exit status 130, the checkpoint kept, the folder's lock released."""
