@@ -16,7 +16,6 @@ from pydantic_core import PydanticCustomError
 from ..config import (
     Config,
     ConfigError,
-    LogSection,
     Section,
     SuccessSection,
     layer,
@@ -34,7 +33,12 @@ METHODS = ("slsqp", "local", "pipeline", "layout")
 #: The methods each experiment runs.
 SUPPORTED = {"basin": METHODS[:3], "shared": METHODS[:3], "keyframes": ("slsqp", "pipeline", "layout"),
              "filtering": ("pipeline",), "reaches": ("pipeline", "layout")}
-_QUIET = {"log": {"tensorboard": False, "progress": False}}
+#: What an experiment's training config (``train``) has unless its file says otherwise: no
+#: TensorBoard, no progress bars of its own, and the simulations of docs/results.md's
+#: measurements (a batch stepped together at 1e-6 / 1e-8, not the main job's each at
+#: 1e-7 / 1e-9).
+_QUIET = {"log": {"tensorboard": False, "progress": False},
+          "solver": {"path": {"rtol": 1e-6, "atol": 1e-8, "batch": "shared"}}}
 
 
 class SlsqpSection(Section):
@@ -86,9 +90,9 @@ class ExperimentConfig(Section):
     local: LocalSection = LocalSection()
     simulation: SimulationSection = SimulationSection()
     success: SuccessSection = SuccessSection()
-    # the pipeline's training config; TensorBoard off unless set; a training run that is
-    # not one of many cases shows its own progress bars (common.fit_pipeline_case)
-    train: Config = Config(log=LogSection(tensorboard=False, progress=False))
+    # the pipeline's training config, over _QUIET; a training run that is not one of many
+    # cases shows its own progress bars (common.fit_pipeline_case)
+    train: Config = validate(_QUIET, Config)
     # the layout method's training config: ``train`` with these keys over it and
     # solver.method layout, e.g. {model: {windows: 4}, solver: {layout: {shape: simplex}}}
     layout: dict = {}
