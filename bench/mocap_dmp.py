@@ -3,6 +3,13 @@
 
     PYTHONPATH=. python bench/mocap_dmp.py [--out runs/mocap_bench] [--weights 10]
         [--window 1.0] [--rate 60] [--run RUN] [--clips TEXT...]
+    PYTHONPATH=. python bench/mocap_dmp.py --data DIR --weights 10,20,40 [--run RUN]
+
+With ``--data`` the motions are the .npz files of DIR (whole clips as ``tflearn bvh
+import`` writes them, on the body of DIR/body.yaml) instead of the windows, ``--weights``
+may list several sizes, and tflearn's parameters are the numbers its run counts per
+motion (metrics.json's ``numbers``: non-zero weights, the windows' onsets and durations,
+the initial state), simulated as the run simulates.
 
 The windows are bench/mocap_basis.py's (the same import with configs/mocap.yaml's
 choices, the busiest windows; give the same --window, --rate and --clips). Per window:
@@ -21,7 +28,9 @@ same for tflearn: its program simulated from the window's start and from the mov
 """
 from __future__ import annotations
 
+import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +82,7 @@ def dmp_row(body, m, n_weights: int) -> dict:
             "shift_rms": float(np.sqrt((dev ** 2).mean())), "shift_end": float(dev[-1])}
 
 
-def tflearn_row(run: Path, name: str, m) -> dict:
+def tflearn_row(run: Path, name: str, m, counted: bool = False) -> dict:
     from tflearn.data.loading import torsos
     from tflearn.evaluate import run_config
     from tflearn.io import basis as basis_io
@@ -89,7 +98,11 @@ def tflearn_row(run: Path, name: str, m) -> dict:
     shared = lb.basis.eta.numel() + int((torch.tril(lb.basis.K()) != 0).sum())
     params = f"{M * (2 + P) + 2 * P} + {shared} shared"
     prog = FieldProgram(lb.basis, lb.weights, index=[j])
-    opts = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000)      # the training's options
+    opts = SimOptions(rtol=1e-6, atol=1e-8, max_evals=20000)      # the windows' training's options
+    if counted:                                                     # as the run counts and simulates
+        count = json.loads((run / "metrics.json").read_text())["motions"][name]["numbers"]
+        params = f"{count} + {shared} shared"
+        opts = replace(cfg.solver.path.options(), batch="shared")
     try:
         with torch.no_grad():
             paths = [simulate(lb.body, prog, lb.q0[j:j + 1] + s, lb.qd0[j:j + 1], m.t, opts, base=base).q[0]
@@ -106,10 +119,15 @@ def tflearn_row(run: Path, name: str, m) -> dict:
 
 def main(argv=None) -> int:
     p = arguments(__doc__.split("\n\n")[0])
-    p.add_argument("--weights", type=int, default=10, help="DMP basis functions per dimension")
+    p.add_argument("--weights", default="10",
+                   help="DMP basis functions per dimension (with --data: sizes, comma-separated)")
     p.add_argument("--run", type=Path, default=None, help="a tflearn run trained on the windows")
+    p.add_argument("--data", type=Path, default=None, help="whole motions (.npz) instead of the windows")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
+    sizes = [int(w) for w in args.weights.split(",")]
+    if args.data is not None:
+        return whole(args.data, sizes, args.run)
     report, body, windows = prepare_windows(args)
     print("| window | model | parameters | joint RMSE (rad) | max tip error (cm) | "
           f"start +{SHIFT} rad: RMS / end deviation (rad) |")
@@ -117,12 +135,30 @@ def main(argv=None) -> int:
     for c in report["clips"]:
         name = c["file"][:-4]
         m = motion_mod.load(windows / c["file"], body)
-        rows = [("DMP", dmp_row(body, m, args.weights))]
+        rows = [("DMP", dmp_row(body, m, sizes[0]))]
         if args.run is not None:
             rows.append(("tflearn", tflearn_row(args.run, name, m)))
         for model, r in rows:
             print(f"| {name} | {model} | {r['params']} | {r['rmse']:.4f} | {100 * r['tip']:.2f} | "
                   f"{r['shift_rms']:.3f} / {r['shift_end']:.3f} |")
+    return 0
+
+
+def whole(data: Path, sizes: list, run) -> int:
+    """The table for the whole motions of ``data``: a DMP of each size, then tflearn's run."""
+    from tflearn.config import read_body
+    body = read_body(data / "body.yaml")
+    print(f"| clip (s) | model | parameters | joint RMSE (rad) | max tip error (cm) | "
+          f"start +{SHIFT} rad: RMS / end deviation (rad) |")
+    print("|---|---|---|---:|---:|---|")
+    for path in sorted(data.glob("*.npz")):
+        m = motion_mod.load(path, body)
+        rows = [(f"DMP ({n})", dmp_row(body, m, n)) for n in sizes]
+        if run is not None:
+            rows.append(("tflearn", tflearn_row(run, path.stem, m, counted=True)))
+        for model, r in rows:
+            print(f"| {path.stem} ({float(m.t[-1]):.1f}) | {model} | {r['params']} | {r['rmse']:.4f} | "
+                  f"{100 * r['tip']:.2f} | {r['shift_rms']:.3f} / {r['shift_end']:.3f} |", flush=True)
     return 0
 
 
