@@ -101,12 +101,26 @@ def test_convergent_choice_keeps_the_command_lines_keys(motions):
                                        "path": {"max_evals": 30000}}}
 
 
+def test_an_earlier_decision_is_applied_without_probing(motions, monkeypatch):
+    """``choose(..., earlier)``, a resumed run's decision: applied as it is, nothing
+    probed; the config is the one the same decision taken afresh gives."""
+    body, ms = motions
+    tg = _targets(body, ms, ["keys11_0"])
+    cfg = config.load(CONFIGS / "gestures.yaml", ["solver.layout.radius=1.5"])
+    fresh, decision = choose(cfg, body, tg)
+    monkeypatch.setattr("tflearn.train.choice.probed", lambda *a: pytest.fail("probed"))
+    again, same = choose(cfg, body, tg, decision)
+    assert same is decision and again == fresh and again.solver.layout.radius == 1.5
+    piped, _ = choose(cfg, body, tg, {**decision, "method": "pipeline"})
+    assert piped == cfg.replace(solver={"method": "pipeline"})
+
+
 @pytest.mark.slow
 def test_default_train_holds_keyframes_with_convergent_fields(motions, tmp_path):
     """``train configs/gestures.yaml data=DIR`` on two keyframe animations: convergent
     pairs chosen, both reproduced (≤ 0.03 rad, ≤ 2 cm), every centre a posture (each
     joint block's angle < π), the choice in metrics.json and config.yaml; run again,
-    the finished run keeps it."""
+    the finished run keeps it, taken from its checkpoint without probing again."""
     body, ms = motions
     data = tmp_path / "keys"
     data.mkdir()
@@ -122,6 +136,8 @@ def test_default_train_holds_keyframes_with_convergent_fields(motions, tmp_path)
     assert eta.shape[0] == 2 * body.nv
     assert all(float(eta[:, body.slice(i)].norm(dim=-1).max()) < math.pi for i in range(len(body.links)))
     assert config.load(tmp_path / "run" / "config.yaml").solver.method == "layout"
-    again = train.run(cfg, progress=False)
+    with pytest.MonkeyPatch.context() as patch:                 # the decision is the checkpoint's
+        patch.setattr("tflearn.train.choice.probed", lambda *a: pytest.fail("probed again"))
+        again = train.run(cfg, progress=False)
     assert again["history"]["method"] == metrics["history"]["method"]
     assert again["motions"] == metrics["motions"]

@@ -49,8 +49,6 @@ def finish(ctx: RunContext, state: RunState) -> dict:
         metrics["motions"][name]["torque_resolution"] = eps
     metrics["overall"]["simulations"] = ctx.checkpoints.simulations(state)
     metrics["history"] = state.history.to_dict()
-    if ctx.decision is not None:
-        metrics["history"]["method"] = ctx.decision
     metrics["skipped"] = ctx.skipped
     generating = generating_bases(ctx.cfg.data, ctx.body, tg.names)
     if generating:

@@ -45,6 +45,19 @@ def config_changes(old: dict, new: dict, prefix: str = "") -> list:
     return out
 
 
+def decided(out) -> Optional[dict]:
+    """The method ``solver.method: auto`` chose for the run in ``out``, from its
+    checkpoint's history (None without one, or where it says none; an unreadable
+    checkpoint is :meth:`Checkpoints.load`'s to report)."""
+    path = Path(out) / "checkpoint.pt"
+    try:
+        doc = torch.load(path, weights_only=True, map_location="cpu") if path.exists() else None
+    except Exception:
+        return None
+    history = doc.get("history") if isinstance(doc, dict) else None
+    return history.get("method") if isinstance(history, dict) else None
+
+
 class Checkpoints:
     """OUT/checkpoint.pt of a run of config ``cfg``: read at the start (:meth:`start`),
     written after each unit (:meth:`save`); the time and simulations spent since the

@@ -14,6 +14,7 @@ when at least half of them reach ``solver.auto.tol``.
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import torch
 
@@ -44,19 +45,22 @@ def probed(cfg: Config, body: Body, tg: Targets) -> dict:
     return costs
 
 
-def choose(cfg: Config, body: Body, tg: Targets) -> tuple:
+def choose(cfg: Config, body: Body, tg: Targets, earlier: Optional[dict] = None) -> tuple:
     """(the config to run, the decision or None): with ``solver.method: auto``, ``cfg``
     with method pipeline when at least half the :func:`probed` motions reach
     ``solver.auto.tol``, else ``cfg`` ← :data:`~tflearn.config.CONVERGENT` but the keys the
     command line gave (:attr:`Config.given <tflearn.config.Config.given>`); the decision
     {"method", "tol", "probes": {name: C_j}} goes into metrics.json (``history.method``).
-    Any other method: (``cfg``, None)."""
+    ``earlier``: a decision already taken (a resumed run's, from its checkpoint), applied
+    as it is, nothing probed. Any other method: (``cfg``, None)."""
     if cfg.solver.method != "auto":
         return cfg, None
-    costs = probed(cfg, body, tg)
-    made = sum(cost <= cfg.solver.auto.tol for cost in costs.values())
-    pipeline = made >= math.ceil(len(costs) / 2)
-    chosen = (cfg.replace(solver={"method": "pipeline"}) if pipeline
+    decision = earlier
+    if decision is None:
+        costs = probed(cfg, body, tg)
+        made = sum(cost <= cfg.solver.auto.tol for cost in costs.values())
+        decision = {"method": "pipeline" if made >= math.ceil(len(costs) / 2) else "convergent",
+                    "tol": cfg.solver.auto.tol, "probes": costs}
+    chosen = (cfg.replace(solver={"method": "pipeline"}) if decision["method"] == "pipeline"
               else cfg.replace(**without(CONVERGENT, cfg.given)))
-    return chosen, {"method": "pipeline" if pipeline else "convergent", "tol": cfg.solver.auto.tol,
-                    "probes": costs}
+    return chosen, decision

@@ -96,8 +96,7 @@ def _same_check(a: tuple, b: tuple) -> bool:
 class RunContext:
     """One run's fixed parts: its config, body, targets ``tg`` (on the run's device), log
     and checkpoints, the ``sequence`` of its stages, and what its data showed: each
-    motion's torque resolution, the bad data files skipped ({"file", "reason"}) and, for
-    ``solver.method: auto``, the method chosen (:func:`~tflearn.train.choice.choose`). The
+    motion's torque resolution and the bad data files skipped ({"file", "reason"}). The
     last check is remembered (``checked``: derived, the same model's scores)."""
 
     cfg: Config
@@ -108,7 +107,6 @@ class RunContext:
     sequence: tuple = ()
     resolution: list = field(default_factory=list)
     skipped: list = field(default_factory=list)
-    decision: Optional[dict] = None
     checked: Optional[tuple] = field(default=None, repr=False)
 
     @property

@@ -19,7 +19,7 @@ from ..log import RunLog, method_line
 from ..mocap import clips as mocap
 from ..physics.body import from_config
 from .artefacts import finish
-from .checkpoint import Checkpoints
+from .checkpoint import Checkpoints, decided
 from .choice import choose
 from .context import RunContext, check_config, on_device, run_device
 from .stages import STAGES, sequence, titles
@@ -33,8 +33,9 @@ def run(cfg: Config, restart: bool = False, stop_after: Optional[int] = None,
     (:func:`tflearn.mocap.clips.import_config`: the run then trains on that folder, with
     the performer's arm); a device this machine lacks, or a ``solver.method`` the model
     does not suit, is refused before any work (:class:`~tflearn.config.ConfigError`);
-    ``solver.method: auto`` is decided from the motions (:func:`~tflearn.train.choice.choose`),
-    the run, its checkpoint and its config.yaml then holding the method chosen.
+    ``solver.method: auto`` is decided from the motions (:func:`~tflearn.train.choice.choose`;
+    a resumed run takes the decision from its checkpoint), the run, its checkpoint and its
+    config.yaml then holding the method chosen.
     ``restart``: the checkpoint removed first; ``stop_after``: raise
     :class:`~tflearn.train.checkpoint.Interrupted` after that many checkpoints;
     ``progress``: overrides ``log.progress``."""
@@ -44,15 +45,15 @@ def run(cfg: Config, restart: bool = False, stop_after: Optional[int] = None,
     with parallel.group(str(device)):
         torch.manual_seed(cfg.seed)
         tg, resolution, skipped = load(cfg, body)
-        cfg, decision = choose(cfg, body, tg)
+        cfg, decision = choose(cfg, body, tg, None if restart else decided(cfg.out))
         cfg = sized_windows(cfg, tg)
         checkpoints = Checkpoints(cfg, device, stop_after)
         with on_device(device):
-            ctx = new_context(cfg, tg.to(device), checkpoints, resolution=resolution, skipped=skipped,
-                              decision=decision)
+            ctx = new_context(cfg, tg.to(device), checkpoints, resolution=resolution, skipped=skipped)
             state = checkpoints.start(restart) or RunState(
                 config=cfg.model_dump(), stage=ctx.sequence[0],
                 rng=torch.Generator().manual_seed(cfg.seed).get_state())
+            state.history.method = decision
             ctx.log = _log(cfg, body, ctx.sequence, state, progress)
             if imported is not None:
                 ctx.log.message(f"imported {len(imported['clips'])} BVH clip(s) into {cfg.data} "
@@ -87,7 +88,7 @@ def sized_windows(cfg: Config, tg) -> Config:
 def new_context(cfg: Config, tg, checkpoints: Optional[Checkpoints] = None, **data) -> RunContext:
     """The context of a run of ``cfg`` on targets ``tg``: its body, its sequence of
     stages, a silent log (the run's own comes with its state), its checkpoints (by
-    default on the CPU); ``data``: ``resolution``, ``skipped``, ``decision``."""
+    default on the CPU); ``data``: ``resolution``, ``skipped``."""
     return RunContext(cfg, from_config(cfg.body), tg, RunLog(cfg.out, tensorboard=False, progress=False),
                       checkpoints or Checkpoints(cfg, torch.device("cpu")), sequence(cfg), **data)
 

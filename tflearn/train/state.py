@@ -137,11 +137,14 @@ class RescueRound:
 
 @dataclass
 class History:
-    """What the run did, reported in metrics.json (``history``; docs/guide.md): one entry
-    per stage that ran, ``shooting`` per motion {"loss", "failure"} of the last multiple
-    shooting, ``path`` why path matching stopped when its simulation failed, ``slsqp`` the
-    baseline's report (:func:`tflearn.fit.slsqp.fit_slsqp`)."""
+    """What the run did, reported in metrics.json (``history``; docs/guide.md): the method
+    ``solver.method: auto`` chose and why (``method``: :func:`tflearn.train.choice.choose`'s
+    decision; a resumed run takes it from here), one entry per stage that ran,
+    ``shooting`` per motion {"loss", "failure"} of the last multiple shooting, ``path`` why
+    path matching stopped when its simulation failed, ``slsqp`` the baseline's report
+    (:func:`tflearn.fit.slsqp.fit_slsqp`)."""
 
+    method: Optional[dict] = None
     each: Optional[EachRecord] = None
     pool: Optional[ModelRecord] = None
     layout: Optional[ModelRecord] = None
@@ -153,7 +156,7 @@ class History:
 
     def to_dict(self) -> dict:
         """metrics.json's ``history``: the entries of the stages that ran, in this order."""
-        doc = {"each": None if self.each is None else _plain(self.each),
+        doc = {"method": self.method, "each": None if self.each is None else _plain(self.each),
                "pool": None if self.pool is None else self.pool.to_dict(),
                "layout": None if self.layout is None else self.layout.to_dict(),
                "reduce": [r.to_dict() for r in self.reduce] or None, "shooting": self.shooting,
@@ -163,7 +166,7 @@ class History:
     @classmethod
     def from_dict(cls, doc: dict) -> History:
         each, pool, layout = doc.get("each"), doc.get("pool"), doc.get("layout")
-        return cls(each=None if each is None else EachRecord(**each),
+        return cls(method=doc.get("method"), each=None if each is None else EachRecord(**each),
                    pool=None if pool is None else ModelRecord(**pool),
                    layout=None if layout is None else ModelRecord(**layout),
                    reduce=[Removal(**r) for r in doc.get("reduce", [])], shooting=doc.get("shooting"),
