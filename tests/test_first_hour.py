@@ -133,9 +133,15 @@ def _interrupt(code: str, marker: str, presses: int = 1, stream: str = "stdout")
     return proc.returncode, text
 
 
+# a long wait made of short sleeps: a signal that the kernel hands to another thread of
+# the process (torch starts some) is acted on by the main thread between two calls, so
+# one time.sleep(60) would hold a Ctrl-C up to a minute (seen once, 64 s in a fresh clone)
 SLOW = """import sys, time
 from tflearn import cli
 from tflearn.data import gestures
+def wait(seconds):
+    for _ in range(int(seconds * 10)):
+        time.sleep(0.1)
 def slow(*args, **kw):
 {body}
 gestures.write = slow
@@ -148,13 +154,13 @@ def test_ctrl_c_is_one_line_and_status_130(case):
     """Ctrl-C: exit status 130 and one line, never a traceback — also when a library
     turns the KeyboardInterrupt into another exception (as drawing a figure did), and
     when a second Ctrl-C comes while the first one unwinds."""
-    body = {"plain": "    print('started', flush=True)\n    time.sleep(60)",
+    body = {"plain": "    print('started', flush=True)\n    wait(60)",
             "turned into another error": ("    try:\n        print('started', flush=True)\n"
-                                          "        time.sleep(60)\n"
+                                          "        wait(60)\n"
                                           "    except KeyboardInterrupt:\n"
                                           "        raise RuntimeError('the figure was not drawn')"),
-            "pressed twice": ("    try:\n        print('started', flush=True)\n        time.sleep(60)\n"
-                              "    finally:\n        time.sleep(60)")}[case]
+            "pressed twice": ("    try:\n        print('started', flush=True)\n        wait(60)\n"
+                              "    finally:\n        wait(60)")}[case]
     code, err = _interrupt(SLOW.format(body=body), "started", presses=2 if case == "pressed twice" else 1)
     assert code == 130
     assert err == "tflearn: interrupted\n"
