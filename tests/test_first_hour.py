@@ -194,6 +194,7 @@ def test_progress_bars_of_modes(tmp_path, capsys):
     assert capsys.readouterr().err == ""
 
 
+@pytest.mark.slow
 def test_progress_bars_of_render_and_perturb(tiny_run, tmp_path, capsys):
     """``render``: a bar over the frames; ``perturb``: over the simulations (the
     unperturbed one and one per case, per controller) and each motion's figures."""

@@ -210,6 +210,7 @@ def test_gains_need_every_moving_link():
 
 # ----------------------------------------------------------------------------- the command
 
+@pytest.mark.slow
 def test_perturb_command(tmp_path, capsys):
     """tflearn perturb on a gesture's basis.json (its NAME.npz beside it is the target):
     results.json with the figures per case, the push and sweep plots, the GIF and
