@@ -45,7 +45,8 @@ def run(cfg: Config, restart: bool = False, stop_after: Optional[int] = None,
     with parallel.group(str(device)):
         torch.manual_seed(cfg.seed)
         tg, resolution, skipped = load(cfg, body)
-        cfg, decision = choose(cfg, body, tg, None if restart else decided(cfg.out))
+        earlier = decided(cfg.out) if cfg.solver.method == "auto" and not restart else None
+        cfg, decision = choose(cfg, body, tg, earlier)
         cfg = sized_windows(cfg, tg)
         checkpoints = Checkpoints(cfg, device, stop_after)
         with on_device(device):
