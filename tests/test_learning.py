@@ -988,10 +988,10 @@ def _bar(tmp_path, stiffness: str) -> None:
 def test_bar_on_unseen_programs(tmp_path):
     """Three random programs within gestures.SUPPORTED (seed 2024, K = k·I), each sampled
     at the lowest of 100·2ᵏ Hz that resolves it, default solver: every motion reproduced
-    (RMSE ≤ 0.03 rad, tip ≤ 2 cm) with M ≤ (generating fields) + 1 (~2 min).
+    (RMSE ≤ 0.03 rad, tip ≤ 2 cm) with M ≤ (generating fields) + 1 (~30 s).
 
     Measured: M = 4 for 4 generating fields; (rmse, tip) = random2024_0 (0.0002 rad,
-    0.03 cm), random2024_1 (0.012 rad, 1.44 cm; sampled at 200 Hz), random2024_2
+    0.03 cm), random2024_1 (0.0102 rad, 1.45 cm; sampled at 200 Hz), random2024_2
     (0.0000 rad, 0.00 cm). The same on seeds 3, 5, 7, 11 in docs/model.md."""
     _bar(tmp_path, "scalar")
 
