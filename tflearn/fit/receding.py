@@ -103,19 +103,11 @@ def receding_match(body: Body, basis: FieldBasis, weights: MotionWeights, tg: Ta
     motion's fit stopped early."""
     motions = list(range(tg.N)) if motions is None else list(motions)
     order = weights.window_onset.argsort(dim=1, stable=True)
-    _permute_windows(weights, order)                         # in order of onset while fitted
+    weights.permute_windows_(order)                          # in order of onset while fitted
     try:
         return _match(body, basis, weights, tg, options, sim, motions, callback)
     finally:
-        _permute_windows(weights, order.argsort(dim=1))
-
-
-def _permute_windows(weights: MotionWeights, order: torch.Tensor) -> None:
-    """Reorder every motion's windows in place: window k becomes its window order[j, k]
-    (onsets, durations and the weights c together; N×P)."""
-    for key in MotionWeights.WINDOWS:
-        getattr(weights, key).copy_(getattr(weights, key).gather(1, order))
-    weights.c_raw.copy_(weights.c_raw.gather(2, order[:, None, :].expand_as(weights.c_raw)))
+        weights.permute_windows_(order.argsort(dim=1))
 
 
 def _match(body, basis, weights: MotionWeights, tg: Targets, options, sim, motions: list,

@@ -209,6 +209,14 @@ class MotionWeights(nn.Module):
                 self.window_onset, self.window_duration]
 
     @torch.no_grad()
+    def permute_windows_(self, order: torch.Tensor) -> None:
+        """Reorder every motion's windows in place: its window k becomes its window
+        order[j, k] (N×P; onsets, durations and the weights c together)."""
+        for key in self.WINDOWS:
+            getattr(self, key).copy_(getattr(self, key).gather(1, order))
+        self.c_raw.copy_(self.c_raw.gather(2, order[:, None, :].expand_as(self.c_raw)))
+
+    @torch.no_grad()
     def project_(self, min_duration: float = 1e-2) -> None:
         """Project onto the feasible set: a, b, c ≥ 0, durations ≥ ``min_duration``."""
         for w in (self.a_raw, self.b_raw, self.c_raw):
