@@ -115,8 +115,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--library", type=int, default=0,
                    help="G > 0: the programs' fields drawn from G shared ones (0: each its own)")
-    p.add_argument("--stiffness", choices=("scalar", "diag"), default="scalar",
-                   help="the programs' fields: K = k·I or seven independent diagonal entries")
+    p.add_argument("--stiffness", choices=("scalar", "diag", "full"), default="scalar",
+                   help="the programs' fields: K = k·I, seven independent diagonal entries, or "
+                        "full with seven eigenvalues about random axes")
     p.add_argument("--nproc", type=int, default=1, help="training processes (torchrun)")
     p.add_argument("--out", type=Path)
     p.add_argument("overrides", nargs="*", help="config overrides for train (KEY=VALUE)")

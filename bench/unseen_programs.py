@@ -21,6 +21,7 @@ wall time. ``--set KEY=VALUE`` passes config overrides to the pipeline's runs.
     python bench/unseen_programs.py --seeds 2024 3 5 7 11 --out unseen.json
     python bench/unseen_programs.py --methods pipeline --set solver.reduce.growth=1.0
     python bench/unseen_programs.py --stiffness diag --methods pipeline --seeds 2024 3 5 7 11
+    python bench/unseen_programs.py --stiffness full --methods pipeline --seeds 2024 3 5 7 11
 """
 from __future__ import annotations
 

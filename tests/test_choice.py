@@ -19,6 +19,7 @@ from tflearn import config, train
 from tflearn.data import gestures
 from tflearn.data.keyframes import random_keyframes
 from tflearn.fit import targets
+from tflearn.log import method_line
 from tflearn.motions.motion import save
 from tflearn.physics import body as tb
 from tflearn.train.choice import choose, probed
@@ -58,11 +59,14 @@ def test_probe_tells_field_made_motion_from_keyframes(motions):
 ])
 def test_the_majority_of_the_probes_decides(motions, names, method):
     """Three probes: two field-made of three give the pipeline, one of three the
-    convergent pairs; the decision names every probed motion's cost."""
+    convergent pairs; the decision names every probed motion's cost for each kind
+    probed: diag, then full, which brings no more within the bar (diag kept)."""
     body, ms = motions
     cfg = config.load(CONFIGS / "gestures.yaml")
     chosen, decision = choose(cfg, body, _targets(body, ms, names))
-    assert decision["method"] == method and list(decision["probes"]) == names
+    assert decision["method"] == method and list(decision["probes"]) == ["diag", "full"]
+    assert all(list(costs) == names for costs in decision["probes"].values())
+    assert decision["stiffness"] == ("diag" if method == "pipeline" else None)
     assert chosen.solver.method == ("pipeline" if method == "pipeline" else "layout")
     if method == "pipeline":                                 # nothing else changes
         assert chosen.model_dump() == cfg.replace(solver={"method": "pipeline"}).model_dump()
@@ -111,8 +115,43 @@ def test_an_earlier_decision_is_applied_without_probing(motions, monkeypatch):
     monkeypatch.setattr("tflearn.train.choice.probed", lambda *a: pytest.fail("probed"))
     again, same = choose(cfg, body, tg, decision)
     assert same is decision and again == fresh and again.solver.layout.radius == 1.5
-    piped, _ = choose(cfg, body, tg, {**decision, "method": "pipeline"})
+    piped, _ = choose(cfg, body, tg, {**decision, "method": "pipeline", "stiffness": "full"})
+    assert piped == cfg.replace(solver={"method": "pipeline"}, model={"stiffness": "full"})
+    old = {"method": "pipeline", "tol": 2e-3, "probes": {"keys11_0": 1e-4}}   # before the kind was decided
+    piped, kept = choose(cfg, body, tg, old)
     assert piped == cfg.replace(solver={"method": "pipeline"})
+    assert kept == {**old, "stiffness": "diag", "probes": {"diag": old["probes"]}}
+
+
+@pytest.fixture(scope="module")
+def full_made():
+    """Three motions of random programs with full symmetric K (seed 3: diag fields
+    explain one of them within the bar)."""
+    body = tb.arm()
+    programs = gestures.random_gestures(3, seed=3, stiffness="full")
+    return body, targets.prepare(body, [m for m, _ in gestures.generate_resolved(programs)])
+
+
+def test_motions_made_with_full_stiffness_get_full_fields(full_made):
+    """Motions made by fields with full K: a few diag fields leave most of them beyond
+    the bar, a few full fields bring all three within it, and the pipeline learns full
+    K; given on the command line, the kind is kept (and the pairs taken)."""
+    body, tg = full_made
+    cfg = config.load(CONFIGS / "gestures.yaml")
+    chosen, decision = choose(cfg, body, tg)
+    tol = cfg.solver.auto.tol
+    assert sum(c <= tol for c in decision["probes"]["diag"].values()) <= 1
+    assert all(c <= tol for c in decision["probes"]["full"].values())
+    assert (decision["method"], decision["stiffness"]) == ("pipeline", "full")
+    assert chosen == cfg.replace(solver={"method": "pipeline"}, model={"stiffness": "full"})
+    line = method_line(decision)
+    low = min(decision["probes"]["full"].values())
+    assert line.startswith("method: the pipeline learned the shared basis, full K")
+    assert f"full {low:.1e}–" in line and "diag " in line
+    given = config.load(CONFIGS / "gestures.yaml", ["model.stiffness=diag"])
+    chosen, decision = choose(given, body, tg)
+    assert list(decision["probes"]) == ["diag"] and decision["method"] == "convergent"
+    assert chosen.model.stiffness == "diag" and chosen.solver.method == "layout"
 
 
 @pytest.mark.slow

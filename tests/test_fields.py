@@ -310,7 +310,30 @@ def test_random_programs_with_diagonal_stiffness():
     with pytest.raises(ValueError, match="needs 7 values, got 3"):
         gestures.stiffness_matrix((1.0, 2.0, 3.0))
     with pytest.raises(ValueError, match="stiffness must be one of"):
-        gestures.random_gestures(1, stiffness="full")
+        gestures.random_gestures(1, stiffness="block")
+
+
+def test_random_programs_with_full_stiffness():
+    """random_gestures(stiffness="full"): K = Q diag(k) Qᵀ, symmetric, its seven
+    eigenvalues within SUPPORTED["k"] and its axes coupling the coordinates; the centres
+    are the scalar programs' (the same draws); library_model makes a full basis holding
+    each K, and a matrix of the wrong shape is refused."""
+    from tflearn.data import gestures
+    lo, hi = gestures.SUPPORTED["k"]
+    full = gestures.random_gestures(6, seed=3, stiffness="full")
+    assert [p.name for p in full] == [f"random3f_{i}" for i in range(6)]
+    Ks = torch.stack([gestures.stiffness_matrix(k) for p in full for k in p.k])
+    assert torch.equal(Ks, Ks.transpose(-1, -2))
+    eig = torch.linalg.eigvalsh(Ks)
+    assert float(eig.min()) >= lo - 1e-12 and float(eig.max()) <= hi + 1e-12
+    off = Ks - torch.diag_embed(torch.diagonal(Ks, dim1=-2, dim2=-1))
+    assert float(off.abs().amax((-1, -2)).min()) > 0.1          # coupled, not diagonal
+    assert full[0].eta == gestures.random_gestures(6, seed=3)[0].eta
+    basis, _, _ = gestures.library_model(full)
+    assert basis.kind == "full"
+    assert torch.allclose(basis.K().detach(), Ks, rtol=0, atol=1e-13)
+    with pytest.raises(ValueError, match="needs 7 rows of 7 values"):
+        gestures.stiffness_matrix(((1.0,) * 6,) * 7)
 
 
 @pytest.mark.parametrize("stiffness", ["scalar", "diag"])

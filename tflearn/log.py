@@ -311,12 +311,17 @@ def summary_table(metrics: dict, out=None) -> str:
 
 def method_line(decision: dict) -> str:
     """One line of what ``solver.method: auto`` chose (metrics.json's ``history.method``,
-    :func:`tflearn.train.choice.choose`) and why."""
-    costs = decision["probes"].values()
-    span = f"{min(costs):.1e}" + (f"–{max(costs):.1e}" if len(costs) > 1 else "")
-    why = f"relative torque cost of the probed motions on a few fields {span}, bar {decision['tol']:g}"
+    :func:`tflearn.train.choice.choose`) and why: the probed motions' relative torque
+    costs on a few fields of each stiffness kind probed."""
+    spans = []
+    for kind, costs in decision["probes"].items():
+        c = list(costs.values())
+        spans.append(f"{kind} {min(c):.1e}" + (f"–{max(c):.1e}" if len(c) > 1 else ""))
+    why = (f"relative torque cost of the probed motions on a few fields: {', '.join(spans)}; "
+           f"bar {decision['tol']:g}")
     if decision["method"] == "pipeline":
-        return f"method: the pipeline learned the shared basis (solver.method auto; {why})"
+        return (f"method: the pipeline learned the shared basis, {decision['stiffness']} K "
+                f"(solver.method auto; {why})")
     return (f"method: convergent antagonist pairs held on the path (solver.method auto; {why}: "
             f"no few fields made these motions)")
 

@@ -10,6 +10,12 @@ and stays above it when none did (at least 4.2e-3 on keyframe splines and record
 windows; docs/model.md, "Which model").
 ``solver.auto.probes`` motions spread over the data are probed; the pipeline is chosen
 when at least half of them reach ``solver.auto.tol``.
+
+The fields' stiffness kind is decided with it: the probes search fields of the run's
+``model.stiffness`` first; when some probe does not reach the bar, they are searched again
+with ``full`` K (a symmetric K couples the coordinates, as fields made with one do), and
+the kind that brings more probes within the bar is the pipeline's (the run's own on a
+tie). Not when ``model.stiffness`` is given on the command line or is ``full`` already.
 """
 from __future__ import annotations
 
@@ -47,20 +53,41 @@ def probed(cfg: Config, body: Body, tg: Targets) -> dict:
 
 def choose(cfg: Config, body: Body, tg: Targets, earlier: Optional[dict] = None) -> tuple:
     """(the config to run, the decision or None): with ``solver.method: auto``, ``cfg``
-    with method pipeline when at least half the :func:`probed` motions reach
-    ``solver.auto.tol``, else ``cfg`` ← :data:`~tflearn.config.CONVERGENT` but the keys the
-    command line gave (:attr:`Config.given <tflearn.config.Config.given>`); the decision
-    {"method", "tol", "probes": {name: C_j}} goes into metrics.json (``history.method``).
+    with method pipeline (and the stiffness kind decided, module docstring) when at least
+    half the :func:`probed` motions reach ``solver.auto.tol``, else ``cfg`` ←
+    :data:`~tflearn.config.CONVERGENT` but the keys the command line gave
+    (:attr:`Config.given <tflearn.config.Config.given>`); the decision {"method",
+    "stiffness" (the pipeline's kind; None for the pairs), "tol", "probes": {kind: {name:
+    C_j}}} goes into metrics.json (``history.method``).
     ``earlier``: a decision already taken (a resumed run's, from its checkpoint), applied
     as it is, nothing probed. Any other method: (``cfg``, None)."""
     if cfg.solver.method != "auto":
         return cfg, None
-    decision = earlier
-    if decision is None:
-        costs = probed(cfg, body, tg)
-        made = sum(cost <= cfg.solver.auto.tol for cost in costs.values())
-        decision = {"method": "pipeline" if made >= math.ceil(len(costs) / 2) else "convergent",
-                    "tol": cfg.solver.auto.tol, "probes": costs}
-    chosen = (cfg.replace(solver={"method": "pipeline"}) if decision["method"] == "pipeline"
-              else cfg.replace(**without(CONVERGENT, cfg.given)))
-    return chosen, decision
+    decision = _decide(cfg, body, tg) if earlier is None else _earlier(earlier, cfg.model.stiffness)
+    if decision["method"] == "pipeline":
+        kind = {"stiffness": decision["stiffness"]}
+        return cfg.replace(solver={"method": "pipeline"}, model=kind), decision
+    return cfg.replace(**without(CONVERGENT, cfg.given)), decision
+
+
+def _earlier(decision: dict, kind: str) -> dict:
+    """A checkpoint's decision; one written before the kind was decided (probes by name
+    alone) probed the run's own kind."""
+    if "stiffness" in decision:
+        return decision
+    pipeline = decision["method"] == "pipeline"
+    return dict(decision, stiffness=kind if pipeline else None, probes={kind: decision["probes"]})
+
+
+def _decide(cfg: Config, body: Body, tg: Targets) -> dict:
+    """The decision of :func:`choose`, from the probes (module docstring)."""
+    kind, tol = cfg.model.stiffness, cfg.solver.auto.tol
+    probes = {kind: probed(cfg, body, tg)}
+    made = {kind: sum(c <= tol for c in probes[kind].values())}
+    if made[kind] < len(probes[kind]) and kind != "full" and "stiffness" not in cfg.given.get("model", {}):
+        probes["full"] = probed(cfg.replace(model={"stiffness": "full"}), body, tg)
+        made["full"] = sum(c <= tol for c in probes["full"].values())
+    best = max(made, key=lambda k: (made[k], k == kind))
+    pipeline = made[best] >= math.ceil(len(probes[kind]) / 2)
+    return {"method": "pipeline" if pipeline else "convergent", "stiffness": best if pipeline else None,
+            "tol": tol, "probes": probes}
