@@ -38,7 +38,7 @@ _BAR = re.compile(r"\[\d+/\d+\] (.+?): .*?\[(?:(\d+):)?(\d+):(\d+)<")
 
 def make(n: int, seed: int, folder: Path, library: int = 0, stiffness: str = "scalar") -> dict:
     """Write n random programs' motions into ``folder`` (``library`` = G > 0: their fields
-    drawn from G shared ones; ``stiffness``: scalar or diag fields), each as NAME.npz and
+    drawn from G shared ones; ``stiffness``: scalar, diag or full fields), each as NAME.npz and
     its generating program as NAME.json (basis format, as ``tflearn gestures --out``
     writes): the seconds it took, the number of motions at each sampling rate, the
     samples in all and the number of generating fields G."""
