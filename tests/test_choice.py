@@ -25,6 +25,7 @@ from tflearn.physics import body as tb
 from tflearn.train.choice import choose, probed
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+DIAG = "model.stiffness=diag"     # given: the kind is not probed again with full K (tests of other things)
 
 
 @pytest.fixture(scope="module")
@@ -59,17 +60,30 @@ def test_probe_tells_field_made_motion_from_keyframes(motions):
 ])
 def test_the_majority_of_the_probes_decides(motions, names, method):
     """Three probes: two field-made of three give the pipeline, one of three the
-    convergent pairs; the decision names every probed motion's cost for each kind
-    probed: diag, then full, which brings no more within the bar (diag kept)."""
+    convergent pairs; the decision names every probed motion's cost."""
     body, ms = motions
-    cfg = config.load(CONFIGS / "gestures.yaml")
+    cfg = config.load(CONFIGS / "gestures.yaml", [DIAG])
     chosen, decision = choose(cfg, body, _targets(body, ms, names))
-    assert decision["method"] == method and list(decision["probes"]) == ["diag", "full"]
-    assert all(list(costs) == names for costs in decision["probes"].values())
+    assert decision["method"] == method and list(decision["probes"]) == ["diag"]
+    assert list(decision["probes"]["diag"]) == names
     assert decision["stiffness"] == ("diag" if method == "pipeline" else None)
     assert chosen.solver.method == ("pipeline" if method == "pipeline" else "layout")
     if method == "pipeline":                                 # nothing else changes
         assert chosen.model_dump() == cfg.replace(solver={"method": "pipeline"}).model_dump()
+
+
+def test_a_kind_no_better_leaves_the_runs_own(motions):
+    """A probe beyond the bar (a keyframe spline among two gestures) has the probes
+    searched again with full K; full brings no more of them within it, so the run's
+    own kind (diag) is learned, nothing else changed."""
+    body, ms = motions
+    names = ["come_here", "tuck", "keys11_0"]
+    cfg = config.load(CONFIGS / "gestures.yaml")
+    chosen, decision = choose(cfg, body, _targets(body, ms, names))
+    assert list(decision["probes"]) == ["diag", "full"]
+    assert all(list(costs) == names for costs in decision["probes"].values())
+    assert (decision["method"], decision["stiffness"]) == ("pipeline", "diag")
+    assert chosen.model_dump() == cfg.replace(solver={"method": "pipeline"}).model_dump()
 
 
 def test_convergent_choice_is_configs_convergent(motions):
@@ -77,7 +91,7 @@ def test_convergent_choice_is_configs_convergent(motions):
     (but data, out and log); any method but auto is left as it is."""
     body, ms = motions
     tg = _targets(body, ms, ["keys11_0"])
-    chosen, _ = choose(config.load(CONFIGS / "gestures.yaml"), body, tg)
+    chosen, _ = choose(config.load(CONFIGS / "gestures.yaml", [DIAG]), body, tg)
     want = config.load(CONFIGS / "convergent.yaml").model_dump()
     got = chosen.model_dump()
     for key in ("data", "out", "log"):
@@ -93,7 +107,7 @@ def test_convergent_choice_keeps_the_command_lines_keys(motions):
     config file's keys are replaced."""
     body, ms = motions
     tg = _targets(body, ms, ["keys11_0"])
-    given = ["solver.shooting.receding=null", "solver.layout.radius=1.5", "solver.path.max_evals=30000"]
+    given = ["solver.shooting.receding=null", "solver.layout.radius=1.5", "solver.path.max_evals=30000", DIAG]
     chosen, decision = choose(config.load(CONFIGS / "gestures.yaml", given), body, tg)
     assert decision["method"] == "convergent"
     assert chosen.solver.shooting.receding is None and chosen.solver.path.max_evals == 30000
@@ -102,7 +116,7 @@ def test_convergent_choice_keeps_the_command_lines_keys(motions):
     assert chosen.solver.path.rtol == config.CONVERGENT["solver"]["path"]["rtol"]
     assert chosen.model.windows == config.CONVERGENT["model"]["windows"]
     assert chosen.given == {"solver": {"shooting": {"receding": None}, "layout": {"radius": 1.5},
-                                       "path": {"max_evals": 30000}}}
+                                       "path": {"max_evals": 30000}}, "model": {"stiffness": "diag"}}
 
 
 def test_an_earlier_decision_is_applied_without_probing(motions, monkeypatch):
@@ -110,7 +124,7 @@ def test_an_earlier_decision_is_applied_without_probing(motions, monkeypatch):
     probed; the config is the one the same decision taken afresh gives."""
     body, ms = motions
     tg = _targets(body, ms, ["keys11_0"])
-    cfg = config.load(CONFIGS / "gestures.yaml", ["solver.layout.radius=1.5"])
+    cfg = config.load(CONFIGS / "gestures.yaml", ["solver.layout.radius=1.5", DIAG])
     fresh, decision = choose(cfg, body, tg)
     monkeypatch.setattr("tflearn.train.choice.probed", lambda *a: pytest.fail("probed"))
     again, same = choose(cfg, body, tg, decision)
