@@ -72,6 +72,7 @@ def test_the_majority_of_the_probes_decides(motions, names, method):
         assert chosen.model_dump() == cfg.replace(solver={"method": "pipeline"}).model_dump()
 
 
+@pytest.mark.slow
 def test_a_kind_no_better_leaves_the_runs_own(motions):
     """A probe beyond the bar (a keyframe spline among two gestures) has the probes
     searched again with full K; full brings no more of them within it, so the run's
@@ -146,6 +147,7 @@ def full_made():
     return body, targets.prepare(body, [m for m, _ in gestures.generate_resolved(programs)])
 
 
+@pytest.mark.slow
 def test_motions_made_with_full_stiffness_get_full_fields(full_made):
     """Motions made by fields with full K: a few diag fields leave most of them beyond
     the bar, a few full fields bring all three within it, and the pipeline learns full
