@@ -178,18 +178,16 @@ def test_keyframes_quick(tmp_path):
     """A three-keyframe spline resembling the come-here (not made by fields): the
     pipeline's own basis, damped fields with two sub-movement windows, reproduces it
     within the bar of field-generated motions (≤ 0.03 rad, ≤ 2 cm; measured in the full
-    experiment: 0.0094 rad, 1.3 cm, M = 3), and so does the spanning layout's basis of
-    eight fields, while the thesis' SLSQP from the four fields of §4.2 loses it, as in
-    thesis figure 4-9."""
+    experiment: 0.0094 rad, 1.3 cm, M = 3), while the thesis' SLSQP from the four
+    fields of §4.2 loses it, as in thesis figure 4-9. (The quick size leaves out the
+    spanning layout: its quick run is experiment 5's, below.)"""
     res = quick("keyframes", tmp_path)
     pipe = next(x for x in res["rows"] if x["method"] == "pipeline")
     slsqp = next(x for x in res["rows"] if x["method"] == "slsqp")
     assert pipe["motions"] == slsqp["motions"] == ["come_here_keys"]
     assert pipe["rmse"][0] <= 0.03 and pipe["tip"][0] <= 0.02 and pipe["success"] == [True]
     assert slsqp["rmse"][0] > 0.05 and slsqp["success"] == [False]
-    assert 1 <= pipe["M"] <= 4
-    layout = next(x for x in res["rows"] if x["method"] == "layout")
-    assert layout["M"] == 8 and layout["success"] == [True] and layout["rmse"][0] <= 0.03
+    assert 1 <= pipe["M"] <= 4 and [x["method"] for x in res["rows"]] == ["slsqp", "pipeline"]
 
 
 @pytest.mark.slow

@@ -248,3 +248,58 @@ def test_search_never_picks_a_nonfinite_candidate(pair, monkeypatch):
         empty = weights.select_motions([0]).select_fields([])
         centre, k, cost = search.best_candidate(basis.select([]), empty, one, 16, [0.5, 1.0, 2.0], gen)
     assert torch.isfinite(centre).all() and cost < 1.0
+
+
+class _Log:
+    """What a stage tells the run's log, kept: the statuses."""
+
+    def __init__(self):
+        self.statuses = []
+
+    def status(self, **values):
+        self.statuses.append(values)
+
+    def __getattr__(self, name):
+        return lambda *args, **kw: None
+
+
+@pytest.mark.parametrize("budget", [300, 20000])
+def test_path_stage_takes_no_step_where_the_scoring_fails(pair, monkeypatch, budget):
+    """The path stage's Adam steps simulate their motions with the gradient's graph
+    (hundreds of KB an evaluation). Where a motion's simulation runs out of its budget
+    in the scoring (300 evaluations for 3 s), Adam's start would fail after filling that
+    graph: the stage records the scoring's failure, naming the motion, and takes no step.
+    With the budget the motions need (20,000), the step is taken."""
+    from types import SimpleNamespace
+
+    from tflearn import config
+    from tflearn.model.program import model_state
+    from tflearn.train.stages import path as stage
+    from tflearn.train.state import RunState
+    body, basis, weights, tg = pair
+    w = weights.select_motions([0, 1])
+    with torch.no_grad():
+        w.a_raw.mul_(1.2)                                  # neither motion reproduced
+    cfg = config.load(None, ["solver.shooting.iterations=0", f"solver.path.max_evals={budget}"])
+    options = cfg.solver.path.options()
+
+    def check(b, ww, t):
+        s = metrics.score(body, b, ww, t, options)
+        return s, s.succeeded(cfg.success.rmse, cfg.success.tip)
+    steps = []
+    monkeypatch.setattr(stage.path_fit, "path_step",
+                        lambda *a, **kw: steps.append(1) or path_fit.PathStep(1.0, 1e-3, {}, None))
+    log = _Log()
+    ctx = SimpleNamespace(cfg=cfg, tg=tg, body=body, options=options, variable_phases=False, log=log,
+                          check=check, sequence=("path", "rescue"), tick=lambda state: 0,
+                          save=lambda state: None)
+    state = RunState(config={}, stage="path", rng=torch.Generator().get_state(),
+                     model=model_state(basis, w))
+    stage.run(ctx, state)
+    if budget == 300:
+        assert steps == [] and state.stage == "rescue" and not state.path.needed
+        assert "come_here" in state.history.path and "tuck" in state.history.path
+        assert "evaluations" in state.history.path
+        assert {"advance": 0, "failed": "the simulation fails at the start"} in log.statuses
+    else:
+        assert steps == [1] and state.stage == "path" and state.path.needed and state.history.path is None

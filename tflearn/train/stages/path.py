@@ -54,7 +54,10 @@ def start(ctx: RunContext, state: RunState, basis, weights) -> None:
     """The model that elimination left, scored; the motions it does not reproduce shot
     (``solver.shooting``; one iteration, logged with the paths' figures, and its own
     checkpoint: a resumed run does not shoot again); then whether Adam steps are needed
-    and for which motions (``solver.path.motions``)."""
+    and for which motions (``solver.path.motions``). A motion of those whose simulation
+    fails in the scoring fails Adam's start too (its evaluations are no fewer with a
+    gradient): no step is taken, and its failure is the stage's, recorded without
+    simulating every motion with its gradient's graph."""
     p, tg = ctx.cfg.solver.path, ctx.tg
     scores, ok = ctx.check(basis, weights, tg)
     shoot = not all(ok) and ctx.cfg.solver.shooting.iterations
@@ -66,7 +69,14 @@ def start(ctx: RunContext, state: RunState, basis, weights) -> None:
     state.path = PathProgress(needed=not all(ok), lr=p.lr,
                               motions=[j for j, x in enumerate(ok) if not x] if p.motions == "unreproduced"
                               else None)
+    failed = [j for j in (state.path.motions or range(tg.N)) if scores.failure[j] is not None]
     if not state.path.needed:
         ctx.log.status(advance=0, total=0, skipped="every motion reproduced")
+    elif failed:
+        # Adam would simulate these with their gradients' graph until their evaluation
+        # budget ran out (gigabytes at high sample rates), to fail at the start all the same
+        state.path.needed = False
+        state.history.path = "; ".join(f"{scores.failure[j]} (motion {tg.names[j]})" for j in failed)
+        ctx.log.status(advance=0, failed="the simulation fails at the start")
     if shoot:
         ctx.save(state)
