@@ -71,6 +71,15 @@ def stage_seconds(stderr: str) -> dict:
     return out
 
 
+def failure(stderr: str) -> str:
+    """Why a training process failed: the last line of its error output that names an
+    error (torchrun ends with a rule of '=' and a summary that does not say it), else
+    the last line."""
+    lines = [x.strip() for x in re.split(r"[\r\n]", stderr) if x.strip() and set(x.strip()) != {"="}]
+    named = [x for x in lines if re.search(r"\b\w*(Error|Exception)\b|^tflearn: |^train: ", x)]
+    return ((named or lines or [""])[-1])[-300:]
+
+
 def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
     """``train configs/gestures.yaml data=DATA`` in a fresh process (``nproc`` > 1: that
     many under ``torchrun --standalone``); what it found."""
@@ -84,9 +93,10 @@ def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
                           text=True)
     wall = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    (out.parent / "train.log").write_text(proc.stderr)
     if not (out / "metrics.json").exists():        # exit 1 alone means: not all reproduced
-        return {"train_s": wall, "error": f"train exited {proc.returncode}: "
-                                          + " ".join(proc.stderr.strip().splitlines()[-1:])[-300:]}
+        return {"train_s": wall, "error": f"train exited {proc.returncode}: {failure(proc.stderr)}",
+                "log": str(out.parent / "train.log")}
     m = json.loads((out / "metrics.json").read_text())
     motions, each = m["motions"].values(), m["history"].get("each", {})
     identity = m.get("identity", {})
@@ -120,14 +130,17 @@ def main(argv=None) -> int:
                         "full with seven eigenvalues about random axes")
     p.add_argument("--nproc", type=int, default=1, help="training processes (torchrun)")
     p.add_argument("--out", type=Path)
+    p.add_argument("--keep", type=Path, help="keep each size's data, run folder and train.log in "
+                   "KEEP/N (default: a temporary folder, removed)")
     p.add_argument("overrides", nargs="*", help="config overrides for train (KEY=VALUE)")
     args = p.parse_args(argv)
     commit = revision.head()                  # the code this process runs
     rows = []
     for n in (int(x) for x in args.sizes.split(",")):
         with tempfile.TemporaryDirectory() as tmp:
-            data, out = Path(tmp) / "data", Path(tmp) / "run"
-            data.mkdir()
+            where = Path(tmp) if args.keep is None else args.keep / str(n)
+            data, out = where / "data", where / "run"
+            data.mkdir(parents=True)
             row = {"motions": n, "nproc": args.nproc, "stiffness": args.stiffness,
                    **make(n, args.seed, data, args.library, args.stiffness)}
             row.update(learn(data, out, args.overrides, args.nproc))
