@@ -249,6 +249,31 @@ def test_rank_deficient():
     assert g_pos <= 1e-9 and g_zero >= -1e-11
 
 
+def test_a_column_of_subnormal_norm_takes_no_weight():
+    """Element 0: the normal equations of a field whose Gaussian is 1e-155 on a motion's
+    path (step and pulse columns, as a thousand-motion run met them, and a zero column):
+    G's entries are subnormal, and the passive solve on them gave NaN. Element 1: two ordinary columns
+    and such a third, collinear with the first. Either way the tiny column gets no
+    weight, the solve converges, and element 1 ends on the two-column solution."""
+    G = torch.zeros(2, 3, 3, dtype=torch.float64)
+    h = torch.zeros(2, 3, dtype=torch.float64)
+    G[0, :2, :2] = torch.tensor([[1.0140830235606e-310, 3.024514516677e-312],
+                                  [3.024514516677e-312, 9.0206518676e-314]], dtype=torch.float64)
+    h[0, :2] = torch.tensor([7.423267936631363e-159, 2.2136323875591635e-160],
+                           dtype=torch.float64)
+    A = torch.tensor([[1.0, 0.2], [0.3, 1.0], [0.5, 0.4]], dtype=torch.float64)
+    y = torch.tensor([1.0, 2.0, 0.5], dtype=torch.float64)
+    tiny = 1e-155 * A[:, :1]
+    A3 = torch.cat([A, tiny], 1)
+    G[1], h[1] = A3.T @ A3, A3.T @ y
+    res = nnls(G, h)
+    assert torch.isfinite(res.x).all() and res.converged.tolist() == [True, True]
+    assert res.x[0].tolist() == [0.0, 0.0, 0.0] and res.x[1, 2] == 0.0
+    two = nnls(A.T @ A, A.T @ y).x
+    torch.testing.assert_close(res.x[1, :2], two, rtol=1e-12, atol=0)
+    assert float(two.min()) > 0
+
+
 def test_zero_rhs_and_not_differentiable():
     """h = 0 → x = 0; the solve runs under no_grad (the envelope theorem needs no dx*/dθ)."""
     G = torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone().requires_grad_(True)

@@ -17,6 +17,11 @@ passive set P (the inner loop finished) and the KKT conditions hold off it,
 
 (w is the negative gradient; NaN counts as a violation). ``throw=True`` raises
 :class:`NNLSError` instead of returning unconverged elements.
+
+A column whose squared norm G_ii is below 10¹⁰ times the dtype's smallest normal
+number (2·10⁻²⁹⁸ in float64) takes no weight: its products with any weight underflow
+to subnormal numbers, whose few bits made the passive solve NaN (a field whose Gaussian
+is 10⁻¹⁵⁵ on a motion's path; it cannot drive that motion with any finite weight).
 """
 from __future__ import annotations
 
@@ -125,11 +130,12 @@ def nnls(G: torch.Tensor, h: torch.Tensor, tol: float = 1e-12, max_iter: int | N
     P = torch.zeros(h.shape, dtype=torch.bool, device=h.device)
     settled = torch.ones(h.shape[0], dtype=torch.bool, device=h.device)
     bound = tol * (h.abs().amax(-1, keepdim=True) + 1e-300)
+    usable = torch.diagonal(G, dim1=-2, dim2=-1) > 1e10 * torch.finfo(G.dtype).tiny
     max_iter = max_iter or 3 * k + 10
     iterations = 0
     while iterations < max_iter:
         w = _negative_gradient(G, h, x)
-        cand = (~P) & (w > bound)
+        cand = (~P) & (w > bound) & usable
         active = cand.any(-1)
         if not bool(active.any()):
             break
@@ -138,7 +144,7 @@ def nnls(G: torch.Tensor, h: torch.Tensor, tol: float = 1e-12, max_iter: int | N
         x, P, stuck = _inner(G, h, x, P, active, tol, ridge)
         settled = torch.where(active, ~stuck, settled)
         iterations += 1
-    kkt = (P | (_negative_gradient(G, h, x) <= bound)).all(-1) & (x >= 0).all(-1)
+    kkt = (P | (_negative_gradient(G, h, x) <= bound) | ~usable).all(-1) & (x >= 0).all(-1)
     result = NNLSResult(x.clamp_min(0).reshape(batch + (k,)), (settled & kkt).reshape(batch),
                         iterations)
     if throw and not bool(result.converged.all()):
