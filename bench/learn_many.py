@@ -72,12 +72,13 @@ def stage_seconds(stderr: str) -> dict:
 
 
 def failure(stderr: str) -> str:
-    """Why a training process failed: the last line of its error output that names an
-    error (torchrun ends with a rule of '=' and a summary that does not say it), else
-    the last line."""
+    """Why a training process failed: the last exception its error output names (not
+    torchrun's own ChildFailedError), else its last line from tflearn's one-line errors,
+    else its last line (torchrun ends with a rule of '=', left out)."""
     lines = [x.strip() for x in re.split(r"[\r\n]", stderr) if x.strip() and set(x.strip()) != {"="}]
-    named = [x for x in lines if re.search(r"\b\w*(Error|Exception)\b|^tflearn: |^train: ", x)]
-    return ((named or lines or [""])[-1])[-300:]
+    raised = [x for x in lines if re.search(r"\b\w*(Error|Exception): ", x) and "ChildFailedError" not in x]
+    told = [x for x in lines if re.match(r"(tflearn|train): ", x)]
+    return ((raised or told or lines or [""])[-1])[-300:]
 
 
 def learn(data: Path, out: Path, overrides=(), nproc: int = 1) -> dict:
