@@ -62,6 +62,17 @@ def test_the_forward_path_never_costs_more_with_more_fields():
     assert served == sorted(served) and served[-1] == tg.N
 
 
+def test_the_screen_reports_its_blocks_and_the_choice_its_fields():
+    """In blocks of two motions the screen tells each block's end, then the choice each
+    field that joins; the same two fields are chosen as without the screen."""
+    basis, weights, tg, own = _copies(STIFF)
+    told = []
+    s = select.select(basis, weights, tg, own, select.SelectOptions(block=2),
+                      progress=lambda **done: told.append(done))
+    assert told == [{"screened": "1/2 blocks"}, {"screened": "2/2 blocks"}, {"chosen": 1}, {"chosen": 2}]
+    assert sorted(s.kept) == [0, 1]
+
+
 def test_each_motion_gets_its_fewest_chosen_fields_that_serve_it():
     basis, weights, tg, own = _copies(STIFF)
     s = select.select(basis, weights, tg, own)

@@ -191,13 +191,14 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
     docstring). ``weights`` hold each motion's own fit on its own candidates (``own``,
     N×M bools), giving c_j; they are left unchanged. ``tolerance``: each motion's τ_j
     instead of c_j + δ (a selection among refined fields keeps the first one's bar).
-    ``progress(m)``: called as each candidate joins. ``distributed``: the screen's blocks
-    shared by the ranks of a run, the choice then made on rank 0 alone (it holds every
-    motion's normal equations) and broadcast."""
+    ``progress(**values)``: called as each of this process' screening blocks ends
+    (``screened="b/B blocks"``) and as each candidate joins (``chosen=m``).
+    ``distributed``: the screen's blocks shared by the ranks of a run, the choice then
+    made on rank 0 alone (it holds every motion's normal equations) and broadcast."""
     opts = options or SelectOptions()
     among = None
     if 0 < opts.block < tg.N:
-        among, tolerance = _screen(basis, weights, tg, own, opts, tolerance, distributed)
+        among, tolerance = _screen(basis, weights, tg, own, opts, tolerance, distributed, progress)
     if not distributed:
         return _select(basis, weights, tg, own, opts, progress, tolerance, among)
     return parallel.broadcast(_select(basis, weights, tg, own, opts, progress, tolerance, among)
@@ -205,7 +206,7 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
 
 
 def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
-            opts: SelectOptions, tolerance: Optional[list], distributed: bool) -> tuple:
+            opts: SelectOptions, tolerance: Optional[list], distributed: bool, progress=None) -> tuple:
     """(the candidates that some block keeps (M bools), each motion's bar τ_j as its block
     set it): the motions in blocks of
     ``opts.block``, in order, each block's selection (:func:`_select`) among its own
@@ -216,12 +217,15 @@ def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.T
     mine = _onto_first_copies(basis, own)[0]
     keep, bars = torch.zeros(basis.M, dtype=torch.bool), {}
     starts = list(range(0, tg.N, opts.block))
-    for b in (parallel.mine(len(starts)) if distributed else range(len(starts))):
+    blocks = parallel.mine(len(starts)) if distributed else range(len(starts))
+    for done, b in enumerate(blocks, 1):
         part = list(range(starts[b], min(tg.N, starts[b] + opts.block)))
         bar = None if tolerance is None else [tolerance[j] for j in part]
         sel = _select(basis, weights.select_motions(part), tg.select(part), own[part], opts, None, bar,
                       mine[part].any(0))
         keep[sel.kept], bars[b] = True, sel.tolerance
+        if progress:
+            progress(screened=f"{done}/{len(blocks)} blocks")
     if distributed:
         parts = parallel.all_gather((keep, bars))
         keep, bars = torch.stack([k for k, _ in parts]).any(0), {b: t for _, d in parts for b, t in d.items()}
@@ -270,7 +274,7 @@ def _select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.T
         path.append([len(chosen), sum(mo.cost for mo in motions),
                      sum(mo.excess(mo.cost) == 0 for mo in motions)])
         if progress:
-            progress(len(chosen))
+            progress(chosen=len(chosen))
     if served_all is None:
         served_all = len(chosen)
     kept = chosen[:served_all]

@@ -89,7 +89,7 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     pooled = basis.M
     ctx.log.busy(pooled=pooled, choosing="fields")
     sel = select.select(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
-                        progress=lambda m: ctx.log.busy(pooled=pooled, chosen=m), distributed=True)
+                        progress=lambda **done: ctx.log.busy(pooled=pooled, **done), distributed=True)
     weights = weights.select_fields(sel.kept)
     state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
                      if ctx.cfg.solver.pool.sharing == "own" else None)
