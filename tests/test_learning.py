@@ -543,6 +543,13 @@ def test_elimination_keeps_every_motion_as_good():
     assert not train.no_worse(costed, further, [True, False], [1e-6, 0.02 + 1.1e-4], 1e-4)
     # ... a reproduced motion is held to its path, whatever its cost
     assert not train.no_worse(costed, scores([0.04, 0.05], [0.01, 0.05]), [False, False], [1e-6, 0.02], 1e-4)
+    # a motion no fit of its own reproduced (not required) may get worse, even fail ...
+    free = dataclasses.replace(costed, required=[True, False])
+    assert train.no_worse(free, failed, [True, False], [1e-6, 0.5], 1e-4)
+    assert train.no_worse(free, further, [True, False])
+    # ... but not the others, nor itself once reproduced
+    assert not train.no_worse(dataclasses.replace(free, required=[False, True]), further, [True, False])
+    assert not train.no_worse(dataclasses.replace(free, ok=[True, True]), further, [True, False])
 
 
 def test_held_trial_resolves_only_the_motions_that_used_the_field(tmp_path):

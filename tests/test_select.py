@@ -73,6 +73,52 @@ def test_the_screen_reports_its_blocks_and_the_choice_its_fields():
     assert sorted(s.kept) == [0, 1]
 
 
+def test_a_field_only_a_motion_not_required_needs_is_not_chosen():
+    """Motion 0 alone needs field 0 (it differs where the motions look): not required
+    (its own fit did not reproduce it), it adds no field, and draws on the one chosen for
+    the others, unserved but not listed as such; the others are served as before."""
+    basis, weights, tg, own = _copies(STIFF)
+    s = select.select(basis, weights, tg, own, required=[False, True, True, True])
+    assert s.kept == [1] and not s.unserved and s.support[0] == [1]
+    assert s.costs[0] > s.tolerance[0] and all(c <= t for c, t in zip(s.costs[1:], s.tolerance[1:]))
+    assert sorted(select.select(basis, weights, tg, own, select.SelectOptions(block=2),
+                                required=[False, True, True, True]).kept) == [1]
+
+
+def test_a_floor_under_the_own_fits_cost_lets_a_near_field_serve():
+    """Motion 0's own field (a copy 0.3 rad off along a stiff axis) fits it better than
+    the others' field; with its bar raised to its cost on that field (the floor a
+    simpler own fit that simulation reproduces would set) the others' field serves it
+    too, and one field is chosen."""
+    basis, weights, tg, own = _copies(STIFF)
+    alone = weights.select_motions([0]).select_fields([1])
+    on_theirs = float(torque.solve_weights(basis.select([1]), alone, tg.select([0]))[0])
+    s = select.select(basis, weights, tg, own, floor=[on_theirs, 0.0, 0.0, 0.0])
+    assert s.kept == [1] and not s.unserved
+    assert s.tolerance[0] == pytest.approx(on_theirs + select.SelectOptions().tol)
+
+
+def test_the_reproducing_cost_is_that_of_the_fewest_fields_simulation_takes():
+    """:func:`select.reproducing_cost`: the fields join greedily by cost (motion 1's own
+    field first, then the moved copy); the cost at the first size the check accepts, or
+    on all of them."""
+    basis, weights, tg, own = _copies(STIFF)
+    both = MotionWeights.zeros(4, tg.duration, tg.names)
+    sizes = []
+
+    def accept_at(k):
+        return lambda b, w: sizes.append(b.M) or b.M >= k
+    first = select.reproducing_cost(basis, both, tg, 1, [0, 1], accept_at(1))
+    alone = float(torque.solve_weights(basis.select([1]), both.select_motions([1]).select_fields([1]),
+                                       tg.select([1]))[0])
+    assert first == pytest.approx(alone, rel=1e-9) and sizes == [1]
+    sizes.clear()
+    whole = select.reproducing_cost(basis, both, tg, 1, [0, 1], accept_at(3))
+    pair = float(torque.solve_weights(basis.select([0, 1]), both.select_motions([1]).select_fields([0, 1]),
+                                      tg.select([1]))[0])
+    assert whole == pytest.approx(pair, rel=1e-9) and whole <= first and sizes == [1]
+
+
 def test_each_motion_gets_its_fewest_chosen_fields_that_serve_it():
     basis, weights, tg, own = _copies(STIFF)
     s = select.select(basis, weights, tg, own)

@@ -18,7 +18,9 @@ no motion looks are one field, and fields that differ where a motion looks are n
 A subset S *serves* motion j when C_j(S) ≤ τ_j = min(c_j + δ, 1 − δ), c_j the cost of
 its own fit (or of its own fields' NNLS weights, where lower) and δ the tolerance
 (``SelectOptions.tol``; no subset serves with no field). :func:`select` finds a small S serving
-every motion: greedy forward selection — the candidate that removes the most excess
+every motion (every motion its own fit reproduced, where some are: a motion no fit of
+its own reproduces cannot say which fields it needs, and fields that only it draws on
+are no shared fields): greedy forward selection — the candidate that removes the most excess
 Σ_j max(C_j − τ_j, 0) joins, every motion's weights re-solved exactly (S-OMP's rule with
 NNLS refits in place of projections, Tropp, Gilbert & Strauss 2006; each candidate a
 group of columns shared by all motions, as in group-sparse NNLS) — then backward
@@ -46,9 +48,9 @@ from ..model.fields import FieldBasis
 from ..model.weights import MotionWeights
 from .nnls import nnls
 from .targets import Targets
-from .torque import columns, normal_equations, quadratic_cost, torque_costs
+from .torque import columns, normal_equations, quadratic_cost, solve_weights, torque_costs
 
-__all__ = ["SelectOptions", "Selection", "needed", "select"]
+__all__ = ["SelectOptions", "Selection", "needed", "reproducing_cost", "select"]
 
 
 @dataclass(frozen=True)
@@ -102,6 +104,7 @@ class _Motion:
         self.fields, self.G, self.h, self.P, self.tau = fields, G, h, P, tau
         self.local = {f: i for i, f in enumerate(fields)}
         self.cost = 1.0                                  # C_j(∅): no torque at all
+        self.required = True                             # its excess counts
 
     def costs(self, subsets: list) -> torch.Tensor:
         """C_j of each subset (lists of global candidate indices, all the same size)."""
@@ -122,18 +125,20 @@ class _Motion:
         return cost, weight > 0
 
     def excess(self, cost: float) -> float:
-        return max(cost - self.tau, 0.0)
+        return max(cost - self.tau, 0.0) if self.required else 0.0
 
 
 def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
-             opts: SelectOptions, tolerance: Optional[list], among: Optional[torch.Tensor]) -> list:
+             opts: SelectOptions, tolerance: Optional[list], among: Optional[torch.Tensor],
+             required: Optional[list] = None, floor: Optional[list] = None) -> list:
     """Each motion's :class:`_Motion`: its candidates (reach, within ``among`` (M bools)
     where given, or its own, ``own`` N×M bools; of exact copies the first alone) and their
     normal equations; τ_j as given, or
     min(c_j + δ, 1 − δ), c_j its own fit's cost: on ``weights``, or the NNLS optimum on its
     own fields where that is lower (path shooting with free fields fits the path, and can
     leave weights whose torques are no motion's, C_j even above 1); at most 1 − δ, below
-    C_j(∅) = 1, so that every motion needs a field."""
+    C_j(∅) = 1, so that every motion needs a field; c_j at least ``floor``'s (N floats,
+    :func:`select`). ``required`` (N bools; None: all): the motions whose excess counts."""
     out = []
     if tolerance is None:
         current = torque_costs(basis, weights, tg).tolist()
@@ -146,9 +151,11 @@ def _motions(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.
         mo = _motion(basis, weights, tg, j, near.nonzero().flatten().tolist())
         if tolerance is None:
             c = min(current[j], float(mo.costs([mine[j].nonzero().flatten().tolist()])[0]))
+            c = max(c, floor[j]) if floor is not None else c
             mo.tau = min(c + opts.tol, 1 - opts.tol)
         else:
             mo.tau = tolerance[j]
+        mo.required = required is None or bool(required[j])
         out.append(mo)
     return out
 
@@ -186,7 +193,8 @@ def _weakest(peak: torch.Tensor, own: torch.Tensor) -> float:
 @torch.no_grad()
 def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
            options: Optional[SelectOptions] = None, progress=None,
-           tolerance: Optional[list] = None, distributed: bool = False) -> Selection:
+           tolerance: Optional[list] = None, distributed: bool = False,
+           required: Optional[list] = None, floor: Optional[list] = None) -> Selection:
     """The fewest candidates of ``basis`` found greedily that serve every motion (module
     docstring). ``weights`` hold each motion's own fit on its own candidates (``own``,
     N×M bools), giving c_j; they are left unchanged. ``tolerance``: each motion's τ_j
@@ -194,19 +202,30 @@ def select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Te
     ``progress(**values)``: called as each of this process' screening blocks ends
     (``screened="b/B blocks"``) and as each candidate joins (``chosen=m``).
     ``distributed``: the screen's blocks shared by the ranks of a run, the choice then
-    made on rank 0 alone (it holds every motion's normal equations) and broadcast."""
+    made on rank 0 alone (it holds every motion's normal equations) and broadcast.
+    ``required`` (N bools; None: all): the motions the chosen fields must serve; the
+    others (motions their own fits did not reproduce) use what is chosen for these and
+    add no field of their own: a field that only a motion no fit reproduces needs is no
+    shared field. ``floor`` (N floats): each motion's c_j is at least this — the cost of
+    its fewest own fields that simulation reproduces (:func:`reproducing_cost`), where its
+    own fit holds more, fitting its torque targets' own error, which no other motion's
+    fields need match."""
     opts = options or SelectOptions()
     among = None
     if 0 < opts.block < tg.N:
-        among, tolerance = _screen(basis, weights, tg, own, opts, tolerance, distributed, progress)
+        among, tolerance = _screen(basis, weights, tg, own, opts, tolerance, distributed, progress, required,
+                                   floor)
+
+    def choose() -> Selection:
+        return _select(basis, weights, tg, own, opts, progress, tolerance, among, required, floor)
     if not distributed:
-        return _select(basis, weights, tg, own, opts, progress, tolerance, among)
-    return parallel.broadcast(_select(basis, weights, tg, own, opts, progress, tolerance, among)
-                              if parallel.rank() == 0 else None)
+        return choose()
+    return parallel.broadcast(choose() if parallel.rank() == 0 else None)
 
 
 def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
-            opts: SelectOptions, tolerance: Optional[list], distributed: bool, progress=None) -> tuple:
+            opts: SelectOptions, tolerance: Optional[list], distributed: bool, progress=None,
+            required: Optional[list] = None, floor: Optional[list] = None) -> tuple:
     """(the candidates that some block keeps (M bools), each motion's bar τ_j as its block
     set it): the motions in blocks of
     ``opts.block``, in order, each block's selection (:func:`_select`) among its own
@@ -220,9 +239,8 @@ def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.T
     blocks = parallel.mine(len(starts)) if distributed else range(len(starts))
     for done, b in enumerate(blocks, 1):
         part = list(range(starts[b], min(tg.N, starts[b] + opts.block)))
-        bar = None if tolerance is None else [tolerance[j] for j in part]
-        sel = _select(basis, weights.select_motions(part), tg.select(part), own[part], opts, None, bar,
-                      mine[part].any(0))
+        sel = _select(basis, weights.select_motions(part), tg.select(part), own[part], opts, None,
+                      _part(tolerance, part), mine[part].any(0), _part(required, part), _part(floor, part))
         keep[sel.kept], bars[b] = True, sel.tolerance
         if progress:
             progress(screened=f"{done}/{len(blocks)} blocks")
@@ -232,12 +250,17 @@ def _screen(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.T
     return keep, [t for b in range(len(starts)) for t in bars[b]]
 
 
+def _part(values: Optional[list], motions: list) -> Optional[list]:
+    """Per-motion ``values`` of ``motions`` (indices) alone; None stays None."""
+    return None if values is None else [values[j] for j in motions]
+
+
 def _select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.Tensor,
-            opts: SelectOptions, progress, tolerance: Optional[list], among: Optional[torch.Tensor]
-            ) -> Selection:
+            opts: SelectOptions, progress, tolerance: Optional[list], among: Optional[torch.Tensor],
+            required: Optional[list] = None, floor: Optional[list] = None) -> Selection:
     """:func:`select` among the candidates ``among`` (M bools; None: all) and each
     motion's own."""
-    motions = _motions(basis, weights, tg, own, opts, tolerance, among)
+    motions = _motions(basis, weights, tg, own, opts, tolerance, among, required, floor)
     users = [[] for _ in range(basis.M)]
     for j, mo in enumerate(motions):
         for f in mo.fields:
@@ -272,7 +295,7 @@ def _select(basis: FieldBasis, weights: MotionWeights, tg: Targets, own: torch.T
                 mo.costs([[f for f in chosen if f in mo.local]])[0])
             trials.pop(j, None)
         path.append([len(chosen), sum(mo.cost for mo in motions),
-                     sum(mo.excess(mo.cost) == 0 for mo in motions)])
+                     sum(mo.cost <= mo.tau for mo in motions)])
         if progress:
             progress(chosen=len(chosen))
     if served_all is None:
@@ -320,6 +343,24 @@ def needed(basis: FieldBasis, weights: MotionWeights, tg: Targets, j: int, field
     mo.cost = float(mo.costs([fields])[0])
     mo.tau = mo.cost + tol
     return _fewest(mo, fields)
+
+
+@torch.no_grad()
+def reproducing_cost(basis: FieldBasis, weights: MotionWeights, tg: Targets, j: int, fields: list,
+                     reproduced) -> float:
+    """Motion j's relative torque cost on the fewest of ``fields`` (its own) that
+    ``reproduced(basis, weights)`` accepts (a simulation), their NNLS weights re-solved:
+    the fields in the order they join greedily by C_j (:func:`needed`), sizes 1, 2, …;
+    where no smaller size is accepted, the cost on all of them (not checked)."""
+    order = needed(basis, weights, tg, j, fields, 0.0)
+    order += [f for f in fields if f not in order]
+    one, cost = tg.select([j]), 1.0
+    for size in range(1, len(order) + 1):
+        b, w = basis.select(order[:size]), weights.select_motions([j]).select_fields(order[:size])
+        cost = float(solve_weights(b, w, one)[0])
+        if size < len(order) and reproduced(b, w):
+            return cost
+    return cost
 
 
 def _merged(basis: FieldBasis, kept: list, motions: list, own: torch.Tensor) -> list:

@@ -37,13 +37,16 @@ class Reference:
     """What elimination judges a smaller basis against, per motion: joint RMSE (rad),
     maximum tip error (m), reproduced or not, the relative torque cost C_j on the current
     model (:func:`~tflearn.fit.torque.torque_costs`) and, with ``solver.reduce.growth``,
-    the e-folds of local error growth along its path (:mod:`tflearn.fit.stability`)."""
+    the e-folds of local error growth along its path (:mod:`tflearn.fit.stability`), and
+    whether a motion not reproduced must stay no worse (``required``, None: every one; a
+    motion no fit of its own reproduced need not, :meth:`EachRecord.required`)."""
 
     rmse: list
     tip: list
     ok: list
     cost: Optional[list] = None
     efolds: Optional[list] = None
+    required: Optional[list] = None
 
     @classmethod
     def of(cls, scores, ok: list, **extra) -> Reference:
@@ -79,6 +82,13 @@ class EachRecord:
     reproduced: list = field(default_factory=list)
     reused: list = field(default_factory=list)
     declined: dict = field(default_factory=dict)
+
+    def required(self) -> Optional[list]:
+        """Per motion whether its own fit reproduced it, where that reproduced some
+        motion (else None): the motions the shared basis is chosen for and elimination
+        keeps no worse. A motion that no fit of its own reproduces cannot say which
+        fields it needs; fields only it draws on are no shared fields."""
+        return list(self.reproduced) if any(self.reproduced) else None
 
 
 @dataclass

@@ -1,10 +1,12 @@
 """Stage ``pool`` — all per-motion fields in one basis; the shared fields chosen among
 them by what the motions need (``solver.select``, :func:`~tflearn.fit.select.select`:
-the fewest that keep every motion's torque cost within its own fit's plus δ), refined
-jointly by EM and chosen again among the refined ones; with ``solver.select.enabled:
-false`` fields that nearly coincide (``solver.merge``) are merged instead, every other
-pooled field kept (with ``solver.pool.sharing: own`` each motion keeps to its own
-fields, as it was reproduced alone).
+the fewest that keep every motion its own fit reproduced within its own fit's torque
+cost plus δ — the cost of its fewest own fields that simulation reproduces, where that
+is higher: :func:`_reproducing_costs`), refined jointly by EM and chosen again among
+the refined ones; with ``solver.select.enabled: false`` fields that nearly coincide
+(``solver.merge``) are merged instead, every other pooled field kept (with
+``solver.pool.sharing: own`` each motion keeps to its own fields, as it was reproduced
+alone).
 
 Motions that their own fits reproduced but the chosen basis does not are first
 path-matched on it by multiple shooting (:func:`shoot`); if that fails their fewest
@@ -68,7 +70,7 @@ def run(ctx: RunContext, state: RunState) -> None:
     ctx.log.scores(scores, tg, step, figures=True)
     ctx.log.model(*model_from_state(state.model), step)
     state.fits = []                                  # read by no later stage: not saved again
-    state.reference = Reference.of(scores, ok)
+    state.reference = Reference.of(scores, ok, required=required(state))
     if ctx.cfg.solver.reduce.growth is not None:
         state.reference.efolds = ctx.efolds(*model_from_state(state.model), tg)
     pooled = state.history.pool
@@ -86,20 +88,47 @@ def _select(ctx: RunContext, state: RunState, basis, weights, own: list) -> tupl
     the nearest kept one its motion uses —, the selection's record for metrics.json, each
     motion's bar τ_j, each motion's fewest chosen fields that serve it). With ``sharing:
     own`` a motion may use the chosen fields among its candidates."""
-    pooled = basis.M
+    pooled, need = basis.M, required(state)
+    floor = _reproducing_costs(ctx, basis, weights, own, need)
     ctx.log.busy(pooled=pooled, choosing="fields")
     sel = select.select(basis, weights, ctx.tg, torch.tensor(own), _options(ctx),
-                        progress=lambda **done: ctx.log.busy(pooled=pooled, **done), distributed=True)
+                        progress=lambda **done: ctx.log.busy(pooled=pooled, **done), distributed=True,
+                        required=need, floor=floor)
     weights = weights.select_fields(sel.kept)
     state.support = ([[f in mine for f in sel.kept] for mine in sel.candidates]
                      if ctx.cfg.solver.pool.sharing == "own" else None)
     record = {"pooled": pooled, "kept": len(sel.kept), "pruned": len(sel.pruned),
               "candidates": sum(map(len, sel.candidates)) / max(len(sel.candidates), 1),
-              "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved]}
+              "path": sel.path, "unserved": [ctx.tg.names[j] for j in sel.unserved],
+              "unrequired": [ctx.tg.names[j] for j, r in enumerate(need or []) if not r]}
     if ctx.log.writer is not None:
         ctx.log.figure("model/knee", knee(sel.path, len(sel.kept), ctx.tg.N), state.iteration)
     return (basis.select(sel.kept), weights, sel.merged, record, sel.tolerance,
             _positions(sel.kept, sel.support))
+
+
+def _reproducing_costs(ctx: RunContext, basis, weights, own: list, need: Optional[list]) -> list:
+    """Each motion's torque cost on its fewest own fields that simulation reproduces
+    (:func:`~tflearn.fit.select.reproducing_cost`; 0 for a motion not ``need``-ed), the
+    selection's floor under its own fit's cost: an own fit that holds more fields fits
+    its torque targets' own error too (the spline's, which can exceed δ), and a shared
+    field need not. Each rank its share of the motions."""
+    tg, mine = ctx.tg, parallel.mine(ctx.tg.N)
+
+    def cost(i: int, j: int) -> float:
+        ctx.log.busy(pooled=basis.M, floors=f"{i}/{len(mine)}")
+        fields = [f for f, o in enumerate(own[j]) if o]
+        if not fields or (need is not None and not need[j]):
+            return 0.0
+        one = tg.select([j])
+        return select.reproducing_cost(basis, weights, tg, j, fields,
+                                       lambda b, w: all(ctx.check(b, w, one, distributed=False)[1]))
+    return parallel.gather_motions(tg.N, [cost(i, j) for i, j in enumerate(mine)])
+
+
+def required(state: RunState) -> Optional[list]:
+    """:meth:`EachRecord.required` of the run (None: no motion was fitted alone)."""
+    return state.history.each.required() if state.history.each else None
 
 
 def _positions(kept: list, support: list) -> list:
@@ -120,7 +149,8 @@ def _refined(ctx: RunContext, state: RunState, basis, weights, chosen: dict, tol
     chosen again; if fewer remain, EM again. Returns (basis, weights, each motion's
     fewest fields); ``chosen`` records the count (``refined``)."""
     used = weights.used() | torch.tensor(state.support or [[False] * basis.M] * ctx.tg.N)
-    sel = select.select(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance, distributed=True)
+    sel = select.select(basis, weights, ctx.tg, used, _options(ctx), tolerance=tolerance, distributed=True,
+                        required=required(state))
     chosen["refined"] = len(sel.kept)
     keep = sorted(sel.kept)
     fewest = _positions(keep, sel.support)

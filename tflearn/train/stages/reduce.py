@@ -5,9 +5,11 @@ field tried.
 
 With ``model.fields`` = 0 a field goes only if no motion gets worse; a field no motion
 uses goes as it is (:func:`idle`), and a field that a motion not reproduced needs is kept
-without a trial (:func:`carried`). Any other is tried first with every field refitted
-by EM (:func:`refit_trial`; ``solver.reduce.refit``), then, if that breaks a motion or
-refitting is off, with every other field held where it is (:func:`held_trial`: only the
+without a trial (:func:`carried`) — where the motion's own fit reproduced it: a motion
+no fit of its own reproduces holds no field (``Reference.required``). Any other is
+tried first with every field refitted by EM (:func:`refit_trial`;
+``solver.reduce.refit``), then, if that breaks a motion or refitting is off, with
+every other field held where it is (:func:`held_trial`: only the
 motions that used it re-solve their weights and are simulated again, and the few it
 loses are path-matched on the smaller basis, ``solver.reduce.shoot``). With ``sharing:
 own`` a motion that loses one of its fields may then use every field left (or those in
@@ -73,13 +75,20 @@ def no_worse(reference: Reference, scores: Scores, ok: list, costs: Optional[lis
     whatever the reference: ∞ ≤ ∞ does not count), or its relative torque cost C_j
     (``costs``, where given) rose by at most ``tol`` (δ): the fields such a motion needs
     are kept (:func:`carried`), and its simulation, already off its path, cannot tell
-    what losing another costs it. Over k removals its C_j may so rise by k·δ at most."""
+    what losing another costs it. Over k removals its C_j may so rise by k·δ at most.
+    A motion not reproduced that is not ``reference.required`` (no fit of its own
+    reproduced it) may get worse: it keeps no field."""
     costs = costs if costs is not None and reference.cost is not None else [None] * len(ok)
     bars = reference.cost or [None] * len(ok)
-    return all(now if was else (f is None and r <= r0 and p <= p0) or (c is not None and c <= c0 + tol)
-               for was, now, f, r, r0, p, p0, c, c0 in zip(reference.ok, ok, scores.failure, scores.rmse,
-                                                            reference.rmse, scores.tip, reference.tip,
-                                                            costs, bars))
+    need = reference.required or [True] * len(ok)
+
+    def kept(j: int) -> bool:
+        if reference.ok[j]:
+            return ok[j]
+        simulated = scores.failure[j] is None and scores.rmse[j] <= reference.rmse[j] and \
+            scores.tip[j] <= reference.tip[j]
+        return not need[j] or simulated or (costs[j] is not None and costs[j] <= bars[j] + tol)
+    return all(kept(j) for j in range(len(ok)))
 
 
 def run(ctx: RunContext, state: RunState) -> None:
@@ -138,11 +147,12 @@ def carried(ctx: RunContext, basis, weights, state: RunState) -> set:
     straight_reach with two fields that shooting could not carry). The others it draws
     on (copies of a needed field, fields its weights touch without need) are tried like
     any field, as are the fields of a motion whose simulation fails: a removal that lets
-    it be simulated is one that path matching needs."""
+    it be simulated is one that path matching needs. A motion that is not
+    ``reference.required`` carries none."""
     ref, used, tol = state.reference, weights.used(), ctx.cfg.solver.select.tol
-    keep = set()
-    for j, (ok, r) in enumerate(zip(ref.ok, ref.rmse)):
-        if not ok and math.isfinite(r):
+    keep, need = set(), ref.required or [True] * len(ref.ok)
+    for j, (ok, r, n) in enumerate(zip(ref.ok, ref.rmse, need)):
+        if n and not ok and math.isfinite(r):
             keep.update(select.needed(basis, weights, ctx.tg, j, used[j].nonzero().flatten().tolist(), tol))
     return {state.ids[i] for i in keep}
 
@@ -283,7 +293,9 @@ def accepts(ctx: RunContext, state: RunState, trial: Trial, tg: Targets) -> bool
     if trial.efolds is None:
         nb, nw = trial.model
         trial.efolds = ctx.efolds(nb, nw.select_motions(trial.motions), tg.select(trial.motions))
-    return all(e <= state.reference.efolds[j] + allow for j, e in zip(trial.motions, trial.efolds))
+    ref, need = state.reference, state.reference.required or [True] * tg.N
+    return all(e <= ref.efolds[j] + allow or not (need[j] or ref.ok[j])
+               for j, e in zip(trial.motions, trial.efolds))
 
 
 def apply(ctx: RunContext, state: RunState, trial: Trial, tg: Targets, total: Callable) -> bool:
