@@ -16,7 +16,8 @@ in the metric G_j of the directions motion j excites, so copies that differ only
 no motion looks are one field, and fields that differ where a motion looks are not.
 
 A subset S *serves* motion j when C_j(S) ≤ τ_j = min(c_j + δ, 1 − δ), c_j the cost of
-its own fit (or of its own fields' NNLS weights, where lower) and δ the tolerance
+its own fit (or of its own fields' NNLS weights, where lower; at least the cost of its
+fewest own fields that simulation reproduces, where given: ``floor``) and δ the tolerance
 (``SelectOptions.tol``; no subset serves with no field). :func:`select` finds a small S serving
 every motion (every motion its own fit reproduced, where some are: a motion no fit of
 its own reproduces cannot say which fields it needs, and fields that only it draws on
