@@ -53,6 +53,11 @@ class Reference:
         """The reference of a check: its scores and successes (``extra``: cost, efolds)."""
         return cls(list(scores.rmse), list(scores.tip), list(ok), **extra)
 
+    def held(self) -> list:
+        """Per motion whether elimination holds it no worse: ``required``, every motion
+        where that is None."""
+        return list(self.required) if self.required is not None else [True] * len(self.ok)
+
     def select(self, motions: list) -> Reference:
         """The reference of ``motions`` (indices) only."""
         return Reference(**{k: None if v is None else [v[j] for j in motions]

@@ -80,7 +80,7 @@ def no_worse(reference: Reference, scores: Scores, ok: list, costs: Optional[lis
     reproduced it) may get worse: it keeps no field."""
     costs = costs if costs is not None and reference.cost is not None else [None] * len(ok)
     bars = reference.cost or [None] * len(ok)
-    need = reference.required or [True] * len(ok)
+    need = reference.held()
 
     def kept(j: int) -> bool:
         if reference.ok[j]:
@@ -150,7 +150,7 @@ def carried(ctx: RunContext, basis, weights, state: RunState) -> set:
     it be simulated is one that path matching needs. A motion that is not
     ``reference.required`` carries none."""
     ref, used, tol = state.reference, weights.used(), ctx.cfg.solver.select.tol
-    keep, need = set(), ref.required or [True] * len(ref.ok)
+    keep, need = set(), ref.held()
     for j, (ok, r, n) in enumerate(zip(ref.ok, ref.rmse, need)):
         if n and not ok and math.isfinite(r):
             keep.update(select.needed(basis, weights, ctx.tg, j, used[j].nonzero().flatten().tolist(), tol))
@@ -293,7 +293,7 @@ def accepts(ctx: RunContext, state: RunState, trial: Trial, tg: Targets) -> bool
     if trial.efolds is None:
         nb, nw = trial.model
         trial.efolds = ctx.efolds(nb, nw.select_motions(trial.motions), tg.select(trial.motions))
-    ref, need = state.reference, state.reference.required or [True] * tg.N
+    ref, need = state.reference, state.reference.held()
     return all(e <= ref.efolds[j] + allow or not (need[j] or ref.ok[j])
                for j, e in zip(trial.motions, trial.efolds))
 
