@@ -927,6 +927,58 @@ def test_pool_fits_a_lost_motions_field_to_its_path_and_its_users_at_once(tmp_pa
     assert state.history.pool.shared == ["tuck_b"] and state.history.pool.success == fine
 
 
+def _tucks() -> tuple:
+    """come_here (field A) and tuck, tuck_b (a stronger, shorter tuck; both of field T):
+    (targets, A and T's centres and stiffnesses)."""
+    tuck = gestures.GESTURES["tuck"]
+    programs = [gestures.GESTURES["come_here"], tuck, dataclasses.replace(tuck, name="tuck_b", a=(3.0,),
+                                                                          duration=2.5)]
+    pairs = gestures.generate(gestures=programs)
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    lib, _, _ = gestures.library_model(programs[:2])
+    return tg, lib.eta.detach(), lib.K().detach()
+
+
+@pytest.mark.parametrize("distance", [0.05, 0.01])
+def test_elimination_folds_a_copy_into_its_twin_by_their_users_paths(tmp_path, distance):
+    """come_here on field A, tuck on T' (T moved 0.02 rad, which tuck forgives), tuck_b
+    on T itself (which it needs: docs of the share test above). Without T, tuck_b's
+    weights on what is left do not reproduce it, and the held trial is refused. T and
+    T' nearly coincide (solver.merge's 0.05 rad, 5%): folded, T' is fitted to tuck_b's
+    and tuck's paths at once, lands on T, and T goes with every motion reproduced,
+    come_here untouched (measured: T' 6e-6 rad from T). Where the fields are not alike
+    by solver.merge (0.01 rad), nothing is folded and T stays."""
+    tg, eta, K = _tucks()
+    off = eta[1].clone()
+    off[1] += 0.02
+    basis = FieldBasis(torch.stack([eta[0], off, eta[1]]), torch.cat([K, K[1:]]), kind="scalar")
+    weights = MotionWeights.zeros(3, tg.duration, tg.names)
+    torque.solve_weights(basis, weights, tg, weight_support([[True, False, False], [False, True, False],
+                                                             [False, False, True]], 0))
+    ctx = train.new_context(small_config("gestures", tmp_path / "run", "solver.reduce.shoot=0",
+                                         f"solver.merge.distance={distance}"), tg)
+    scores, ok = ctx.check(basis, weights, tg)
+    assert ok == [True, True, True]
+    costs = torque.torque_costs(basis, weights, tg).tolist()
+    state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(), ids=[0, 1, 2],
+                           reference=Reference.of(scores, ok, cost=costs))
+    held = reduce.held_trial(ctx, basis, weights, tg, state, 2)
+    assert not reduce.accepts(ctx, state, held, tg) and held.motions == [2] and held.check[1] == [False]
+    folded = reduce.folded_trial(ctx, basis, weights, tg, state, held)
+    if distance < 0.02:
+        assert folded is None
+        return
+    b, w = folded.model
+    moved = float((b.eta.detach()[1] - eta[1]).abs().max())
+    print("T' off T by", moved, "rmse", folded.check[0].rmse)
+    assert folded.kind == "folded" and reduce.accepts(ctx, state, folded, tg)
+    assert b.M == 2 and moved < 0.005 and torch.equal(b.eta.detach()[0], eta[0])
+    assert sorted(folded.motions) == [1, 2] and max(folded.check[0].rmse) < 0.01
+    assert w.used().tolist() == [[True, False], [False, True], [False, True]]
+    assert torch.equal(w.a.detach()[0], weights.a.detach()[0, :2])
+    assert folded.cost == pytest.approx(float(torque.torque_costs(b, w, tg).sum()), rel=1e-9)
+
+
 def test_training_warns_of_an_unresolved_motion():
     """A wrist twisting at 25 Hz sampled at 100 Hz (4 samples per period) is named in a
     warning; the same twist at 1 Hz is not."""

@@ -182,6 +182,12 @@ class ReduceSection(Section):                   # backward elimination of pooled
     # and is judged after: a field whose users need only their weights moved goes; 0: a
     # held trial is judged on its NNLS weights alone
     shoot: int = Field(4, ge=0)
+    # true: a field whose removal the held trial refuses, and that nearly coincides with
+    # a field left (solver.merge's distance and stiffness: a copy of one field), is tried
+    # once more folded into it — that field fitted, free, to the paths of the motions the
+    # removal lost and of the users of strongest error growth (solver.select.users), all
+    # at once, by multiple shooting — and removed if every motion stays as good
+    fold: bool = True
 
 
 class SelectSection(Section):                   # the shared basis chosen among pooled fields

@@ -171,6 +171,15 @@ def _shares(basis: FieldBasis, weights: MotionWeights, tg: Targets) -> torch.Ten
 
 
 @torch.no_grad()
+def coincide(basis: FieldBasis, distance: float, stiffness: float) -> torch.Tensor:
+    """M×M bools: whether fields i and k nearly coincide — centres within ``distance``
+    (rad, Euclidean), stiffnesses within the fraction ``stiffness`` of field i's
+    (‖K_i − K_k‖_F < stiffness · ‖K_i‖_F); every field coincides with itself."""
+    eta, flat, exact = basis.eta.detach(), basis.K().detach().flatten(1), "donot_use_mm_for_euclid_dist"
+    near = torch.cdist(eta, eta, compute_mode=exact) < distance
+    return near & (torch.cdist(flat, flat, compute_mode=exact) < stiffness * flat.norm(dim=1, keepdim=True))
+
+
 def merge_close(basis: FieldBasis, weights: MotionWeights, distance: float, stiffness: float):
     """Merge fields that nearly coincide: field k joins the cluster of the first field i <
     k that has not joined another's and whose centre is within
@@ -182,10 +191,7 @@ def merge_close(basis: FieldBasis, weights: MotionWeights, distance: float, stif
     Returns new (basis, weights, merged pairs (first, other member)); the inputs are
     left unchanged."""
     eta, K = basis.eta.detach(), basis.K().detach()
-    flat, exact = K.flatten(1), "donot_use_mm_for_euclid_dist"
-    near = torch.cdist(eta, eta, compute_mode=exact) < distance
-    alike = torch.cdist(flat, flat, compute_mode=exact) < stiffness * flat.norm(dim=1, keepdim=True)
-    close = (near & alike).triu(1)
+    close = coincide(basis, distance, stiffness).triu(1)
     merged, used = [], set()
     for i in range(basis.M):
         if i in used:

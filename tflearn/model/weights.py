@@ -279,6 +279,19 @@ class MotionWeights(nn.Module):
             p[idx] = x[:, k:k + d].reshape((len(idx),) + p.shape[1:]).to(p.dtype)
             k += d
 
+    @torch.no_grad()
+    def put_(self, j: int, fields: Sequence[int], arrays: dict) -> None:
+        """Motion j on ``fields`` (positions) alone, in place: its a, b, c zero elsewhere,
+        ``arrays`` (:meth:`timing` with weights: per field, or per motion for the
+        windows) written into those fields' columns."""
+        for key in ("a_raw", "b_raw", "c_raw"):
+            getattr(self, key)[j] = 0.0
+        for key, row in arrays.items():
+            if key in self.WINDOWS:
+                getattr(self, key)[j] = row
+            else:
+                getattr(self, key)[j, list(fields)] = row
+
     def with_flat(self, keys: Sequence[str], x: torch.Tensor, motions: Sequence[int]) -> MotionWeights:
         """New weights (detached) with one row r per entry of ``motions``: motion
         motions[r]'s, its arrays ``keys`` replaced by x[r] (the layout of :meth:`flat`;

@@ -168,6 +168,28 @@ class RunContext:
                                 distributed=distributed)
         return True
 
+    def fit_shared(self, basis, weights, motions: list, drives: list, free: list) -> Optional[tuple]:
+        """``motions`` (indices into the run's) each on the fields it drives (``drives``:
+        positions, per motion) alone, their NNLS weights on them, then the ``free`` fields
+        and every motion's weights fitted to all their paths at once by multiple shooting,
+        the other fields held (:meth:`shoot_fields`, every rank simulating its share of the
+        segments): (basis, weights of every motion, whether simulation reproduces each of
+        ``motions``) with the ``free`` fields moved and those motions' weights on their
+        fields alone; None where shooting of fields is off."""
+        fields = list(dict.fromkeys(free + [i for d in drives for i in d]))
+        tg, b = self.tg.select(motions), basis.select(fields)
+        w = weights.select_motions(motions).select_fields(fields)
+        torque.solve_weights(b, w, tg, weight_support([[i in d for i in fields] for d in drives], w.P))
+        if not self.shoot_fields(b, w, tg, free=tuple(range(len(free))), distributed=True):
+            return None
+        fine = self.check(b, w, tg)[1]
+        eta, K = basis.eta.detach().clone(), basis.K().detach().clone()
+        eta[free], K[free] = b.eta.detach()[:len(free)], b.K().detach()[:len(free)]
+        nw = weights.select_motions(range(weights.N))
+        for i, j in enumerate(motions):
+            nw.put_(j, fields, w.timing(i, weights=True))
+        return basis.like(eta, K), nw, fine
+
     def shoot(self, state: Optional[RunState], basis, weights, motions: list, options=None) -> None:
         """Multiple-shooting path matching of ``motions``' programs, the basis fixed
         (:func:`tflearn.synthesis.shoot`; ``options``, by default ``solver.shooting``'s),

@@ -26,7 +26,6 @@ from ... import parallel
 from ...fit import search, select, torque
 from ...metrics import Scores
 from ...model.program import model_from_state, model_state
-from ...model.weights import MotionWeights
 from ...plots.model import knee
 from ..context import RunContext
 from ..models import weight_support
@@ -247,17 +246,17 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
 def _moved(ctx: RunContext, state: RunState, basis, weights, motions: list, fewest: list,
            ok: list) -> Optional[tuple]:
     """The lost motion ``motions[0]``'s fewest fields S fitted with its users
-    (``motions[1:]``) by :func:`_joint` — once more without the users that fit loses, if
+    (``motions[1:]``) by :meth:`RunContext.fit_shared` — once more without the users that fit loses, if
     it reproduces the motion —, then they and every other reproduced motion with a
     weight on S checked on the whole model (:func:`_kept`: a motion whose path amplifies
     round-off may not pass on the whole basis what it passed on S and its users' fields):
     (basis, weights, the motions whose programs changed), or None where any of them is
     not reproduced."""
     S = fewest[motions[0]]
-    trial = _joint(ctx, basis, weights, motions, [fewest[k] for k in motions], S)
+    trial = ctx.fit_shared(basis, weights, motions, [fewest[k] for k in motions], S)
     if trial is not None and trial[2][0] and not all(trial[2]):
         motions = [k for k, f in zip(motions, trial[2]) if f]
-        trial = _joint(ctx, basis, weights, motions, [fewest[k] for k in motions], S)
+        trial = ctx.fit_shared(basis, weights, motions, [fewest[k] for k in motions], S)
     if trial is None or not all(trial[2]):
         return None
     nb, nw, _ = trial
@@ -278,43 +277,6 @@ def _kept(ctx: RunContext, state: RunState, basis, weights, motions: list) -> bo
     if not lost or not ctx.cfg.solver.select.shooting:
         return not lost
     return all(ctx.path_matched(basis, weights, lost, state)[1])
-
-
-def _joint(ctx: RunContext, basis, weights, motions: list, drives: list, free: list) -> Optional[tuple]:
-    """``motions`` each on the fields it drives (``drives``: indices, per motion) alone,
-    their NNLS weights on them, then the ``free`` fields and every motion's weights
-    fitted to all their paths at once by multiple shooting, the other fields held
-    (:meth:`RunContext.shoot_fields`, every rank of a run simulating its share of the
-    segments): (basis, weights, whether simulation reproduces each of ``motions``) with
-    the ``free`` fields moved and those motions' weights on their fields alone; None
-    where shooting of fields is off."""
-    fields = list(dict.fromkeys(free + [i for d in drives for i in d]))
-    tg, b = ctx.tg.select(motions), basis.select(fields)
-    w = weights.select_motions(motions).select_fields(fields)
-    torque.solve_weights(b, w, tg, weight_support([[i in d for i in fields] for d in drives], w.P))
-    if not ctx.shoot_fields(b, w, tg, free=tuple(range(len(free))), distributed=True):
-        return None
-    fine = ctx.check(b, w, tg)[1]
-    eta, K = basis.eta.detach().clone(), basis.K().detach().clone()
-    eta[free], K[free] = b.eta.detach()[:len(free)], b.K().detach()[:len(free)]
-    nw = weights.select_motions(range(weights.N))
-    for i, j in enumerate(motions):
-        _put(nw, j, fields, w.timing(i, weights=True))
-    return basis.like(eta, K), nw, fine
-
-
-@torch.no_grad()
-def _put(weights: MotionWeights, j: int, fields: list, arrays: dict) -> None:
-    """Motion j on ``fields`` (positions) alone: its a, b, c zero elsewhere, ``arrays``
-    (:meth:`MotionWeights.timing` with weights: per field, or per motion for the
-    windows) written into those fields' columns."""
-    for key in ("a_raw", "b_raw", "c_raw"):
-        getattr(weights, key)[j] = 0.0
-    for key, row in arrays.items():
-        if key in MotionWeights.WINDOWS:
-            getattr(weights, key)[j] = row
-        else:
-            getattr(weights, key)[j, fields] = row
 
 
 def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
@@ -344,7 +306,7 @@ def restore(ctx: RunContext, state: RunState, scores: Scores, ok: list,
     support = [row + [False] * (nb.M - M0) for row in rows]
     start = M0
     for j, (eta, _, fit) in zip(lost, own):
-        _put(nw, j, list(range(start, start + len(eta))), fit)
+        nw.put_(j, list(range(start, start + len(eta))), fit)
         support[j] = [start <= i < start + len(eta) for i in range(nb.M)]
         start += len(eta)
     check, fine = ctx.check(nb, nw.select_motions(lost), tg.select(lost))

@@ -13,8 +13,11 @@ every other field held where it is (:func:`held_trial`: only the
 motions that used it re-solve their weights and are simulated again, and the few it
 loses are path-matched on the smaller basis, ``solver.reduce.shoot``). With ``sharing:
 own`` a motion that loses one of its fields may then use every field left (or those in
-reach, ``solver.reduce.reach``). With ``model.fields`` = M the smallest-share fields go
-until M remain (refitted).
+reach, ``solver.reduce.reach``). A field the held trial may not remove, and that
+nearly coincides with a field left, is tried once more folded into it
+(:func:`folded_trial`: that field fitted to the paths of the motions the removal lost
+and of its most sensitive users, all at once; ``solver.reduce.fold``). With
+``model.fields`` = M the smallest-share fields go until M remain (refitted).
 
 With ``solver.path.batch: each`` (one process) the refitted trials of the next fields
 are checked together in one simulation (:func:`~tflearn.metrics.score_models`) and
@@ -46,7 +49,8 @@ NAME, TITLE, UNIT = "reduce", "reduce: try dropping fields", "fields"
 @dataclass
 class Trial:
     """A field tried for removal: its id (``victim``), how (``kind``: ``refit``,
-    ``held``, or ``none``: kept without a trial, ``refused`` saying why), the positions
+    ``held``, ``folded`` into a near copy, or ``none``: kept without a trial,
+    ``refused`` saying why), the positions
     kept, the model without it (basis, weights) and the fields each motion may then use
     (``support``), its summed torque cost Σ_j C_j (``costs``: per motion, for a held
     trial, and for a refitted one once judged where a motion was not reproduced), its EM
@@ -131,6 +135,8 @@ def run(ctx: RunContext, state: RunState) -> None:
         if not (refit and accepts(ctx, state, trial, tg)) and not fixed:
             held = held_trial(ctx, basis, weights, tg, state, victim)
             trial = held if accepts(ctx, state, held, tg) or not refit else trial
+            if not accepts(ctx, state, trial, tg):
+                trial = folded_trial(ctx, basis, weights, tg, state, held) or trial
         removed = accepts(ctx, state, trial, tg)
         state.window = 1 if removed else 2 * window if i == len(victims) - 1 else window
         if apply(ctx, state, trial, tg, total):
@@ -217,11 +223,70 @@ def held_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState, vi
         for j, x in zip(users, after.tolist()):
             costs[j] = x
         users, check, shot = held_check(ctx, state, users, (nb, nw), costs)
-        if shot:                                     # their weights moved off the NNLS optimum
-            for j, x in zip(shot, torque.torque_costs(nb, nw.select_motions(shot), tg.select(shot)).tolist()):
-                costs[j] = x
+        _costed(costs, nb, nw, tg, shot)           # their weights moved off the NNLS optimum
     return Trial(victim, "held", model=(nb, nw), keep=keep, support=support, cost=math.fsum(costs),
                  costs=costs, check=check, motions=users)
+
+
+def folded_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState,
+                 held: Trial) -> Optional[Trial]:
+    """Field ``held.victim`` folded into its twin, the nearest field left that nearly
+    coincides with it (:func:`~tflearn.fit.search.coincide` by ``solver.merge``'s
+    distance and stiffness: a copy of one field that motions found apart): the twin is
+    fitted by multiple shooting, free, to the paths of the reproduced motions that the
+    held trial lost and of up to ``solver.select.users`` reproduced users of the twin
+    whose simulations amplify errors most (e-folds of growth), all at once
+    (:meth:`RunContext.fit_shared`); then every user of the victim or of the twin is
+    simulated (:func:`held_check`). None where ``solver.reduce.fold`` is off, there is
+    no twin or nothing was lost, or the fit loses what it was for."""
+    c, ref = ctx.cfg.solver, state.reference
+    lost = [j for j, o in zip(held.motions, held.check[1] if held.check else []) if ref.ok[j] and not o]
+    pos = state.ids.index(held.victim)
+    twin = _twin(basis, pos, c.merge.distance, c.merge.stiffness)
+    if not (c.reduce.fold and lost and twin is not None):
+        return None
+    (nb, nw), t = held.model, held.keep.index(twin)
+    used = nw.used()
+    users = [j for j in used[:, t].nonzero().flatten().tolist() if ref.ok[j] and j not in lost]
+    growth = torch.tensor(ctx.efolds(nb, nw.select_motions(users), tg.select(users)) if users else [])
+    motions = lost + [users[i] for i in torch.argsort(growth, descending=True, stable=True)[:c.select.users]]
+    ctx.log.busy(M=basis.M, folding=held.victim, into=state.ids[twin], lost=len(lost))
+    drives = [sorted({*used[j].nonzero().flatten().tolist(), t}) for j in motions]
+    fit = ctx.fit_shared(nb, nw, motions, drives, [t])
+    if fit is None or not all(fit[2][:len(lost)]):
+        return None
+    fb, fw, _ = fit
+    support = None if held.support is None else [list(row) for row in held.support]
+    for j in motions if support is not None else ():
+        support[j][t] = True
+    changed = sorted({*weights.used()[:, pos].nonzero().flatten().tolist(),
+                      *fw.used()[:, t].nonzero().flatten().tolist(), *motions})
+    costs = _costed(list(held.costs), fb, fw, tg, changed)
+    done, check, shot = held_check(ctx, state, changed, (fb, fw), costs)
+    _costed(costs, fb, fw, tg, shot)
+    return Trial(held.victim, "folded", model=(fb, fw), keep=held.keep, support=support,
+                 cost=math.fsum(costs), costs=costs, check=check, motions=done)
+
+
+def _costed(costs: list, basis, weights, tg: Targets, motions: list) -> list:
+    """``costs`` (every motion's), those of ``motions`` replaced in place by their torque
+    costs on the model (basis, weights of every motion)."""
+    if motions:
+        for j, x in zip(motions, torque.torque_costs(basis, weights.select_motions(motions),
+                                                     tg.select(motions)).tolist()):
+            costs[j] = x
+    return costs
+
+
+def _twin(basis, pos: int, distance: float, stiffness: float) -> Optional[int]:
+    """The position of the field nearest field ``pos`` (centres, rad) among those that
+    nearly coincide with it (:func:`~tflearn.fit.search.coincide`); None if none does."""
+    near = search.coincide(basis, distance, stiffness)[pos]
+    near[pos] = False
+    if not near.any():
+        return None
+    d = (basis.eta.detach() - basis.eta.detach()[pos]).norm(dim=1)
+    return int(torch.where(near, d, torch.full_like(d, math.inf)).argmin())
 
 
 def held_check(ctx: RunContext, state: RunState, users: list, new: tuple, costs: list) -> tuple:
