@@ -125,7 +125,8 @@ class ModelRecord:
 @dataclass
 class Removal:
     """One field tried for removal (``reduce``): whether it was ``removed``, by which
-    ``trial`` (refit, held, or none with why it was ``refused``), M after."""
+    ``trial`` (refit, held, folded, or none; why it was ``refused`` where the trial
+    says), M after."""
 
     field: int
     removed: bool

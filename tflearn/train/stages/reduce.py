@@ -237,8 +237,9 @@ def folded_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState,
     held trial lost and of up to ``solver.select.users`` reproduced users of the twin
     whose simulations amplify errors most (e-folds of growth), all at once
     (:meth:`RunContext.fit_shared`); then every user of the victim or of the twin is
-    simulated (:func:`held_check`). None where ``solver.reduce.fold`` is off, there is
-    no twin or nothing was lost, or the fit loses what it was for."""
+    simulated (:func:`held_check`). None where ``solver.reduce.fold`` or the shooting of
+    fields is off, there is no twin or nothing was lost; ``refused``, naming the motions,
+    where the fit leaves a lost motion unreproduced or the moved twin loses a user."""
     c, ref = ctx.cfg.solver, state.reference
     lost = [j for j, o in zip(held.motions, held.check[1] if held.check else []) if ref.ok[j] and not o]
     pos = state.ids.index(held.victim)
@@ -252,9 +253,13 @@ def folded_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState,
     motions = lost + [users[i] for i in torch.argsort(growth, descending=True, stable=True)[:c.select.users]]
     ctx.log.busy(M=basis.M, folding=held.victim, into=state.ids[twin], lost=len(lost))
     drives = [sorted({*used[j].nonzero().flatten().tolist(), t}) for j in motions]
-    fit = ctx.fit_shared(nb, nw, motions, drives, [t])
-    if fit is None or not all(fit[2][:len(lost)]):
+    fit, into = ctx.fit_shared(nb, nw, motions, drives, [t]), f"folded into field {state.ids[twin]}"
+    if fit is None:
         return None
+    if not all(fit[2][:len(lost)]):
+        left = [tg.names[j] for j, f in zip(lost, fit[2]) if not f]
+        return Trial(held.victim, "folded", refused=f"{into}: fitted to {len(motions)} paths, it leaves "
+                                                    f"{', '.join(left)} unreproduced")
     fb, fw, _ = fit
     support = None if held.support is None else [list(row) for row in held.support]
     for j in motions if support is not None else ():
@@ -264,8 +269,10 @@ def folded_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState,
     costs = _costed(list(held.costs), fb, fw, tg, changed)
     done, check, shot = held_check(ctx, state, changed, (fb, fw), costs)
     _costed(costs, fb, fw, tg, shot)
+    after = [tg.names[j] for j, f in zip(done, check[1]) if ref.ok[j] and not f]
     return Trial(held.victim, "folded", model=(fb, fw), keep=held.keep, support=support,
-                 cost=math.fsum(costs), costs=costs, check=check, motions=done)
+                 cost=math.fsum(costs), costs=costs, check=check, motions=done,
+                 refused=f"{into}: {', '.join(after)} no longer reproduced" if after else None)
 
 
 def _costed(costs: list, basis, weights, tg: Targets, motions: list) -> list:
