@@ -180,6 +180,7 @@ def coincide(basis: FieldBasis, distance: float, stiffness: float) -> torch.Tens
     return near & (torch.cdist(flat, flat, compute_mode=exact) < stiffness * flat.norm(dim=1, keepdim=True))
 
 
+@torch.no_grad()
 def merge_close(basis: FieldBasis, weights: MotionWeights, distance: float, stiffness: float):
     """Merge fields that nearly coincide: field k joins the cluster of the first field i <
     k that has not joined another's and whose centre is within

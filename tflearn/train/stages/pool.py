@@ -246,8 +246,8 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
 def _moved(ctx: RunContext, state: RunState, basis, weights, motions: list, fewest: list,
            ok: list) -> Optional[tuple]:
     """The lost motion ``motions[0]``'s fewest fields S fitted with its users
-    (``motions[1:]``) by :meth:`RunContext.fit_shared` — once more without the users that fit loses, if
-    it reproduces the motion —, then they and every other reproduced motion with a
+    (``motions[1:]``) by :meth:`RunContext.fit_shared` — once more without the users
+    that fit loses, if it reproduces the motion —, then they and every other reproduced motion with a
     weight on S checked on the whole model (:func:`_kept`: a motion whose path amplifies
     round-off may not pass on the whole basis what it passed on S and its users' fields):
     (basis, weights, the motions whose programs changed), or None where any of them is
