@@ -890,6 +890,18 @@ def test_pool_restores_the_fields_a_motion_was_reproduced_with(tmp_path):
     assert state.history.pool.M == 3
 
 
+def _tucks() -> tuple:
+    """come_here (field A) and tuck, tuck_b (a stronger, shorter tuck; both of field T):
+    (targets, A and T's centres and stiffnesses)."""
+    tuck = gestures.GESTURES["tuck"]
+    programs = [gestures.GESTURES["come_here"], tuck, dataclasses.replace(tuck, name="tuck_b", a=(3.0,),
+                                                                          duration=2.5)]
+    pairs = gestures.generate(gestures=programs)
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    lib, _, _ = gestures.library_model(programs[:2])
+    return tg, lib.eta.detach(), lib.K().detach()
+
+
 def test_pool_fits_a_lost_motions_field_to_its_path_and_its_users_at_once(tmp_path):
     """tuck and tuck_b (a stronger, shorter tuck) are made by one field, come_here by
     another; the pooled copy of the tuck field is 0.02 rad off, which tuck_b's path does
@@ -897,13 +909,7 @@ def test_pool_fits_a_lost_motions_field_to_its_path_and_its_users_at_once(tmp_pa
     at once reproduces all three on the two fields, tuck field back on the generating one;
     nothing is restored; come_here's field and scores are untouched (measured: the
     tuck field 6e-6 rad from the generating one, every RMSE below 1e-6 rad)."""
-    tuck = gestures.GESTURES["tuck"]
-    programs = [gestures.GESTURES["come_here"], tuck, dataclasses.replace(tuck, name="tuck_b", a=(3.0,),
-                                                                          duration=2.5)]
-    pairs = gestures.generate(gestures=programs)
-    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
-    lib, _, _ = gestures.library_model(programs[:2])
-    eta, K = lib.eta.detach(), lib.K().detach()
+    tg, eta, K = _tucks()
     moved = eta.clone()
     moved[1, 1] += 0.02
     basis = FieldBasis(moved, K, kind="scalar")
@@ -925,18 +931,6 @@ def test_pool_fits_a_lost_motions_field_to_its_path_and_its_users_at_once(tmp_pa
     assert off < 0.005
     assert w.used().tolist() == [[True, False], [False, True], [False, True]]
     assert state.history.pool.shared == ["tuck_b"] and state.history.pool.success == fine
-
-
-def _tucks() -> tuple:
-    """come_here (field A) and tuck, tuck_b (a stronger, shorter tuck; both of field T):
-    (targets, A and T's centres and stiffnesses)."""
-    tuck = gestures.GESTURES["tuck"]
-    programs = [gestures.GESTURES["come_here"], tuck, dataclasses.replace(tuck, name="tuck_b", a=(3.0,),
-                                                                          duration=2.5)]
-    pairs = gestures.generate(gestures=programs)
-    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
-    lib, _, _ = gestures.library_model(programs[:2])
-    return tg, lib.eta.detach(), lib.K().detach()
 
 
 @pytest.mark.parametrize("distance", [0.05, 0.01])
