@@ -244,7 +244,7 @@ def folded_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState,
     lost = [j for j, o in zip(held.motions, held.check[1] if held.check else []) if ref.ok[j] and not o]
     pos = state.ids.index(held.victim)
     twin = _twin(basis, pos, c.merge.distance, c.merge.stiffness)
-    if not (c.reduce.fold and lost and twin is not None):
+    if not (c.reduce.fold and c.shooting.fields and c.shooting.iterations and lost and twin is not None):
         return None
     (nb, nw), t = held.model, held.keep.index(twin)
     used = nw.used()
@@ -254,8 +254,6 @@ def folded_trial(ctx: RunContext, basis, weights, tg: Targets, state: RunState,
     ctx.log.busy(M=basis.M, folding=held.victim, into=state.ids[twin], lost=len(lost))
     drives = [sorted({*used[j].nonzero().flatten().tolist(), t}) for j in motions]
     fit, into = ctx.fit_shared(nb, nw, motions, drives, [t]), f"folded into field {state.ids[twin]}"
-    if fit is None:
-        return None
     if not all(fit[2][:len(lost)]):
         left = [tg.names[j] for j, f in zip(lost, fit[2]) if not f]
         return Trial(held.victim, "folded", refused=f"{into}: fitted to {len(motions)} paths, it leaves "
