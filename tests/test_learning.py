@@ -973,6 +973,40 @@ def test_elimination_folds_a_copy_into_its_twin_by_their_users_paths(tmp_path, d
     assert folded.cost == pytest.approx(float(torque.torque_costs(b, w, tg).sum()), rel=1e-9)
 
 
+@pytest.mark.slow
+def test_a_fold_of_two_fields_each_needed_is_refused_naming_the_motion(tmp_path):
+    """tuck_c made by T' (T moved 0.045 rad, within solver.merge's 0.05: twins) and
+    tuck_b by T, each as strong: at a 1 mrad bar neither field serves the other's
+    motion. Without T the held trial loses tuck_b; folded, T' fitted to both paths at
+    once sits between them and reproduces neither to the bar (measured: 0.0019 rad
+    each), so the fold is refused, naming tuck_b, and T stays."""
+    tuck = gestures.GESTURES["tuck"]
+    moved = list(tuck.eta[0])
+    moved[1] += 0.045
+    strong = dict(a=(3.0,), duration=2.5)
+    programs = [gestures.GESTURES["come_here"],
+                dataclasses.replace(tuck, name="tuck_c", eta=(tuple(moved),), **strong),
+                dataclasses.replace(tuck, name="tuck_b", **strong)]
+    pairs = gestures.generate(gestures=programs)
+    tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
+    lib, _, _ = gestures.library_model(programs)
+    basis = FieldBasis(lib.eta.detach(), lib.K().detach(), kind="scalar")
+    weights = MotionWeights.zeros(3, tg.duration, tg.names)
+    torque.solve_weights(basis, weights, tg, weight_support(torch.eye(3, dtype=torch.bool).tolist(), 0))
+    ctx = train.new_context(small_config("gestures", tmp_path / "run", "solver.reduce.shoot=0",
+                                         "success.rmse=0.001", "success.tip=0.001"), tg)
+    scores, ok = ctx.check(basis, weights, tg)
+    assert ok == [True, True, True]
+    costs = torque.torque_costs(basis, weights, tg).tolist()
+    state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(), ids=[0, 1, 2],
+                           reference=Reference.of(scores, ok, cost=costs))
+    held = reduce.held_trial(ctx, basis, weights, tg, state, 2)
+    assert held.check[1] == [False]
+    folded = reduce.folded_trial(ctx, basis, weights, tg, state, held)
+    assert folded.kind == "folded" and not reduce.accepts(ctx, state, folded, tg)
+    assert folded.refused == "folded into field 1: fitted to 2 paths, it leaves tuck_b unreproduced"
+
+
 def test_training_warns_of_an_unresolved_motion():
     """A wrist twisting at 25 Hz sampled at 100 Hz (4 samples per period) is named in a
     warning; the same twist at 1 Hz is not."""
