@@ -53,6 +53,7 @@ from scipy.spatial.transform import Rotation
 from ..motions.motion import Motion
 from ..physics import dynamics
 from ..physics.body import Body, arm
+from . import skeleton as sk
 from .bvh import CM, BVHError, Skeleton, channel_values, read
 
 HAND_RATIO = 0.108 / (0.186 + 0.146)     # Winter (2009): hand / (upper arm + forearm)
@@ -125,16 +126,100 @@ def map_from_dict(doc, where: str) -> ArmMap:
 
 
 def find_map(skel: Skeleton, side: str) -> ArmMap:
-    """The built-in map of ``side`` whose joints the skeleton has (BVHError if none)."""
+    """The built-in map of ``side`` whose joints the skeleton has, else the map read from
+    its joint names and rest offsets (:func:`infer_map`); BVHError, naming the joints,
+    if neither fits."""
     if side not in ("right", "left"):
         raise ValueError(f"side must be 'right' or 'left', got {side!r}")
     for maps in MAPS.values():
         if set(maps[side].names) <= set(skel.joints):
             return maps[side]
-    raise BVHError(skel.source, f"no built-in arm map fits this skeleton (the {side} arm of "
-                              f"{' or '.join(MAPS)} needs joints "
-                              f"{' / '.join(', '.join(m[side].names) for m in MAPS.values())}); "
-                              f"its joints: {', '.join(skel.joints)}")
+    try:
+        return infer_map(skel, side)
+    except BVHError as e:
+        raise BVHError(skel.source, f"no built-in arm map fits this skeleton (the {side} arm of "
+                                  f"{' or '.join(MAPS)} needs joints "
+                                  f"{' / '.join(', '.join(m[side].names) for m in MAPS.values())}) "
+                                  f"and none can be read from its names: {e.problem}; give one with "
+                                  f"--map; its joints: {', '.join(skel.joints)}") from None
+
+
+def infer_map(skel: Skeleton, side: str) -> ArmMap:
+    """The ``side`` arm's map read from a skeleton's joint names and rest offsets, for
+    skeletons no built-in map knows (Mixamo's ``mixamorig:RightHand``, 3ds Max's
+    ``Bip01 R Hand``, …): the wrist is the one joint of that side classed as a hand
+    whose parent is a forearm and grandparent an upper arm (the elbow and shoulder;
+    :func:`tflearn.mocap.skeleton.segment_class` and :func:`~tflearn.mocap.skeleton.side`),
+    the chest the nearest joint both shoulders descend from. In the zero pose every
+    joint's frame is the root's, so the chest's axes in its own frame are directions
+    between rest positions (OFFSETs summed from the root): up, from the chest to the
+    farthest head or neck joint below it; left, between the first joints of the two
+    arms' chains from the chest that lie apart (the clavicles, or the shoulders where
+    the clavicles sit at the chest). The hinge is fitted to each clip. A constant error
+    in these axes turns the base frame, which the shoulder's chart (its chordal mean,
+    :func:`shoulder_zero`) takes back: the coordinates do not depend on it."""
+    arms = {s: _arm_chain(skel, s) for s in ("right", "left")}
+    chest = _common_ancestor(skel, arms["right"][0], arms["left"][0])
+    rest = np.zeros((len(skel.joints), 3))
+    for j, p in enumerate(skel.parents):
+        rest[j] = skel.offsets[j] + (rest[p] if p >= 0 else 0.0)
+    below = _descendants(skel, chest)
+    heads = [j for j in below if sk.segment_class(skel.joints[j]) == "head"]
+    if not heads:
+        raise BVHError(skel.source, f"no head or neck joint below the chest {skel.joints[chest]!r}")
+    up = rest[max(heads, key=lambda j: np.linalg.norm(rest[j] - rest[chest]))] - rest[chest]
+    paths = [_path_from(skel, chest, arms[s][0]) for s in ("left", "right")]
+    apart = [rest[a] - rest[b] for a, b in zip(*paths) if np.linalg.norm(rest[a] - rest[b]) > 1e-6]
+    if not apart:
+        raise BVHError(skel.source, "the two arms' rest positions coincide: no left axis")
+    left = apart[0] - (apart[0] @ up) / (up @ up) * up
+    if not np.linalg.norm(left) > 1e-3 * np.linalg.norm(apart[0]):
+        raise BVHError(skel.source, "the arms lie along the chest-to-head direction: no left axis")
+    shoulder, elbow, wrist = arms[side]
+    return ArmMap(skel.joints[chest], skel.joints[shoulder], skel.joints[elbow], skel.joints[wrist],
+                  up=tuple(map(float, up / np.linalg.norm(up))),
+                  left=tuple(map(float, left / np.linalg.norm(left))))
+
+
+def _arm_chain(skel: Skeleton, arm_side: str) -> tuple:
+    """(shoulder, elbow, wrist) indices of one side's arm by the joints' classes."""
+    cls = [sk.segment_class(n) for n in skel.joints]
+    found = [(skel.parents[skel.parents[j]], skel.parents[j], j) for j, n in enumerate(skel.joints)
+             if cls[j] == "hand" and sk.side(n) == arm_side and skel.parents[j] >= 0
+             and cls[skel.parents[j]] == "forearm" and skel.parents[skel.parents[j]] >= 0
+             and cls[skel.parents[skel.parents[j]]] == "upper_arm"]
+    if len(found) != 1:
+        raise BVHError(skel.source, f"{'no' if not found else len(found)} {arm_side} hand joint(s) "
+                                  f"below a forearm below an upper arm")
+    return found[0]
+
+
+def _ancestors(skel: Skeleton, j: int) -> list:
+    """j and its ancestors, j first."""
+    out = [j]
+    while skel.parents[out[-1]] >= 0:
+        out.append(skel.parents[out[-1]])
+    return out
+
+
+def _common_ancestor(skel: Skeleton, a: int, b: int) -> int:
+    """The nearest joint that ``a`` and ``b`` both descend from (strictly)."""
+    above = set(_ancestors(skel, b)[1:])
+    return next(j for j in _ancestors(skel, a)[1:] if j in above)
+
+
+def _descendants(skel: Skeleton, j: int) -> list:
+    """The joints below j (file order: parents before children)."""
+    inside = {j}
+    for k, p in enumerate(skel.parents):
+        if p in inside:
+            inside.add(k)
+    return sorted(inside - {j})
+
+
+def _path_from(skel: Skeleton, top: int, j: int) -> list:
+    """The joints from ``top``'s child down to j."""
+    return _ancestors(skel, j)[:_ancestors(skel, j).index(top)][::-1]
 
 
 def _unit(x, what: str, where: str) -> np.ndarray:

@@ -48,9 +48,14 @@ AXIAL = ("trunk", "head")     # one segment each, whatever the side of its bones
 MIN_LENGTH = 0.02
 
 
+def _bare(name: str) -> str:
+    """A joint name without its namespace (``mixamorig:RightHand`` → ``RightHand``)."""
+    return name.rsplit(":", 1)[-1]
+
+
 def segment_class(name: str) -> str:
     """The anthropometric class of a joint's bone (:data:`CLASSES`; else "trunk")."""
-    low = name.lower()
+    low = _bare(name).lower()
     for pattern, cls in CLASSES:
         if re.search(pattern, low):
             return cls
@@ -58,11 +63,14 @@ def segment_class(name: str) -> str:
 
 
 def side(name: str) -> str:
-    """"left", "right" or "centre" from a joint name (LeftArm, LHipJoint, Hand_L …)."""
-    if name.lower().startswith("left") or re.match(r"L[A-Z]", name) or name.endswith(("_L", ".L")):
-        return "left"
-    if name.lower().startswith("right") or re.match(r"R[A-Z]", name) or name.endswith(("_R", ".R")):
-        return "right"
+    """"left", "right" or "centre" from a joint name (LeftArm, LHipJoint, Hand_L, hand.l,
+    mixamorig:RightHand, Bip01 R Hand …)."""
+    bare = _bare(name)
+    for word, s in (("left", "left"), ("right", "right")):
+        letter = word[0].upper()
+        if bare.lower().startswith(word) or re.match(rf"{letter}[A-Z]", bare) or \
+                re.search(rf"[_.\s]{letter}$|\s{letter}\s", bare, flags=re.IGNORECASE):
+            return s
     return "centre"
 
 
