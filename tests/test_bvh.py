@@ -2,6 +2,7 @@
 parity on the shared clips, bad files, and a write → read round trip."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -71,6 +72,25 @@ def test_units_and_heights(mocap):
     assert cmu.world()[1][0, 0, 1] == pytest.approx(17.0 * bvh.CMU_UNIT, rel=0.1)
     assert ban.world()[1][0, ban.index("Hips"), 1] == pytest.approx(0.94, abs=0.03)
 
+
+@pytest.mark.parametrize("unit", ["m", "mm", "inch", "CMU's"])
+def test_a_files_unit_is_read_from_its_arm(mocap, tmp_path, unit):
+    """A Bandai clip written in metres, millimetres, inches or CMU's unit (its offsets and
+    position channels) reads back in that unit, by its arm's length (0.47 m): the same
+    skeleton in metres, to the writer's 10 digits."""
+    skel = bvh.read(mocap / "dataset-1_bye_normal_001.bvh")
+    metres = bvh.UNITS[unit]
+    values, col = skel.values.copy(), 0
+    for channels in skel.channels:
+        for c in channels:
+            if c.endswith("position"):
+                values[:, col] *= skel.scale / metres
+            col += 1
+    bvh.write(dataclasses.replace(skel, scale=metres), tmp_path / "clip.bvh", values)
+    back = bvh.read(tmp_path / "clip.bvh")
+    assert back.scale == metres
+    np.testing.assert_allclose(back.offsets, skel.offsets, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(back.positions, skel.positions, rtol=1e-9, atol=1e-9)
 
 def test_bvhio_parity(mocap):
     """bvhio 1.5.4 (float32 quaternions) agrees with the reader on two clips to 1e-6."""

@@ -284,7 +284,7 @@ def test_human_from_a_bvh_hierarchy(mocap):
     sum to the total with Winter's per-segment fractions (a thigh 10%, a hand 0.6%, the
     trunk 49.7% over its bones); inertias positive definite; on a floating base six
     rigid modes, then elastic ones."""
-    from tflearn.mocap import bvh
+    from tflearn.mocap import bvh, names
     from tflearn.mocap import skeleton as sk
     skel = bvh.read(mocap / "cmu_141_16_wave-hello.bvh")
     body = sk.body_from_skeleton(skel, 70.0)
@@ -292,9 +292,9 @@ def test_human_from_a_bvh_hierarchy(mocap):
     m = {link.name: link.mass for link in body.links}
     assert sum(m.values()) == pytest.approx(70.0, rel=1e-12)
     assert m["LeftUpLeg"] == pytest.approx(7.0, rel=1e-12)
-    hand = sum(v for k, v in m.items() if sk.segment_class(k) == "hand" and sk.side(k) == "right")
+    hand = sum(v for k, v in m.items() if names.segment_class(k) == "hand" and names.side(k) == "right")
     assert hand == pytest.approx(0.42, rel=1e-12)
-    trunk = sum(v for k, v in m.items() if sk.segment_class(k) == "trunk")
+    trunk = sum(v for k, v in m.items() if names.segment_class(k) == "trunk")
     assert trunk == pytest.approx(0.497 * 70, rel=1e-12)
     assert all(np.linalg.eigvalsh(np.array(link.inertia)).min() > 0 for link in body.links)
     res = md.analyse(body, np.zeros(90), md.stiffness_matrix(body, 100.0, {"Spine*": 10}),

@@ -317,7 +317,8 @@ def test_a_skeleton_no_map_knows_is_mapped_from_its_names_and_rest_offsets(mocap
     built-in map; the map read from its names and rest offsets finds the CMU chain, its
     chest axes within 2° of the built-in ones (measured 1.1° and 1.2°: the neck and the
     shoulders do not lie exactly on them), and the clip imports to the same coordinates
-    (measured to 2e-15 rad): the shoulder's chart takes a turned base frame back. On a
+    (measured to 2e-15 rad): the shoulder's chart takes a turned base frame back; its
+    length unit, CMU's, is read from its arm (bvh.file_unit). On a
     Bandai skeleton the map so read is the built-in one but for its hinge (fitted)."""
     cmu = mocap / "cmu_141_16_wave-hello.bvh"
     renamed = tmp_path / "mixamo.bvh"
@@ -327,8 +328,9 @@ def test_a_skeleton_no_map_knows_is_mapped_from_its_names_and_rest_offsets(mocap
     assert amap.names == tuple(f"mixamorig:{n}" for n in ref.names) and amap.hinge is None
     for axis in ("up", "left"):
         assert math.degrees(math.acos(np.dot(getattr(amap, axis), getattr(ref, axis)))) < 2.0
-    q = [rt.retarget_all([rt.arm_frames(s, "right")])[0].motion.q for s in (bvh.read(cmu), skel)]
-    assert torch.allclose(q[0], q[1], rtol=0, atol=1e-9)
+    both = [rt.retarget_all([rt.arm_frames(s, "right")])[0] for s in (bvh.read(cmu), skel)]
+    assert torch.allclose(both[0].motion.q, both[1].motion.q, rtol=0, atol=1e-9)
+    assert skel.scale == bvh.CMU_UNIT and both[0].frames.lengths == both[1].frames.lengths   # by its arm
     bandai = bvh.read(mocap / "dataset-1_bye_normal_001.bvh")
     for side in ("right", "left"):
         assert rt.infer_map(bandai, side) == dataclasses.replace(rt.MAPS["bandai"][side], hinge=None)

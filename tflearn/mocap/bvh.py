@@ -12,9 +12,11 @@ and a local rotation:
           order (intrinsic Euler angles in degrees; CMU lists Z Y X, Bandai Z X Y),
 
 and forward kinematics is W_j = W_p R_j, x_j = x_p + W_p p_j (root: W = R, x = p).
-Lengths are converted to metres on reading (``scale`` metres per file unit: 0.01 for
-centimetres, the Bandai files and most BVH; :data:`CMU_UNIT` for CMU-style skeletons;
-``scale=None`` picks CMU_UNIT for a skeleton with CMU's joint names, else 0.01).
+Lengths are converted to metres on reading (``scale`` metres per file unit; ``scale=None``
+reads it from the skeleton, :func:`file_unit`: :data:`CMU_UNIT` for CMU's joint names,
+else the first of :data:`UNITS` — centimetres, the Bandai files' and most BVH's, then
+metres, millimetres, inches and CMU's unit — that makes an arm, upper arm plus forearm,
+:data:`ARM_RANGE` long; centimetres where no arm is found by its joints' names).
 
 Why not a BVH package: bvhio 1.5.4 (which reads the good files exactly) loops forever
 on a file truncated at a line end, raises a bare IndexError on a short frame line,
@@ -39,12 +41,17 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InputError
 from ..io.files import replacing
+from . import names
 
 CMU_UNIT = 0.0254 / 0.45     # metres per CMU BVH unit (the ASF length unit, 1/0.45 inch)
 CM = 0.01
 POSITION = {"Xposition": 0, "Yposition": 1, "Zposition": 2}
 ROTATION = {"Xrotation": "X", "Yrotation": "Y", "Zrotation": "Z"}
 CMU_NAMES = {"LowerBack", "Spine1", "RightForeArm", "LeftForeArm"}
+#: Length units (metres per file unit) tried in turn for a skeleton not named like CMU's.
+UNITS = {"cm": CM, "m": 1.0, "mm": 0.001, "inch": 0.0254, "CMU's": CMU_UNIT}
+#: How long (m) a human arm is, shoulder to wrist: the length that picks a file's unit.
+ARM_RANGE = (0.3, 1.0)
 
 
 class BVHError(InputError):
@@ -276,9 +283,28 @@ def _local(h: dict, values: np.ndarray, scale: float):
     return R, p
 
 
+def file_unit(joints, parents, offsets: np.ndarray) -> float:
+    """Metres per file unit of a hierarchy (joint names, parent indices, OFFSETs J×3 in
+    file units): :data:`CMU_UNIT` for CMU's joint names; else the first of :data:`UNITS`
+    that puts the upper arm plus forearm of an arm found by its joints' names
+    (:func:`tflearn.mocap.names.arm_chain`, right then left) within :data:`ARM_RANGE`;
+    else centimetres."""
+    if CMU_NAMES <= set(joints):
+        return CMU_UNIT
+    for side in ("right", "left"):
+        try:
+            _, elbow, wrist = names.arm_chain(joints, parents, side)
+        except ValueError:
+            continue
+        arm = float(np.linalg.norm(offsets[elbow]) + np.linalg.norm(offsets[wrist]))
+        lo, hi = ARM_RANGE
+        return next((u for u in UNITS.values() if lo <= arm * u <= hi), CM)
+    return CM
+
+
 def read(path, scale: Optional[float] = None) -> Skeleton:
-    """Read a BVH file (see the module doc). ``scale``: metres per file unit (None:
-    :data:`CMU_UNIT` for a skeleton with CMU joint names, else centimetres).
+    """Read a BVH file (see the module doc). ``scale``: metres per file unit (None: read
+    from the skeleton, :func:`file_unit`).
     Raises :class:`BVHError` naming the file, line and problem."""
     path = Path(path)
     try:
@@ -289,7 +315,7 @@ def read(path, scale: Optional[float] = None) -> Skeleton:
     h, start = _hierarchy(path, lines)
     values = _frames(path, lines, start, h)
     if scale is None:
-        scale = CMU_UNIT if CMU_NAMES <= set(h["joints"]) else CM
+        scale = file_unit(h["joints"], h["parents"], np.asarray(h["offsets"], dtype=float))
     R, p = _local(h, values, scale)
     return Skeleton(name=path.stem, joints=tuple(h["joints"]), parents=tuple(h["parents"]),
                     offsets=np.asarray(h["offsets"], dtype=float) * scale,

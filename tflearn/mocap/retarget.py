@@ -53,7 +53,7 @@ from scipy.spatial.transform import Rotation
 from ..motions.motion import Motion
 from ..physics import dynamics
 from ..physics.body import Body, arm
-from . import skeleton as sk
+from . import names
 from .bvh import CM, BVHError, Skeleton, channel_values, read
 
 HAND_RATIO = 0.108 / (0.186 + 0.146)     # Winter (2009): hand / (upper arm + forearm)
@@ -149,7 +149,7 @@ def infer_map(skel: Skeleton, side: str) -> ArmMap:
     skeletons no built-in map knows (Mixamo's ``mixamorig:RightHand``, 3ds Max's
     ``Bip01 R Hand``, …): the wrist is the one joint of that side classed as a hand
     whose parent is a forearm and grandparent an upper arm (the elbow and shoulder;
-    :func:`tflearn.mocap.skeleton.segment_class` and :func:`~tflearn.mocap.skeleton.side`),
+    :func:`tflearn.mocap.names.arm_chain`),
     the chest the nearest joint both shoulders descend from. In the zero pose every
     joint's frame is the root's, so the chest's axes in its own frame are directions
     between rest positions (OFFSETs summed from the root): up, from the chest to the
@@ -158,13 +158,16 @@ def infer_map(skel: Skeleton, side: str) -> ArmMap:
     the clavicles sit at the chest). The hinge is fitted to each clip. A constant error
     in these axes turns the base frame, which the shoulder's chart (its chordal mean,
     :func:`shoulder_zero`) takes back: the coordinates do not depend on it."""
-    arms = {s: _arm_chain(skel, s) for s in ("right", "left")}
+    try:
+        arms = {s: names.arm_chain(skel.joints, skel.parents, s) for s in ("right", "left")}
+    except ValueError as e:
+        raise BVHError(skel.source, str(e)) from None
     chest = _common_ancestor(skel, arms["right"][0], arms["left"][0])
     rest = np.zeros((len(skel.joints), 3))
     for j, p in enumerate(skel.parents):
         rest[j] = skel.offsets[j] + (rest[p] if p >= 0 else 0.0)
     below = _descendants(skel, chest)
-    heads = [j for j in below if sk.segment_class(skel.joints[j]) == "head"]
+    heads = [j for j in below if names.segment_class(skel.joints[j]) == "head"]
     if not heads:
         raise BVHError(skel.source, f"no head or neck joint below the chest {skel.joints[chest]!r}")
     up = rest[max(heads, key=lambda j: np.linalg.norm(rest[j] - rest[chest]))] - rest[chest]
@@ -179,19 +182,6 @@ def infer_map(skel: Skeleton, side: str) -> ArmMap:
     return ArmMap(skel.joints[chest], skel.joints[shoulder], skel.joints[elbow], skel.joints[wrist],
                   up=tuple(map(float, up / np.linalg.norm(up))),
                   left=tuple(map(float, left / np.linalg.norm(left))))
-
-
-def _arm_chain(skel: Skeleton, arm_side: str) -> tuple:
-    """(shoulder, elbow, wrist) indices of one side's arm by the joints' classes."""
-    cls = [sk.segment_class(n) for n in skel.joints]
-    found = [(skel.parents[skel.parents[j]], skel.parents[j], j) for j, n in enumerate(skel.joints)
-             if cls[j] == "hand" and sk.side(n) == arm_side and skel.parents[j] >= 0
-             and cls[skel.parents[j]] == "forearm" and skel.parents[skel.parents[j]] >= 0
-             and cls[skel.parents[skel.parents[j]]] == "upper_arm"]
-    if len(found) != 1:
-        raise BVHError(skel.source, f"{'no' if not found else len(found)} {arm_side} hand joint(s) "
-                                  f"below a forearm below an upper arm")
-    return found[0]
 
 
 def _ancestors(skel: Skeleton, j: int) -> list:

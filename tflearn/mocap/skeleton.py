@@ -9,10 +9,10 @@ OFFSETs (its End Site's when it has no child), length L = max(|d|, 2 cm).
 
 Masses and inertias (anthropometric table, Winter, *Biomechanics and Motor Control of
 Human Movement*, 4th ed. 2009, table 4.1): each bone is classed by its joint's name
-(:data:`CLASSES`, first match wins, case-insensitive) and, for the limbs, side
-(Left/L…/…_L, Right/R…/…_R); a limb class and side, or the trunk or head as a whole,
-gets its fraction of the total mass (:data:`SEGMENTS`), shared among its bones in
-proportion to their lengths; the masses are
+(:data:`tflearn.mocap.names.CLASSES`, first match wins, case-insensitive) and, for the
+limbs, side (Left/L…/…_L, Right/R…/…_R: :func:`tflearn.mocap.names.side`); a limb
+class and side, or the trunk or head as a whole, gets its fraction of the total mass
+(:data:`SEGMENTS`), shared among its bones in proportion to their lengths; the masses are
 then scaled to sum to the total (a skeleton without, say, hands gives their share to
 the rest). A bone's centre of mass is at d/2 and its inertia about it is that of a
 segment with radius of gyration ρL transverse to d and 0.4 ρL about d (ρ the class's
@@ -21,12 +21,11 @@ The trunk's and head's ρ, for bones that split those segments, are ours (0.3).
 """
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from ..physics.body import Body, Link
 from .bvh import Skeleton
+from .names import segment_class, side
 
 #: class → (fraction of body mass, per side for limbs; radius of gyration / length).
 SEGMENTS = {
@@ -34,44 +33,8 @@ SEGMENTS = {
     "foot": (0.0145, 0.475), "shank": (0.0465, 0.302), "thigh": (0.100, 0.323),
     "head": (0.081, 0.3), "trunk": (0.497, 0.3),
 }
-#: (regular expression on the joint name, class), tried in order.
-CLASSES = (
-    (r"forearm|lowerarm|elbow", "forearm"),
-    (r"hand|finger|thumb|index|wrist", "hand"),
-    (r"upperarm|uparm|humerus|(^|_)arm|arm($|_)", "upper_arm"),
-    (r"upleg|upperleg|thigh|femur", "thigh"),
-    (r"lowerleg|leg|shin|knee|tibia", "shank"),
-    (r"foot|toe|ankle", "foot"),
-    (r"head|neck", "head"),
-)
 AXIAL = ("trunk", "head")     # one segment each, whatever the side of its bones
 MIN_LENGTH = 0.02
-
-
-def _bare(name: str) -> str:
-    """A joint name without its namespace (``mixamorig:RightHand`` → ``RightHand``)."""
-    return name.rsplit(":", 1)[-1]
-
-
-def segment_class(name: str) -> str:
-    """The anthropometric class of a joint's bone (:data:`CLASSES`; else "trunk")."""
-    low = _bare(name).lower()
-    for pattern, cls in CLASSES:
-        if re.search(pattern, low):
-            return cls
-    return "trunk"
-
-
-def side(name: str) -> str:
-    """"left", "right" or "centre" from a joint name (LeftArm, LHipJoint, Hand_L, hand.l,
-    mixamorig:RightHand, Bip01 R Hand …)."""
-    bare = _bare(name)
-    for word, s in (("left", "left"), ("right", "right")):
-        letter = word[0].upper()
-        if bare.lower().startswith(word) or re.match(rf"{letter}[A-Z]", bare) or \
-                re.search(rf"[_.\s]{letter}$|\s{letter}\s", bare, flags=re.IGNORECASE):
-            return s
-    return "centre"
 
 
 def _bones(skel: Skeleton) -> np.ndarray:
