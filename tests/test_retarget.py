@@ -318,8 +318,8 @@ def test_a_skeleton_no_map_knows_is_mapped_from_its_names_and_rest_offsets(mocap
     chest axes within 2° of the built-in ones (measured 1.1° and 1.2°: the neck and the
     shoulders do not lie exactly on them), and the clip imports to the same coordinates
     (measured to 2e-15 rad): the shoulder's chart takes a turned base frame back; its
-    length unit, CMU's, is read from its arm (bvh.file_unit). On a
-    Bandai skeleton the map so read is the built-in one but for its hinge (fitted)."""
+    length unit, CMU's, is read from its arm (bvh.file_unit). On a Bandai skeleton the
+    map so read is the built-in one but for its hinge (fitted)."""
     cmu = mocap / "cmu_141_16_wave-hello.bvh"
     renamed = tmp_path / "mixamo.bvh"
     renamed.write_text(re.sub(r"(ROOT|JOINT) (\S+)", r"\1 mixamorig:\2", cmu.read_text()))
