@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tflearn import cli
+from tflearn import cli, config
 from tflearn.data import gestures
 from tflearn.io import basis as bio
 
@@ -145,6 +145,30 @@ def test_evaluate_run(run_dir, capsys):
     # (see test_evaluate_overall_rmse_matches_metrics).
     assert printed.strip().splitlines()[-1] == f"wrote {run / 'evaluation.json'}"
 
+
+@pytest.mark.slow
+def test_evaluate_at_tighter_tolerances(run_dir, tmp_path, capsys):
+    """``--rtol``, ``--atol`` and ``--max-evals`` re-simulate the run at other settings,
+    which evaluation.json records (without them, the run's): the small run's
+    reproductions are converged — the same successes, every RMSE within 1e-4 rad of the
+    run's tolerance's; a tolerance that is not a positive number is refused."""
+    run, out = run_dir["out"], tmp_path / "tight.json"
+    assert cli.main(["evaluate", str(run), "--out", str(out), "--rtol", "1e-9", "--atol", "1e-11",
+                     "--max-evals", "200000", "--quiet"]) == 0
+    tight, ref = json.loads(out.read_text()), json.loads((run / "metrics.json").read_text())
+    cfg = config.load(run / "config.yaml").solver.path
+    assert tight["simulation"] == {"method": cfg.method, "rtol": 1e-9, "atol": 1e-11, "max_evals": 200000}
+    assert cfg.rtol > 1e-9
+    for name, row in ref["motions"].items():
+        assert tight["motions"][name]["success"] == row["success"]
+        assert abs(tight["motions"][name]["rmse"] - row["rmse"]) < 1e-4, name
+    assert cli.main(["evaluate", str(run), "--out", str(tmp_path / "same.json"), "--quiet"]) == 0
+    same = json.loads((tmp_path / "same.json").read_text())["simulation"]
+    assert same == {"method": cfg.method, "rtol": cfg.rtol, "atol": cfg.atol, "max_evals": cfg.max_evals}
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["evaluate", str(run), "--rtol", "0"])
+    assert exit_.value.code == 2 and "must be a positive number, got 0" in capsys.readouterr().err
 
 @pytest.mark.slow
 def test_evaluate_overall_rmse_matches_metrics(run_dir, tmp_path):

@@ -115,7 +115,9 @@ def _evaluate(args) -> int:
     run, _ = _model_paths(args.model)
     out = args.out or run / "evaluation.json"
     with _out_folder(out.parent):
-        metrics = evaluate.evaluate_run(run, data=args.data, out=out, progress=not args.quiet)
+        sim = {k: v for k, v in (("rtol", args.rtol), ("atol", args.atol), ("max_evals", args.max_evals))
+               if v is not None}
+        metrics = evaluate.evaluate_run(run, data=args.data, out=out, progress=not args.quiet, simulation=sim)
     o = metrics["overall"]
     print("\n".join(_motion_lines(metrics["motions"])))
     print(f"M = {o['M']}, overall rmse {o['rmse']:.4f} rad, max tip error {100 * o['tip']:.2f} cm, "
@@ -134,6 +136,13 @@ def _simulate(args) -> int:
                                               duration=args.duration)
     print(f"wrote {path}")
     return 0
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
 
 
 def _positive_int(text: str) -> int:
@@ -405,6 +414,12 @@ def build_parser(prog: str = "tflearn") -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=None, help="metrics file (default RUN/evaluation.json)")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch threads (default 1)")
+    p.add_argument("--rtol", type=_positive_float, default=None,
+                   help="the simulations' relative tolerance (default the run's solver.path.rtol): "
+                        "a reproduction that holds at a tighter one is converged")
+    p.add_argument("--atol", type=_positive_float, default=None, help="and absolute (default the run's)")
+    p.add_argument("--max-evals", type=_positive_int, default=None,
+                   help="evaluations a simulation may take (default the run's solver.path.max_evals)")
     p.set_defaults(func=_evaluate)
 
     p = sub.add_parser("simulate", help="play one motion's torque program from a trained model")

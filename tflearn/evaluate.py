@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Optional
@@ -81,7 +82,7 @@ def weights_for(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
     return w
 
 
-def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
+def evaluate_run(run, data=None, out=None, progress: bool = True, simulation: Optional[dict] = None) -> dict:
     """Metrics of a run's basis.json on motions (default: the run's own data).
 
     Motions named in the basis are simulated with their stored weights; new ones are
@@ -93,10 +94,14 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
     with ``"complete"`` false until the last, and beside it the folder synthesized/: a run
     folder of the new motions (basis.json of the fields and their programs, config.yaml
     naming their data), which ``tflearn simulate``, ``render`` and ``perturb`` take as
-    RUN. Returns the metrics."""
+    RUN. ``simulation``: settings of the run's :class:`SimOptions` replaced (``rtol``,
+    ``atol``, ``max_evals``: whether a reproduction holds at tighter tolerances),
+    recorded with the others in the file's ``"simulation"``. Returns the metrics."""
     run = Path(run)
     lb = basis_io.load(run / "basis.json")
     cfg, options = run_config(run)
+    options = replace(options, **(simulation or {}))
+    used = {k: getattr(options, k) for k in ("method", "rtol", "atol", "max_evals")}
     out = Path(out or run / "evaluation.json")
     source = cfg.data if data is None else (import_like(cfg, data, out.parent / "imported") or data)
     motions = load_motions(source, lb.body, strict=cfg.strict)
@@ -126,7 +131,7 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
     if known:
         scored(known, False)
     if not new:
-        return _write(out, results, counts, lb.basis.M, complete=True)
+        return _write(out, results, counts, lb.basis.M, used, complete=True)
     programs, synth = [], out.parent / "synthesized"
     synth.mkdir(parents=True, exist_ok=True)
     config_mod.dump(cfg.replace(data=_absolute(source), out=str(synth)), synth / "config.yaml")
@@ -136,7 +141,7 @@ def evaluate_run(run, data=None, out=None, progress: bool = True) -> dict:
             r = results[m.name]
             bar.set_postfix_str(f"{m.name}: {r['rmse']:.4f} rad, {100 * r['tip']:.2f} cm")
             bar.update()
-            doc = _write(out, results, counts, lb.basis.M, complete=len(programs) == len(new))
+            doc = _write(out, results, counts, lb.basis.M, used, complete=len(programs) == len(new))
             basis_io.save(_joined(programs), synth / "basis.json")
     return doc
 
@@ -155,13 +160,15 @@ def _joined(parts: list) -> LearnedBasis:
     return LearnedBasis(parts[0].body, parts[0].basis, weights, q0, qd0, rate)
 
 
-def _write(out: Path, results: dict, counts: dict, M: int, complete: bool) -> dict:
-    """Write the evaluation so far (over all samples of all motions, as in metrics.json)."""
+def _write(out: Path, results: dict, counts: dict, M: int, simulation: dict, complete: bool) -> dict:
+    """Write the evaluation so far (over all samples of all motions, as in metrics.json;
+    ``simulation``: how the motions were simulated)."""
     overall = {"rmse": pooled_rmse([r["rmse"] for r in results.values()], list(counts.values())),
                "tip": max(r["tip"] for r in results.values()),
                "numbers_per_s": max(r["numbers_per_s"] for r in results.values()),
                "success": all(r["success"] for r in results.values()), "M": M}
-    doc = {"motions": results, "overall": overall, "units": dict(UNITS), "complete": complete}
+    doc = {"motions": results, "overall": overall, "units": dict(UNITS), "simulation": simulation,
+           "complete": complete}
     write_text(out, json.dumps(doc, indent=1))
     return doc
 
