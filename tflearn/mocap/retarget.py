@@ -209,7 +209,8 @@ def _descendants(skel: Skeleton, j: int) -> list:
 
 def _path_from(skel: Skeleton, top: int, j: int) -> list:
     """The joints from ``top``'s child down to j."""
-    return _ancestors(skel, j)[:_ancestors(skel, j).index(top)][::-1]
+    line = _ancestors(skel, j)
+    return line[:line.index(top)][::-1]
 
 
 def _unit(x, what: str, where: str) -> np.ndarray:
