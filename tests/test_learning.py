@@ -933,6 +933,24 @@ def test_pool_fits_a_lost_motions_field_to_its_path_and_its_users_at_once(tmp_pa
     assert state.history.pool.shared == ["tuck_b"] and state.history.pool.success == fine
 
 
+def _fold_of_field_2(tmp_path, tg, basis, *overrides) -> tuple:
+    """Motion j on field j of ``basis`` alone (NNLS), checked reproduced; field 2's
+    held trial (the small run's config, ``solver.reduce.shoot=0`` and ``overrides``),
+    checked to lose motion 2 alone, and its fold: (ctx, state, weights, folded)."""
+    weights = MotionWeights.zeros(3, tg.duration, tg.names)
+    torque.solve_weights(basis, weights, tg, weight_support(torch.eye(3, dtype=torch.bool).tolist(), 0))
+    cfg = small_config("gestures", tmp_path / "run", "solver.reduce.shoot=0", *overrides)
+    ctx = train.new_context(cfg, tg)
+    scores, ok = ctx.check(basis, weights, tg)
+    assert ok == [True, True, True]
+    costs = torque.torque_costs(basis, weights, tg).tolist()
+    state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(), ids=[0, 1, 2],
+                           reference=Reference.of(scores, ok, cost=costs))
+    held = reduce.held_trial(ctx, basis, weights, tg, state, 2)
+    assert not reduce.accepts(ctx, state, held, tg) and held.motions == [2] and held.check[1] == [False]
+    return ctx, state, weights, reduce.folded_trial(ctx, basis, weights, tg, state, held)
+
+
 @pytest.mark.parametrize("distance", [0.05, 0.01])
 def test_elimination_folds_a_copy_into_its_twin_by_their_users_paths(tmp_path, distance):
     """come_here on field A, tuck on T' (T moved 0.02 rad, which tuck forgives), tuck_b
@@ -946,19 +964,7 @@ def test_elimination_folds_a_copy_into_its_twin_by_their_users_paths(tmp_path, d
     off = eta[1].clone()
     off[1] += 0.02
     basis = FieldBasis(torch.stack([eta[0], off, eta[1]]), torch.cat([K, K[1:]]), kind="scalar")
-    weights = MotionWeights.zeros(3, tg.duration, tg.names)
-    torque.solve_weights(basis, weights, tg, weight_support([[True, False, False], [False, True, False],
-                                                             [False, False, True]], 0))
-    ctx = train.new_context(small_config("gestures", tmp_path / "run", "solver.reduce.shoot=0",
-                                         f"solver.merge.distance={distance}"), tg)
-    scores, ok = ctx.check(basis, weights, tg)
-    assert ok == [True, True, True]
-    costs = torque.torque_costs(basis, weights, tg).tolist()
-    state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(), ids=[0, 1, 2],
-                           reference=Reference.of(scores, ok, cost=costs))
-    held = reduce.held_trial(ctx, basis, weights, tg, state, 2)
-    assert not reduce.accepts(ctx, state, held, tg) and held.motions == [2] and held.check[1] == [False]
-    folded = reduce.folded_trial(ctx, basis, weights, tg, state, held)
+    ctx, state, weights, folded = _fold_of_field_2(tmp_path, tg, basis, f"solver.merge.distance={distance}")
     if distance < 0.02:
         assert folded is None
         return
@@ -991,18 +997,7 @@ def test_a_fold_of_two_fields_each_needed_is_refused_naming_the_motion(tmp_path)
     tg = targets.prepare(pairs[0][1].body, [m for m, _ in pairs])
     lib, _, _ = gestures.library_model(programs)
     basis = FieldBasis(lib.eta.detach(), lib.K().detach(), kind="scalar")
-    weights = MotionWeights.zeros(3, tg.duration, tg.names)
-    torque.solve_weights(basis, weights, tg, weight_support(torch.eye(3, dtype=torch.bool).tolist(), 0))
-    ctx = train.new_context(small_config("gestures", tmp_path / "run", "solver.reduce.shoot=0",
-                                         "success.rmse=0.001", "success.tip=0.001"), tg)
-    scores, ok = ctx.check(basis, weights, tg)
-    assert ok == [True, True, True]
-    costs = torque.torque_costs(basis, weights, tg).tolist()
-    state = train.RunState(config={}, stage="reduce", rng=torch.Generator().get_state(), ids=[0, 1, 2],
-                           reference=Reference.of(scores, ok, cost=costs))
-    held = reduce.held_trial(ctx, basis, weights, tg, state, 2)
-    assert held.check[1] == [False]
-    folded = reduce.folded_trial(ctx, basis, weights, tg, state, held)
+    ctx, state, _, folded = _fold_of_field_2(tmp_path, tg, basis, "success.rmse=0.001", "success.tip=0.001")
     assert folded.kind == "folded" and not reduce.accepts(ctx, state, folded, tg)
     assert folded.refused == "folded into field 1: fitted to 2 paths, it leaves tuck_b unreproduced"
 
