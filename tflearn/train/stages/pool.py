@@ -200,32 +200,37 @@ def shoot(ctx: RunContext, state: RunState, basis, weights, scores: Scores, ok: 
 
 
 def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: list) -> tuple:
-    """A :func:`broken` motion's fewest chosen fields S (``fewest``) are a hair from where
-    its path needs them: they are fitted by multiple shooting, free and shared, to its
-    path and to those of up to ``solver.select.users`` reproduced motions whose fewest
-    fields share one with S (those S alone serves first), all at once, their other
-    fields held (:func:`_moved`), and kept when simulation reproduces every one of them
-    and every other reproduced motion with a weight on S (once its weights are
-    path-matched on the moved fields where it must be, :func:`_kept`). The motion then costs
-    no field of its own. Changes ``state.model`` and the pool's record (``shared``: the
-    motions so reproduced, by a last check of every motion whose program changed);
-    returns the (scores, success) of every motion."""
+    """:func:`broken` motions' fewest chosen fields S (``fewest``) are a hair from where
+    their paths need them: they are fitted by multiple shooting, free and shared, to
+    their paths and to those of up to ``solver.select.users`` reproduced motions whose
+    fewest fields share one with S (those S alone serves first), all at once, their
+    other fields held (:func:`_moved`), and kept when simulation reproduces every one of
+    them and every other reproduced motion with a weight on S (once its weights are
+    path-matched on the moved fields where it must be, :func:`_kept`). The lost motions
+    of one S are fitted together first (:func:`_groups`), and one by one where that
+    fails. Such a motion then costs no field of its own. Changes ``state.model`` and the
+    pool's record (``shared``: the motions so reproduced, by a last check of every motion
+    whose program changed); returns the (scores, success) of every motion."""
     limit, lost = ctx.cfg.solver.select.users, broken(state, ok)
     if not lost or not limit:
         return scores, ok
     basis, weights = model_from_state(state.model)
     ok, shared, touched = list(ok), [], set()
-    for j in lost:
-        near = sorted((k for k in range(ctx.tg.N) if k != j and ok[k] and set(fewest[k]) & set(fewest[j])),
-                      key=lambda k: not set(fewest[k]) <= set(fewest[j]))   # those S alone serves first
-        if ok[j] or not near:
-            continue
-        ctx.log.busy(sharing=ctx.tg.names[j], users=len(near[:limit]))
-        trial = _moved(ctx, state, basis, weights, [j] + near[:limit], fewest, ok)
-        if trial is not None:
-            basis, weights, moved = trial
-            shared.append(j)
-            touched.update(moved)
+    for group in _groups(lost, fewest):
+        for js in [group] + ([[j] for j in group] if len(group) > 1 else []):
+            js = [j for j in js if j not in shared]
+            S = set(fewest[js[0]]) if js else set()
+            near = sorted((k for k in range(ctx.tg.N) if k not in js and ok[k] and set(fewest[k]) & S),
+                          key=lambda k: not set(fewest[k]) <= S)         # those S alone serves first
+            if not js or not near:
+                continue
+            ctx.log.busy(sharing=ctx.tg.names[js[0]] + (f" and {len(js) - 1} more" if len(js) > 1 else ""),
+                         users=len(near[:limit]))
+            trial = _moved(ctx, state, basis, weights, js + near[:limit], fewest, ok, len(js))
+            if trial is not None:
+                basis, weights, moved = trial
+                shared += js
+                touched.update(moved)
     if not shared:
         return scores, ok
     moved = sorted(touched)
@@ -243,18 +248,26 @@ def share(ctx: RunContext, state: RunState, scores: Scores, ok: list, fewest: li
     return scores, ok
 
 
+def _groups(lost: list, fewest: list) -> list:
+    """The lost motions grouped by their fewest fields, in order of each group's first."""
+    groups: dict = {}
+    for j in lost:
+        groups.setdefault(tuple(sorted(fewest[j])), []).append(j)
+    return list(groups.values())
+
+
 def _moved(ctx: RunContext, state: RunState, basis, weights, motions: list, fewest: list,
-           ok: list) -> Optional[tuple]:
-    """The lost motion ``motions[0]``'s fewest fields S fitted with its users
-    (``motions[1:]``) by :meth:`RunContext.fit_shared` — once more without the users
-    that fit loses, if it reproduces the motion —, then they and every other reproduced motion with a
-    weight on S checked on the whole model (:func:`_kept`: a motion whose path amplifies
-    round-off may not pass on the whole basis what it passed on S and its users' fields):
-    (basis, weights, the motions whose programs changed), or None where any of them is
-    not reproduced."""
+           ok: list, n: int = 1) -> Optional[tuple]:
+    """The lost motions ``motions[:n]``' fewest fields S (theirs alike) fitted with
+    their users (``motions[n:]``) by :meth:`RunContext.fit_shared` — once more without
+    the users that fit loses, if it reproduces the lost ones —, then they and every
+    other reproduced motion with a weight on S checked on the whole model (:func:`_kept`:
+    a motion whose path amplifies round-off may not pass on the whole basis what it
+    passed on S and its users' fields): (basis, weights, the motions whose programs
+    changed), or None where any of them is not reproduced."""
     S = fewest[motions[0]]
     trial = ctx.fit_shared(basis, weights, motions, [fewest[k] for k in motions], S)
-    if trial is not None and trial[2][0] and not all(trial[2]):
+    if trial is not None and all(trial[2][:n]) and not all(trial[2]):
         motions = [k for k, f in zip(motions, trial[2]) if f]
         trial = ctx.fit_shared(basis, weights, motions, [fewest[k] for k in motions], S)
     if trial is None or not all(trial[2]):
