@@ -92,6 +92,7 @@ def test_a_files_unit_is_read_from_its_arm(mocap, tmp_path, unit):
     np.testing.assert_allclose(back.offsets, skel.offsets, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(back.positions, skel.positions, rtol=1e-9, atol=1e-9)
 
+
 def test_bvhio_parity(mocap):
     """bvhio 1.5.4 (float32 quaternions) agrees with the reader on two clips to 1e-6."""
     bvhio = pytest.importorskip("bvhio")
