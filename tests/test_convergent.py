@@ -245,3 +245,104 @@ def test_each_motion_uses_the_windows_its_length_asks(keyframes):
     inert = onset > tg.duration[:, None]                                  # N×P
     assert bool((weights.c.detach().permute(0, 2, 1)[inert] == 0).all())
     assert bool((weights.c.detach().permute(0, 2, 1)[~inert].sum(-1) > 0).any())
+
+
+# ------------------------------------------------------------------ learned programs held
+
+@pytest.fixture(scope="module")
+def tuck():
+    """(body, targets, generating basis, generating weights) of the tuck gesture: one
+    field with scalar K, the soft program a learned basis gives back."""
+    from tflearn.data import gestures
+    body = tb.arm()
+    (m, _), = gestures.generate(body, gestures=[gestures.GESTURES["tuck"]])
+    basis, weights, _ = gestures.library_model([gestures.GESTURES["tuck"]], body)
+    return body, targets.prepare(body, [m]), basis, weights
+
+
+def test_held_model_adds_damped_pairs_and_windows(tuck):
+    """``hold.held_model``: the learned fields first, unchanged, then the 2n pairs; every
+    field damped by ζ; the motion cut into ⌈rate × λ⌉ windows; the learned weights kept,
+    zero on the pairs and on every window."""
+    from tflearn.config import HoldSection
+    from tflearn.train.stages import hold
+    body, tg, basis, weights = tuck
+    h = HoldSection(window_rates=[4.0, 6.0], damping=0.3)
+    grown, held = hold.held_model(body, tg, basis, weights, h)
+    assert grown.M == basis.M + 2 * body.nv and grown.damping == 0.3 and grown.kind == "diag"
+    assert torch.equal(grown.eta[:basis.M], basis.eta) and torch.allclose(grown.K()[:basis.M], basis.K())
+    lam = float(tg.duration[0])
+    assert held.P == math.ceil(6.0 * lam)                 # room for the most windows asked
+    assert int((held.window_onset < lam).sum()) == math.ceil(4.0 * lam)     # the first rate's
+    assert torch.equal(held.a[:, :basis.M], weights.a) and torch.equal(held.b[:, :basis.M], weights.b)
+    assert not held.a[:, basis.M:].any() and not held.c.any()
+
+
+def test_held_weights_stiffen_a_field_made_motion_it_still_follows(tuck):
+    """The tuck's own program is soft about its path (its field's w K while the step
+    rises: under 1 rad/s); the held weights on its field and the damped pairs (NNLS on
+    torques and ω = 10 rad/s asked) give several rad/s and one simulation still
+    reproduces the tuck (0.03 rad, 2 cm)."""
+    from tflearn.config import HoldSection
+    from tflearn.train.stages import hold
+    body, tg, basis, weights = tuck
+    h = HoldSection()
+    grown, held = hold.held_model(body, tg, basis, weights, h)
+    impedance.solve_weights(body, grown, held, tg, h.settings()[0][1])
+    soft = float(impedance.path_stiffness(body, basis, weights, tg)[0])
+    stiff = float(impedance.path_stiffness(body, grown, held, tg)[0])
+    assert soft < 1.0 and stiff > 4.0, (soft, stiff)
+    s = score(body, grown, held, tg, SimOptions(rtol=1e-7, atol=1e-9))
+    assert s.rmse[0] <= 0.03 and s.tip[0] <= 0.02, (s.rmse, s.tip)
+
+
+def _held_run(tmp_path, out: str):
+    """The config of a pipeline run on the tuck and come_here gestures with the stage
+    ``hold`` on (held programs need more than 20,000 evaluations)."""
+    from tflearn.config import load
+    from tflearn.data import gestures
+    from tflearn.motions import motion as motion_mod
+    for m, _ in gestures.generate(tb.arm(), gestures=[gestures.GESTURES[n] for n in ("tuck", "come_here")]):
+        motion_mod.save(m, tmp_path / f"{m.name}.npz")
+    return load(None, [f"data={tmp_path}", f"out={tmp_path / out}", "solver.method=pipeline",
+                       "solver.hold.enabled=true", "solver.path.max_evals=100000", "log.tensorboard=false",
+                       "log.progress=false"])
+
+
+@pytest.mark.slow
+def test_the_hold_stage_holds_learned_programs_and_refuses_to_lose_a_motion(tmp_path, monkeypatch):
+    """Two gestures learned on their fields, then held: the 14 pairs join the learned
+    fields, both motions are still reproduced, now each at several rad/s of stiffness about
+    its path (the learned programs: none), and each records the setting it took. Where a
+    held program would lose a motion, the run keeps its learned model and names it."""
+    from tflearn import train
+    from tflearn.train.stages import hold
+    metrics = train.run(_held_run(tmp_path, "held"))
+    record = metrics["history"]["hold"]
+    assert record["kept"] and record["lost"] == [] and record["added"] == 14
+    assert metrics["overall"]["M"] == record["M"]
+    for name in ("tuck", "come_here"):
+        row = metrics["motions"][name]
+        assert row["success"] and row["path_stiffness"] > 4.0, row
+        assert record["settings"][name]["deviation"] in (0.1, 0.02)
+    real = hold.held_programs
+
+    def losing(ctx, basis, weights, settings):          # the second motion's held program lost
+        chosen, ok, failures = real(ctx, basis, weights, settings)
+        return chosen, [ok[0], False], failures
+    monkeypatch.setattr(hold, "held_programs", losing)
+    refused = train.run(_held_run(tmp_path, "refused"))
+    second = list(refused["motions"])[1]
+    assert refused["history"]["hold"]["lost"] == [second] and not refused["history"]["hold"]["kept"]
+    assert refused["overall"]["M"] == refused["history"]["hold"]["M"] == record["M"] - 14
+    assert all(row["success"] and row["path_stiffness"] < 1.0 for row in refused["motions"].values())
+
+
+def test_a_refused_hold_names_what_it_would_lose_and_why():
+    """The run's message when the held model is not kept: the motions it would lose, and
+    where a simulation failed, which and the budget to raise."""
+    from tflearn.train.stages.hold import _refusal
+    text = _refusal(["tuck", "come_here"], [None, "ran past 20000 evaluations"])
+    assert "2 motion(s) would be lost: tuck, come_here" in text
+    assert "come_here (ran past 20000 evaluations)" in text and "solver.path.max_evals" in text
+    assert "max_evals" not in _refusal(["tuck"], [None])

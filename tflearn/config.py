@@ -278,6 +278,32 @@ class RescueSection(Layout):
     velocity_weight: float = Field(0.01, ge=0)                       # and β
 
 
+class HoldSection(Layout):
+    # method pipeline: the learned programs held on their paths (tflearn.train.stages.hold;
+    # docs/model.md, "Learned programs held on their paths"). Antagonist pairs (the layout's
+    # `shape`, `radius`, `stiffness`) join the learned fields, every field damped by
+    # `damping` ζ (s), and every motion's weights on all the fields are solved again by one
+    # NNLS on its torques and a stiffness about its path (natural frequency `frequency` ω,
+    # as solver.layout's). Each motion takes the first of the settings (each of
+    # `deviations` δ, stiffest first, with each of `window_rates` sub-movement windows a
+    # second) whose program one simulation finds reproducing it. The held model is kept
+    # when every motion reproduced before still is. Off by default: M grows by the pairs
+    enabled: bool = False
+    shape: Literal["cross", "simplex", "pairs"] = "pairs"
+    radius: float = Field(2.0, gt=0, allow_inf_nan=False)
+    stiffness: float = Field(0.25, gt=0, allow_inf_nan=False)
+    frequency: float = Field(10.0, gt=0, allow_inf_nan=False)
+    damping: float = Field(0.1, ge=0, allow_inf_nan=False)
+    deviations: list[Annotated[float, Field(gt=0, allow_inf_nan=False)]] = Field([0.1, 0.02], min_length=1)
+    window_rates: list[Annotated[float, Field(gt=0, allow_inf_nan=False)]] = Field([8.0, 16.0], min_length=1)
+
+    def settings(self) -> list:
+        """The (window rate, :class:`tflearn.fit.impedance.Impedance`) a motion tries, in order."""
+        from .fit.impedance import Impedance
+        return [(rate, Impedance(frequency=self.frequency, deviation=d))
+                for d in self.deviations for rate in self.window_rates]
+
+
 class AutoSection(Section):
     # method auto (tflearn.train.choice): each of up to `probes` motions, spread over the
     # data, searched alone on torques (solver.each.max_fields fields, no simulation); the
@@ -314,6 +340,7 @@ class SolverSection(Section):
     slsqp: SlsqpSection = SlsqpSection()
     layout: LayoutSection = LayoutSection()
     rescue: RescueSection = RescueSection()
+    hold: HoldSection = HoldSection()
 
 
 #: What ``solver.method: auto`` sets when a few fields do not explain the motions' torques:

@@ -149,6 +149,14 @@ class MotionWeights(nn.Module):
         return self._with({key: torch.cat([v, fill.get(key, z)], dim=1) if key in self.PER_FIELD else v
                            for key, v in self._arrays().items()})
 
+    def with_windows(self, onset: torch.Tensor, duration: torch.Tensor) -> MotionWeights:
+        """New weights (detached) with these sub-movement windows (onsets, durations: N×P)
+        in place of the motions' own, every window weight c zero."""
+        arrays = self._arrays()
+        arrays.update(window_onset=as_float(onset), window_duration=as_float(duration),
+                      c_raw=torch.zeros(arrays["a_raw"].shape + (onset.shape[-1],), dtype=torch.float64))
+        return self._with(arrays)
+
     def select_motions(self, idx: Sequence[int]) -> MotionWeights:
         """New weights (detached) of motions ``idx`` only, in that order."""
         idx = torch.as_tensor(list(idx), dtype=torch.long)

@@ -14,10 +14,12 @@ with the same command resumes at the last unit and ends with the same result:
                 (:mod:`~tflearn.train.stages.path`);
 5. ``rescue`` — spanning fields for motions still not reproduced
                 (:mod:`~tflearn.train.stages.rescue`; ``solver.rescue.enabled``);
-6. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard
+6. ``hold``   — damped antagonist pairs added and every program held on its path
+                (:mod:`~tflearn.train.stages.hold`; ``solver.hold.enabled``);
+7. ``done``   — ``basis.json``, ``metrics.json``, ``config.yaml``, figures, TensorBoard
                 (:mod:`~tflearn.train.artefacts`).
 
-With ``solver.method: slsqp`` the single stage ``slsqp`` replaces 1–5 (the thesis'
+With ``solver.method: slsqp`` the single stage ``slsqp`` replaces 1–6 (the thesis'
 baseline, :mod:`~tflearn.train.stages.slsqp`); with ``solver.method: layout`` the stage
 ``layout`` replaces 1–3 (:mod:`~tflearn.train.stages.layout`).
 

@@ -152,6 +152,19 @@ class RescueRound:
 
 
 @dataclass
+class HoldRecord:
+    """``hold``: the fields it added, M after, the motions it lost (reproduced before, not
+    after), whether the model changed (none lost), and the setting each motion's held
+    program took ({"window_rate", "deviation"}; None: none reproduces it)."""
+
+    added: int
+    M: int
+    lost: list
+    kept: bool
+    settings: dict
+
+
+@dataclass
 class History:
     """What the run did, reported in metrics.json (``history``; docs/guide.md): the method
     ``solver.method: auto`` chose and why (``method``: :func:`tflearn.train.choice.choose`'s
@@ -168,6 +181,7 @@ class History:
     shooting: Optional[dict] = None
     path: Optional[str] = None
     rescue: list = field(default_factory=list)
+    hold: Optional[HoldRecord] = None
     slsqp: Optional[dict] = None
 
     def to_dict(self) -> dict:
@@ -176,7 +190,8 @@ class History:
                "pool": None if self.pool is None else self.pool.to_dict(),
                "layout": None if self.layout is None else self.layout.to_dict(),
                "reduce": [r.to_dict() for r in self.reduce] or None, "shooting": self.shooting,
-               "path": self.path, "rescue": [_plain(r) for r in self.rescue] or None, "slsqp": self.slsqp}
+               "path": self.path, "rescue": [_plain(r) for r in self.rescue] or None,
+               "hold": None if self.hold is None else _plain(self.hold), "slsqp": self.slsqp}
         return {k: v for k, v in doc.items() if v is not None}
 
     @classmethod
@@ -187,6 +202,7 @@ class History:
                    layout=None if layout is None else ModelRecord(**layout),
                    reduce=[Removal(**r) for r in doc.get("reduce", [])], shooting=doc.get("shooting"),
                    path=doc.get("path"), rescue=[RescueRound(**r) for r in doc.get("rescue", [])],
+                   hold=None if doc.get("hold") is None else HoldRecord(**doc["hold"]),
                    slsqp=doc.get("slsqp"))
 
 

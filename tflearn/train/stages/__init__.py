@@ -6,10 +6,11 @@ moves the state on); :data:`SEQUENCES` the stages of each ``solver.method``.
 """
 from __future__ import annotations
 
-from . import each, layout, path, pool, reduce, rescue, slsqp
+from . import each, hold, layout, path, pool, reduce, rescue, slsqp
 
-STAGES = {m.NAME: m for m in (each, pool, reduce, path, rescue, slsqp, layout)}
-SEQUENCES = {"pipeline": (each, pool, reduce, path, rescue), "slsqp": (slsqp,), "layout": (layout, path)}
+STAGES = {m.NAME: m for m in (each, pool, reduce, path, rescue, hold, slsqp, layout)}
+SEQUENCES = {"pipeline": (each, pool, reduce, path, rescue, hold), "slsqp": (slsqp,),
+             "layout": (layout, path)}
 
 
 def sequence(cfg) -> tuple:
@@ -20,7 +21,8 @@ def sequence(cfg) -> tuple:
     if cfg.solver.method not in SEQUENCES:
         raise ValueError(f"solver.method {cfg.solver.method!r} is decided from the data by "
                          f"tflearn.train.choice.choose (train.run calls it); give a method that runs")
-    return tuple(m.NAME for m in SEQUENCES[cfg.solver.method] if m is not rescue or cfg.solver.rescue.enabled)
+    optional = {rescue: cfg.solver.rescue.enabled, hold: cfg.solver.hold.enabled}
+    return tuple(m.NAME for m in SEQUENCES[cfg.solver.method] if optional.get(m, True))
 
 
 def titles(names) -> dict:
