@@ -50,10 +50,22 @@ def progress_bar(total: Optional[int], desc: str, unit: str, progress: bool = Tr
     """A progress bar on stderr in the form of the run's (:data:`BAR_FORMAT`): ``desc``,
     ``initial`` of ``total`` units of ``unit`` done, elapsed time and ETA; close it (or
     use it as a context manager) when done. ``progress=False``: a disabled bar whose calls
-    do nothing (the commands' ``--quiet``, ``log.progress: false``)."""
+    do nothing (the commands' ``--quiet``, ``log.progress: false``).
+
+    The bar is first drawn once it is built: a Ctrl-C that lands while tqdm builds it
+    (during its first write, under load) would leave a bar its caller never holds, and so
+    never closes, its line unended before the command's last message; one that lands
+    during the first drawing closes the bar before it goes on."""
     from tqdm import tqdm
-    return tqdm(total=total, initial=initial, desc=desc, unit=unit, bar_format=BAR_FORMAT,
-                dynamic_ncols=True, file=sys.stderr, leave=True, disable=not progress)
+    bar = tqdm(total=total, initial=initial, desc=desc, unit=unit, bar_format=BAR_FORMAT, dynamic_ncols=True,
+               file=sys.stderr, leave=True, disable=not progress, delay=1e-9)    # nothing drawn yet
+    bar.delay = 0                                     # drawn from here on, and ended by close()
+    try:
+        bar.refresh()
+    except BaseException:
+        bar.close()
+        raise
+    return bar
 
 
 def _fmt(value) -> str:
