@@ -15,9 +15,9 @@ SEQUENCES = {"pipeline": (each, pool, reduce, path, rescue, hold), "slsqp": (sls
 
 def sequence(cfg) -> tuple:
     """The names of the stages a config runs, in order (``rescue`` with
-    ``solver.rescue.enabled`` only). ``solver.method: auto`` has none until the data
-    decides it (:func:`tflearn.train.choice.choose`, which :func:`tflearn.train.run`
-    calls): ValueError."""
+    ``solver.rescue.enabled`` only, ``hold`` with ``solver.hold.enabled``).
+    ``solver.method: auto`` has none until the data decides it
+    (:func:`tflearn.train.choice.choose`, which :func:`tflearn.train.run` calls): ValueError."""
     if cfg.solver.method not in SEQUENCES:
         raise ValueError(f"solver.method {cfg.solver.method!r} is decided from the data by "
                          f"tflearn.train.choice.choose (train.run calls it); give a method that runs")
