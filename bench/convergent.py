@@ -6,7 +6,8 @@ configs/convergent.yaml (antagonist pairs inside joint space, weights by NNLS on
 torques and the stiffness ω = 10 rad/s about the path, multiple shooting only on motions
 the NNLS leaves unreproduced), once with fewer weights (``sparsity=0.01``, no shooting:
 the NNLS alone) and once with the stiffness off (``frequency=0``, torque matching alone on
-the same fields), and once with fewer weights and multiple shooting on their support
+the same fields), with joint simplices instead of pairs (``joints``: b + 1 fields per joint of
+b coordinates, block K, δ = 0.03), and once with fewer weights and multiple shooting on their support
 (``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0), also with
 windows sized by each motion's length (``model.window_rate=4``), and with all weights
 free at 3 windows per second (also with the hand in shooting's residuals,
@@ -17,7 +18,8 @@ relative torque error, the fields' median stiffness about the path (rad/s,
 and the numbers per second that describe a motion (non-zero weights, its windows' onsets
 and durations, its initial state; the most of any motion), the largest centre |η| of a
 joint block, and the training wall time.
-With ``--push``, the first seed's motions are pushed at the hand (``tflearn perturb``:
+With ``--push``, the first seed's motions trained with ``held`` and ``joints`` (those of
+``--settings``) are pushed at the hand (``tflearn perturb``:
 impulses 0.025–0.2 N·s along x, y, z at 0.5 s) under the fields and under ff+pd (Yin et
 al.'s feed-forward inverse dynamics plus low-gain feedback): per motion the largest ratio
 of the fields' peak hand deviation to ff+pd's, and how many pushes the fields recover from
@@ -54,7 +56,11 @@ SETTINGS = {"held": [], "held, sparse": ["solver.layout.sparsity=0.01", "solver.
                                                 "model.window_rate=4"],
             "held, 3 windows/s": ["model.window_rate=3"],
             "held, 3 windows/s, hand": ["model.window_rate=3", "solver.shooting.tip_weight=100"],
-            "torques only": ["solver.layout.frequency=0"]}
+            "torques only": ["solver.layout.frequency=0"],
+            "joints": ["solver.layout.shape=joints", "model.stiffness=block", "solver.layout.deviation=0.03"]}
+
+#: The settings whose first-seed runs ``--push`` pushes (those held on the path by default).
+PUSHED = ("held", "joints")
 
 
 def make(folder: Path, seed: int, n: int) -> list:
@@ -113,7 +119,9 @@ def main() -> None:
     if args.push:
         first = int(args.seeds.split(",")[0])
         names = [f"keys{first}_{i}" for i in range(args.motions)]
-        result["push"] = sweep(out / f"run{first}_held", names, out / "push")
+        pushed = [label for label in args.settings.split(";") if label in PUSHED]
+        result["push"] = {label: sweep(out / f"run{first}_{label}", names, out / f"push_{label}")
+                          for label in pushed}
         print(json.dumps(result["push"], indent=1))
     (out / "convergent.json").write_text(json.dumps(result, indent=1))
 

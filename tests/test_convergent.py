@@ -53,9 +53,9 @@ def keyframes():
     return body, targets.prepare(body, random_keyframes(body, 3, seed=11))
 
 
-def _pairs(body, tg, windows=16, damping=0.1):
-    tmpl = FieldBasis.empty(body.nv, "diag", body.blocks, damping)
-    basis = layout.spanning_basis(body, tg, tmpl, 2.0, 0.25, "pairs")
+def _pairs(body, tg, windows=16, damping=0.1, shape="pairs"):
+    tmpl = FieldBasis.empty(body.nv, "diag" if shape == "pairs" else "block", body.blocks, damping)
+    basis = layout.spanning_basis(body, tg, tmpl, 2.0, 0.25, shape)
     windows = targets.submovement_windows(tg, windows)
     return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names, windows)
 
@@ -105,6 +105,42 @@ def test_pairs_centres_stay_inside_joint_space():
     assert all(inside)
 
 
+def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes):
+    """The ``joints`` layout: b + 1 fields per joint of b coordinates (10 on the arm),
+    each centre a posture the joint can hold that differs from the middle of the range on
+    its own joint only; at every sample of the motions every torque is a non-negative
+    combination of the fields' (an NNLS leaves no residual), and all of them active at
+    once hold the limb: their summed Jacobian is negative definite. A diagonal stiffness
+    kind cannot hold an oblique pull and is refused."""
+    from scipy.optimize import nnls
+    body, tg = keyframes
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        basis = layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, "block", body.blocks), 2.0,
+                                      0.25, "joints")
+    assert basis.M == body.nv + len(body.blocks) == 10
+    eta = basis.eta.detach()
+    moved = (eta - eta.median(0).values).abs() > 1e-12                     # M×n: off the middle
+    start = 0
+    for b in body.blocks:
+        own = slice(start, start + b)
+        assert float(eta[:, own].norm(dim=-1).max()) <= layout.JOINT_LIMIT + 1e-12
+        fields = moved[:, own].any(-1)
+        assert int(fields.sum()) == b + 1 and not bool(moved[fields][:, :start].any())
+        start += b
+    q = tg.q[tg.mask][::25]                                                # postures on the paths
+    chi = basis(q)                                                         # S×M×n
+    torques = torch.randn(len(q), body.nv, generator=torch.Generator().manual_seed(0), dtype=DT)
+    for s in range(len(q)):
+        w, residual = nnls(chi[s].detach().T.numpy(), torques[s].numpy())
+        assert residual <= 1e-9 * float(torques[s].norm()), (s, residual)
+    J = impedance.field_jacobians(basis, q).detach().sum(-3)              # S×n×n
+    assert float(torch.linalg.eigvalsh(-0.5 * (J + J.mT)).min()) > 0
+    with pytest.raises(ValueError, match="block or full"):
+        layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, "diag", body.blocks), 2.0, 0.25,
+                              "joints")
+
+
 def test_the_stiffness_asked_is_given(keyframes):
     """With ω = 10 rad/s asked, the fields' stiffness about each path is of that order
     (median √λ_min(M⁻¹K_s) within a factor of 2), where torque matching alone gives far
@@ -123,17 +159,19 @@ def test_the_stiffness_asked_is_given(keyframes):
 
 
 @pytest.mark.slow
-def test_held_keyframes_are_reproduced_by_one_simulation(keyframes):
+@pytest.mark.parametrize("shape, deviation", [("pairs", 0.1), ("joints", 0.03)])
+def test_held_keyframes_are_reproduced_by_one_simulation(keyframes, shape, deviation):
     """Eased keyframe animations through random postures: the NNLS weights with the
     stiffness asked reproduce every one in a single simulation (joint RMSE ≤ 0.03 rad,
-    hand ≤ 2 cm), no path matching; torque matching alone on the same fields does not."""
+    hand ≤ 2 cm), no path matching, on the pairs and on the joint simplices; torque
+    matching alone on the same fields does not."""
     body, tg = keyframes
     opt = SimOptions(rtol=1e-7, atol=1e-9)
-    basis, weights = _pairs(body, tg)
-    impedance.solve_weights(body, basis, weights, tg, impedance.Impedance(10.0, 0.1))
+    basis, weights = _pairs(body, tg, shape=shape)
+    impedance.solve_weights(body, basis, weights, tg, impedance.Impedance(10.0, deviation))
     held = score(body, basis, weights, tg, opt)
     assert max(held.rmse) <= 0.03 and max(held.tip) <= 0.02, (held.rmse, held.tip)
-    basis0, weights0 = _pairs(body, tg)
+    basis0, weights0 = _pairs(body, tg, shape=shape)
     torque.solve_weights(basis0, weights0, tg)
     loose = score(body, basis0, weights0, tg, opt)
     assert max(loose.rmse) > 0.03, loose.rmse

@@ -229,9 +229,11 @@ class Layout(Section):
     # the fields of a spanning layout (tflearn.fit.layout), method layout's and rescue's.
     # cross: 2n fields at ν̄ ± radius e_k | simplex: n + 1 at a regular simplex's vertices |
     # pairs: convergent antagonist pairs, 2n fields each pulling one coordinate, centres
-    # within joint space (configs/convergent.yaml). The defaults carry recorded, keyframed
+    # within joint space (configs/convergent.yaml) | joints: convergent joint simplices, b + 1
+    # fields per joint of b coordinates (n + the joints: 10 on the arm), centres within
+    # joint space, model.stiffness block or full. The defaults carry recorded, keyframed
     # and reaching motion (docs/model.md)
-    shape: Literal["cross", "simplex", "pairs"] = "simplex"
+    shape: Literal["cross", "simplex", "pairs", "joints"] = "simplex"
     radius: float = Field(16.0, gt=0, allow_inf_nan=False)    # centres at ν̄ + radius u_i (rad)
     stiffness: float = Field(0.0625, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
 
@@ -289,7 +291,7 @@ class HoldSection(Layout):
     # second) whose program one simulation finds reproducing it. The held model is kept
     # when every motion reproduced before still is. Off by default: M grows by the pairs
     enabled: bool = False
-    shape: Literal["cross", "simplex", "pairs"] = "pairs"
+    shape: Literal["cross", "simplex", "pairs", "joints"] = "pairs"
     radius: float = Field(2.0, gt=0, allow_inf_nan=False)
     stiffness: float = Field(0.25, gt=0, allow_inf_nan=False)
     frequency: float = Field(10.0, gt=0, allow_inf_nan=False)

@@ -334,7 +334,7 @@ def method_line(decision: dict) -> str:
     if decision["method"] == "pipeline":
         return (f"method: the pipeline learned the shared basis, {decision['stiffness']} K "
                 f"(solver.method auto; {why})")
-    return (f"method: convergent antagonist pairs held on the path (solver.method auto; {why}: "
+    return (f"method: convergent fields held on the path (solver.method auto; {why}: "
             f"no few fields made these motions)")
 
 

@@ -11,6 +11,9 @@ radius r around the motions' mean posture ν̄,
 
 with unit directions u_i that positively span ℝⁿ (``SHAPES``: ``cross``, u = ±e_k,
 M = 2n; ``simplex``, the n + 1 vertices of a regular simplex, the fewest that can).
+Two convergent shapes keep every centre inside joint space instead, each field pulling
+one joint: :func:`pairs_basis` (2n) and :func:`joints_basis` (b + 1 per joint of b
+coordinates).
 Where a field's Gaussian is ≈ 1 it is the spring K(η_i − ν), and the fields' sum is
 
     Σ_i w_i K(η_i − ν) = K [ W (ν̄ − ν) + r Σ_i w_i u_i ],     W = Σ_i w_i ≥ 0:
@@ -106,10 +109,12 @@ def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     if template.kind == "scalar":
         raise ValueError("spanning_basis: the layout's stiffness is per coordinate; "
                          "it needs model.stiffness diag, block or full, not scalar")
-    if shape not in SHAPES:
-        raise ValueError(f"spanning_basis: unknown shape {shape!r}; one of {sorted(SHAPES)}")
     if shape == "pairs":
         return pairs_basis(body, tg, template, radius, stiffness)
+    if shape == "joints":
+        return joints_basis(body, tg, template, radius, stiffness)
+    if shape not in SHAPES:
+        raise ValueError(f"spanning_basis: unknown shape {shape!r}; one of {sorted(SHAPES)}")
     real = tg.mask.unsqueeze(-1).to(tg.q.dtype)
     centre = (tg.q * real).sum((0, 1)) / real.sum((0, 1))                      # n
     samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)                    # N×1
@@ -154,6 +159,54 @@ def pairs_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()
     gain = u.abs() + PAIR_COUPLING * (1 - u.abs())
     return template.like(centre + r[:, None] * u, torch.diag_embed(stiffness * inertia * gain))
+
+
+def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
+                 stiffness: float) -> FieldBasis:
+    """Convergent joint simplices: for each joint of b coordinates, b + 1 fields that pull
+    that joint only (a hinge's two are :func:`pairs_basis`' pair), M = Σ (b + 1) = n + the
+    number of joints (10 for the arm, against 14 pairs). Field i of a joint pulls along
+    s_i = S u_i, u_i the unit vertices of a regular simplex in ℝᵇ (Σ u_i = 0) and
+    S = diag(√m̄) over the joint's coordinates, with
+
+        K_i = κ s_i s_iᵀ + :data:`PAIR_COUPLING` κ diag(m̄),    η_i = c + r_i n̂_i,   n̂_i = s_i/|s_i|,
+
+    c the middle of the motions' range of each coordinate and r_i ≤ ``radius`` the
+    largest that keeps the joint's block of η_i within :data:`JOINT_LIMIT`. Where the
+    Gaussians are ≈ 1 field i's torque is κ s_i |s_i| (r_i − n̂_i·(ν − c)): along s_i
+    wherever n̂_i·(ν − c) < r_i, so every torque of the joint is the fields' inside the
+    polytope {x: n̂_i·x < r_i} (it holds the ball of radius min r_i about c), and with
+    every weight positive their stiffness κ S(Σ w_i u_i u_iᵀ)S is positive definite
+    and scales with the joint's inertia, as the pairs' does. Needs a stiffness kind
+    that holds a joint's off-diagonal terms (``block`` or ``full``). Warns when a motion
+    leaves a joint's polytope."""
+    if template.kind not in ("block", "full"):
+        raise ValueError("layout: the joints shape pulls along a joint's oblique axes; it needs "
+                         f"model.stiffness block or full, not {template.kind}")
+    real = tg.mask.unsqueeze(-1)
+    hi = torch.where(real, tg.q, -math.inf).amax((0, 1))
+    lo = torch.where(real, tg.q, math.inf).amin((0, 1))
+    centre, n = 0.5 * (hi + lo), body.nv
+    samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)
+    inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()
+    pulls = []                                                                  # s_i, each n
+    for k, b in zip(itertools.accumulate([0] + body.blocks), body.blocks):
+        u = _simplex(b)[0] if b > 1 else torch.tensor([[1.0], [-1.0]], dtype=torch.float64)
+        s = torch.zeros(len(u), n, dtype=torch.float64)
+        s[:, k:k + b] = u * inertia[k:k + b].sqrt()
+        pulls.append(s)
+    s = torch.cat(pulls)                                                        # M×n
+    normal = s / s.norm(dim=-1, keepdim=True)
+    r = torch.stack([_within_joints(body, centre, ni, radius) for ni in normal])
+    x = torch.where(real, tg.q - centre, 0.0)
+    out = [i for i in range(len(s)) if float((x @ normal[i]).amax()) >= float(r[i])]
+    if out:
+        warnings.warn(f"layout: the motions reach beyond the joint simplices' field(s) {out} "
+                      f"(radius {radius:g} rad about the middle of their range, centres held "
+                      f"within {JOINT_LIMIT:.2f} rad of each joint's rest), where those fields no "
+                      f"longer push every way", stacklevel=3)
+    K = stiffness * (s[:, :, None] * s[:, None, :] + PAIR_COUPLING * torch.diag(inertia))
+    return template.like(centre + r[:, None] * normal, K)
 
 
 def _within_joints(body: Body, centre: torch.Tensor, u: torch.Tensor, radius: float) -> torch.Tensor:
