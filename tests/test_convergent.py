@@ -351,9 +351,14 @@ def _held_run(tmp_path, out: str):
 def test_the_hold_stage_holds_learned_programs_and_refuses_to_lose_a_motion(tmp_path, monkeypatch):
     """Two gestures learned on their fields, then held: the 14 pairs join the learned
     fields, both motions are still reproduced, now each at several rad/s of stiffness about
-    its path (the learned programs: none), and each records the setting it took. Where a
-    held program would lose a motion, the run keeps its learned model and names it."""
+    its path (the learned programs: none), and each records the setting it took. A
+    gesture it never saw, synthesised on the held basis (``tflearn evaluate RUN --data``),
+    is held as well. Where a held program would lose a motion, the run keeps its learned
+    model and names it."""
     from tflearn import train
+    from tflearn.data import gestures
+    from tflearn.evaluate import evaluate_run
+    from tflearn.motions import motion as motion_mod
     from tflearn.train.stages import hold
     metrics = train.run(_held_run(tmp_path, "held"))
     record = metrics["history"]["hold"]
@@ -363,6 +368,11 @@ def test_the_hold_stage_holds_learned_programs_and_refuses_to_lose_a_motion(tmp_
         row = metrics["motions"][name]
         assert row["success"] and row["path_stiffness"] > 4.0, row
         assert record["settings"][name]["deviation"] in (0.1, 0.02)
+    (tmp_path / "new").mkdir()
+    (m, _), = gestures.generate(tb.arm(), gestures=[gestures.GESTURES["stiff_elbow_lift"]])
+    motion_mod.save(m, tmp_path / "new" / f"{m.name}.npz")
+    new = evaluate_run(tmp_path / "held", data=str(tmp_path / "new"), progress=False)["motions"][m.name]
+    assert new["synthesized"] and new["success"] and new["path_stiffness"] > 4.0, new
     real = hold.held_programs
 
     def losing(ctx, basis, weights, settings):          # the second motion's held program lost

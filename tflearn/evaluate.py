@@ -7,7 +7,7 @@ import warnings
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import torch
 
@@ -43,7 +43,7 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
                shooting: Optional[ShootingOptions] = ShootingOptions(),
                options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02), *,
                ridge: float = 0.0, held: impedance.Impedance = impedance.Impedance(),
-               window_rate: float = 0.0) -> MotionWeights:
+               window_rate: float = 0.0, ladder: Sequence[tuple] = ()) -> MotionWeights:
     """Held-out synthesis (:mod:`tflearn.synthesis`): with the basis frozen, fit new
     motions' weights by NNLS on their torques (exact, or with a ``ridge``:
     :func:`~tflearn.fit.torque.solve_weights`; with ``held``, also on the stiffness about
@@ -59,10 +59,22 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     :class:`~tflearn.fit.torque.DivergenceWarning` names the motion and why. The new
     motions get as many sub-movement windows as the basis' own motions have, placed from
     their data (:func:`submovement_windows`; with a ``window_rate``, as many as their
-    length asks, up to that many)."""
+    length asks, up to that many). ``ladder``: further (window rate, impedance) settings
+    that the motions the NNLS leaves unreproduced try in turn before shooting, each keeping
+    the first that one simulation finds reproducing it, else the last (a held run's
+    ``solver.hold.settings()`` after its first, as training held its own motions)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P, rate=window_rate))
     impedance.solve_weights(lb.body, lb.basis, weights, tg, held, ridge=ridge)
+    todo = list(range(tg.N))
+    for rate, asked in ladder:
+        todo, _ = synthesis.unreproduced(lb.body, lb.basis, weights, tg, options, success, todo)
+        if not todo:
+            break
+        part = tg.select(todo)
+        sub = weights.select_motions(todo).with_windows(*submovement_windows(part, weights.P, rate=rate))
+        impedance.solve_weights(lb.body, lb.basis, sub, part, asked, ridge=ridge)
+        synthesis.take(weights, sub, list(range(len(todo))), todo)
     if shooting is None or not shooting.iterations:
         return weights
     nearest = partial(synthesis.nearest_programs, lb.basis, lb.weights)
@@ -110,13 +122,13 @@ def evaluate_run(run, data=None, out=None, progress: bool = True, simulation: Op
     new = [m for m in motions if m.name not in lb.names]
     results, counts = {}, {}
     shoot = cfg.solver.shooting.options(cfg.model.phases == "variable")
-    held = cfg.solver.layout.impedance() if cfg.solver.method == "layout" else impedance.Impedance()
+    rate, held, ladder = _asked(run, cfg)
 
     def scored(group: list, synth: bool) -> LearnedBasis:
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
                      base=torsos(source, group, cfg.torso))
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip),
-                              ridge=cfg.solver.ridge, held=held, window_rate=cfg.model.window_rate) if synth
+                              ridge=cfg.solver.ridge, held=held, window_rate=rate, ladder=ladder) if synth
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)
@@ -144,6 +156,21 @@ def evaluate_run(run, data=None, out=None, progress: bool = True, simulation: Op
             doc = _write(out, results, counts, lb.basis.M, used, complete=len(programs) == len(new))
             basis_io.save(_joined(programs), synth / "basis.json")
     return doc
+
+
+def _asked(run: Path, cfg) -> tuple:
+    """(window rate, impedance, ladder) with which a run's new motions are synthesised:
+    a layout run's stiffness about the path; a run whose held model was kept
+    (metrics.json's ``history.hold.kept``) its ``solver.hold.settings()`` in turn; else
+    torques alone."""
+    if cfg.solver.method == "layout":
+        return cfg.model.window_rate, cfg.solver.layout.impedance(), []
+    metrics = run / "metrics.json"
+    hold = json.loads(metrics.read_text()).get("history", {}).get("hold") if metrics.exists() else None
+    if hold and hold.get("kept"):
+        (rate, held), *ladder = cfg.solver.hold.settings()
+        return rate, held, ladder
+    return cfg.model.window_rate, impedance.Impedance(), []
 
 
 def _absolute(data):
