@@ -314,6 +314,9 @@ def test_held_model_adds_damped_pairs_and_windows(tuck):
     assert int((held.window_onset < lam).sum()) == math.ceil(4.0 * lam)     # the first rate's
     assert torch.equal(held.a[:, :basis.M], weights.a) and torch.equal(held.b[:, :basis.M], weights.b)
     assert not held.a[:, basis.M:].any() and not held.c.any()
+    simplices, _ = hold.held_model(body, tg, basis, weights, HoldSection(shape="joints"))
+    assert simplices.M == basis.M + body.nv + len(body.blocks) and simplices.kind == "block"
+    assert torch.allclose(simplices.K()[:basis.M], basis.K())            # the joint blocks hold them
 
 
 def test_held_weights_stiffen_a_field_made_motion_it_still_follows(tuck):
