@@ -90,6 +90,18 @@ PAIR_COUPLING = 4e-3
 JOINT_LIMIT = 0.95 * math.pi
 
 
+def _inertia(body: Body, tg: Targets) -> torch.Tensor:
+    """m̄ (n): the mean joint-space inertia over every real sample of the motions."""
+    samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)                    # N×1
+    return (mean_inertia(body, tg) * samples).sum(0) / samples.sum()
+
+
+def _range(tg: Targets) -> tuple:
+    """(largest, smallest) value of each coordinate over the motions' real samples (n each)."""
+    real = tg.mask.unsqueeze(-1)
+    return torch.where(real, tg.q, -math.inf).amax((0, 1)), torch.where(real, tg.q, math.inf).amin((0, 1))
+
+
 def reach(shape: str, x: torch.Tensor) -> torch.Tensor:
     """The radius r that a displacement x = ν − ν̄ (...×n) needs to lie in the layout's
     hull r·conv(u): the gauge max(0, maxⱼ Aⱼ·x) (``cross``: ‖x‖₁; ``simplex``:
@@ -117,8 +129,7 @@ def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
         raise ValueError(f"spanning_basis: unknown shape {shape!r}; one of {sorted(SHAPES)}")
     real = tg.mask.unsqueeze(-1).to(tg.q.dtype)
     centre = (tg.q * real).sum((0, 1)) / real.sum((0, 1))                      # n
-    samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)                    # N×1
-    inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()      # n
+    inertia = _inertia(body, tg)                                              # n
     far = (reach(shape, tg.q - centre) * tg.mask).amax(-1)                   # N
     if float(far.max()) >= radius:
         j = int(far.argmax())
@@ -143,9 +154,7 @@ def pairs_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     equilibrium-point controller of coordinate k, its co-activation w⁺ + w⁻ the
     coordinate's stiffness (:mod:`.impedance` chooses it). Warns when a motion leaves the
     box."""
-    real = tg.mask.unsqueeze(-1)
-    hi = torch.where(real, tg.q, -math.inf).amax((0, 1))
-    lo = torch.where(real, tg.q, math.inf).amin((0, 1))
+    hi, lo = _range(tg)
     centre, n = 0.5 * (hi + lo), body.nv
     u, _ = _pairs(n)
     r = torch.stack([_within_joints(body, centre, ui, radius) for ui in u])          # 2n
@@ -155,8 +164,7 @@ def pairs_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
                       f"(radius {radius:g} rad about the middle of their range, centres held "
                       f"within {JOINT_LIMIT:.2f} rad of each joint's rest), where those fields no "
                       f"longer push every way", stacklevel=3)
-    samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)
-    inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()
+    inertia = _inertia(body, tg)
     gain = u.abs() + PAIR_COUPLING * (1 - u.abs())
     return template.like(centre + r[:, None] * u, torch.diag_embed(stiffness * inertia * gain))
 
@@ -183,12 +191,8 @@ def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     if template.kind not in ("block", "full"):
         raise ValueError("layout: the joints shape pulls along a joint's oblique axes; it needs "
                          f"model.stiffness block or full, not {template.kind}")
-    real = tg.mask.unsqueeze(-1)
-    hi = torch.where(real, tg.q, -math.inf).amax((0, 1))
-    lo = torch.where(real, tg.q, math.inf).amin((0, 1))
-    centre, n = 0.5 * (hi + lo), body.nv
-    samples = tg.mask.sum(-1, keepdim=True).to(tg.q.dtype)
-    inertia = (mean_inertia(body, tg) * samples).sum(0) / samples.sum()
+    hi, lo = _range(tg)
+    centre, n, inertia = 0.5 * (hi + lo), body.nv, _inertia(body, tg)
     pulls = []                                                                  # s_i, each n
     for k, b in zip(itertools.accumulate([0] + body.blocks), body.blocks):
         u = _simplex(b)[0] if b > 1 else torch.tensor([[1.0], [-1.0]], dtype=torch.float64)
@@ -198,7 +202,7 @@ def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     s = torch.cat(pulls)                                                        # M×n
     normal = s / s.norm(dim=-1, keepdim=True)
     r = torch.stack([_within_joints(body, centre, ni, radius) for ni in normal])
-    x = torch.where(real, tg.q - centre, 0.0)
+    x = torch.where(tg.mask.unsqueeze(-1), tg.q - centre, 0.0)
     out = [i for i in range(len(s)) if float((x @ normal[i]).amax()) >= float(r[i])]
     if out:
         warnings.warn(f"layout: the motions reach beyond the joint simplices' field(s) {out} "
