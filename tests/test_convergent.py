@@ -136,9 +136,10 @@ def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes):
         assert residual <= 1e-9 * float(torques[s].norm()), (s, residual)
     J = impedance.field_jacobians(basis, q).detach().sum(-3)              # S×n×n
     assert float(torch.linalg.eigvalsh(-0.5 * (J + J.mT)).min()) > 0
-    with pytest.raises(ValueError, match="block or full"):
-        layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, "diag", body.blocks), 2.0, 0.25,
-                              "joints")
+    for kind in ("diag", "scalar"):
+        with pytest.raises(ValueError, match=f"block or full, not {kind}"):
+            layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, kind, body.blocks), 2.0, 0.25,
+                                  "joints")
 
 
 def test_the_stiffness_asked_is_given(keyframes):

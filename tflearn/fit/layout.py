@@ -118,13 +118,13 @@ def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     diag(m̄), ν̄ and m̄ the mean posture and mean inertia over every real sample of the
     motions in ``tg`` (module docstring). Warns when a motion leaves the hull of the
     centres (:func:`reach` ≥ ``radius``), where the fields no longer push every way."""
+    if shape == "joints":
+        return joints_basis(body, tg, template, radius, stiffness)
     if template.kind == "scalar":
         raise ValueError("spanning_basis: the layout's stiffness is per coordinate; "
                          "it needs model.stiffness diag, block or full, not scalar")
     if shape == "pairs":
         return pairs_basis(body, tg, template, radius, stiffness)
-    if shape == "joints":
-        return joints_basis(body, tg, template, radius, stiffness)
     if shape not in SHAPES:
         raise ValueError(f"spanning_basis: unknown shape {shape!r}; one of {sorted(SHAPES)}")
     real = tg.mask.unsqueeze(-1).to(tg.q.dtype)
