@@ -7,7 +7,7 @@ torques and the stiffness ω = 10 rad/s about the path, multiple shooting only o
 the NNLS leaves unreproduced), once with fewer weights (``sparsity=0.01``, no shooting:
 the NNLS alone) and once with the stiffness off (``frequency=0``, torque matching alone on
 the same fields), with joint simplices instead of pairs (``joints``: b + 1 fields per joint of
-b coordinates, block K, δ = 0.03), and once with fewer weights and multiple shooting on their support
+b coordinates, δ = 0.03), and once with fewer weights and multiple shooting on their support
 (``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0), also with
 windows sized by each motion's length (``model.window_rate=4``), and with all weights
 free at 3 windows per second (also with the hand in shooting's residuals,
@@ -57,7 +57,7 @@ SETTINGS = {"held": [], "held, sparse": ["solver.layout.sparsity=0.01", "solver.
             "held, 3 windows/s": ["model.window_rate=3"],
             "held, 3 windows/s, hand": ["model.window_rate=3", "solver.shooting.tip_weight=100"],
             "torques only": ["solver.layout.frequency=0"],
-            "joints": ["solver.layout.shape=joints", "model.stiffness=block", "solver.layout.deviation=0.03"]}
+            "joints": ["solver.layout.shape=joints", "solver.layout.deviation=0.03"]}
 
 #: The settings whose first-seed runs ``--push`` pushes (those held on the path by default).
 PUSHED = ("held", "joints")

@@ -110,8 +110,8 @@ def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes):
     each centre a posture the joint can hold that differs from the middle of the range on
     its own joint only; at every sample of the motions every torque is a non-negative
     combination of the fields' (an NNLS leaves no residual), and all of them active at
-    once hold the limb: their summed Jacobian is negative definite. A diagonal stiffness
-    kind cannot hold an oblique pull and is refused."""
+    once hold the limb: their summed Jacobian is negative definite. A diagonal or scalar
+    kind cannot hold an oblique pull, so the basis is of block kind whatever the run's."""
     from scipy.optimize import nnls
     body, tg = keyframes
     with warnings.catch_warnings():
@@ -136,10 +136,10 @@ def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes):
         assert residual <= 1e-9 * float(torques[s].norm()), (s, residual)
     J = impedance.field_jacobians(basis, q).detach().sum(-3)              # S×n×n
     assert float(torch.linalg.eigvalsh(-0.5 * (J + J.mT)).min()) > 0
-    for kind in ("diag", "scalar"):
-        with pytest.raises(ValueError, match=f"block or full, not {kind}"):
-            layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, kind, body.blocks), 2.0, 0.25,
-                                  "joints")
+    for kind in ("diag", "scalar"):                                        # a kind that holds them
+        laid = layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, kind, body.blocks, 0.2), 2.0,
+                                     0.25, "joints")
+        assert laid.kind == "block" and laid.damping == 0.2 and torch.allclose(laid.K(), basis.K())
 
 
 def test_the_stiffness_asked_is_given(keyframes):

@@ -231,8 +231,8 @@ class Layout(Section):
     # pairs: convergent antagonist pairs, 2n fields each pulling one coordinate, centres
     # within joint space (configs/convergent.yaml) | joints: convergent joint simplices, b + 1
     # fields per joint of b coordinates (n + the joints: 10 on the arm), centres within
-    # joint space, model.stiffness block or full. The defaults carry recorded, keyframed
-    # and reaching motion (docs/model.md)
+    # joint space, block K whatever model.stiffness (not for rescue). The defaults carry
+    # recorded, keyframed and reaching motion (docs/model.md)
     shape: Literal["cross", "simplex", "pairs", "joints"] = "simplex"
     radius: float = Field(16.0, gt=0, allow_inf_nan=False)    # centres at ν̄ + radius u_i (rad)
     stiffness: float = Field(0.0625, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
@@ -272,6 +272,7 @@ class RescueSection(Layout):
     # leaves unreproduced get a layout of their own in the next, until all are reproduced
     # or a round improves none
     enabled: bool = True
+    shape: Literal["cross", "simplex", "pairs"] = "simplex"          # added to a basis of the run's kind
     rounds: int = Field(2, ge=1)
     iterations: int = Field(6, ge=0)                                 # its shooting's, per horizon
     ridge: float = Field(1e-4, ge=0, allow_inf_nan=False)            # its NNLS' λ (solver.ridge)

@@ -185,12 +185,10 @@ def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     wherever n̂_i·(ν − c) < r_i, so every torque of the joint is the fields' inside the
     polytope {x: n̂_i·x < r_i} (it holds the ball of radius min r_i about c), and with
     every weight positive their stiffness κ S(Σ w_i u_i u_iᵀ)S is positive definite
-    and scales with the joint's inertia, as the pairs' does. Needs a stiffness kind
-    that holds a joint's off-diagonal terms (``block`` or ``full``). Warns when a motion
-    leaves a joint's polytope."""
-    if template.kind not in ("block", "full"):
-        raise ValueError("layout: the joints shape pulls along a joint's oblique axes; it needs "
-                         f"model.stiffness block or full, not {template.kind}")
+    and scales with the joint's inertia, as the pairs' does. The basis is of a kind that
+    holds a joint's oblique pulls: ``template``'s where it is ``block`` or ``full``, else
+    ``block`` (its blocks and damping kept). Warns when a motion leaves a joint's
+    polytope."""
     hi, lo = _range(tg)
     centre, n, inertia = 0.5 * (hi + lo), body.nv, _inertia(body, tg)
     pulls = []                                                                  # s_i, each n
@@ -210,7 +208,9 @@ def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
                       f"within {JOINT_LIMIT:.2f} rad of each joint's rest), where those fields no "
                       f"longer push every way", stacklevel=3)
     K = stiffness * (s[:, :, None] * s[:, None, :] + PAIR_COUPLING * torch.diag(inertia))
-    return template.like(centre + r[:, None] * normal, K)
+    kind = template.kind if template.kind in ("block", "full") else "block"
+    return FieldBasis(centre + r[:, None] * normal, K, kind=kind, blocks=template.blocks,
+                      damping=template.damping)
 
 
 def _within_joints(body: Body, centre: torch.Tensor, u: torch.Tensor, radius: float) -> torch.Tensor:

@@ -74,13 +74,11 @@ def _refusal(lost: list, failures: list) -> str:
 def held_model(body, tg: Targets, basis: FieldBasis, weights, h) -> tuple:
     """(grown basis, weights before their solve): ``basis``' fields followed by the layout
     of ``h`` (:class:`tflearn.config.HoldSection`) around the motions of ``tg``, every field
-    damped by ``h.damping`` (of a kind that holds both: diagonal where ``basis``' is
-    scalar, a joint's block where the layout's joint simplices need it); ``weights`` with
+    damped by ``h.damping`` (the layout's kind, diagonal where ``basis``' is scalar and
+    the layout's pairs; the joint simplices' blocks); ``weights`` with
     zero weights on the new fields and room for the most windows a setting asks,
     P = ⌈max(``h.window_rates``) × the longest duration⌉, all zero, cut at the first rate."""
     kind = "diag" if basis.kind == "scalar" else basis.kind
-    if h.shape == "joints" and kind == "diag":
-        kind = "block"
     template = FieldBasis.empty(body.nv, kind, body.blocks, h.damping)
     laid = layout.spanning_basis(body, tg, template, h.radius, h.stiffness, h.shape)
     grown = laid.like(torch.cat([basis.eta.detach(), laid.eta]), torch.cat([basis.K().detach(), laid.K()]))
