@@ -60,21 +60,18 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     motions get as many sub-movement windows as the basis' own motions have, placed from
     their data (:func:`submovement_windows`; with a ``window_rate``, as many as their
     length asks, up to that many). ``ladder``: further (window rate, impedance) settings
-    that the motions the NNLS leaves unreproduced try in turn before shooting, each keeping
-    the first that one simulation finds reproducing it, else the last (a held run's
-    ``solver.hold.settings()`` after its first, as training held its own motions)."""
+    that the motions the NNLS leaves unreproduced try in turn before shooting
+    (:func:`~tflearn.synthesis.held_ladder`: a held run's ``solver.hold.settings()`` after
+    its first, as training held its own motions)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P, rate=window_rate))
-    impedance.solve_weights(lb.body, lb.basis, weights, tg, held, ridge=ridge)
-    todo = list(range(tg.N))
-    for rate, asked in ladder:
-        todo, _ = synthesis.unreproduced(lb.body, lb.basis, weights, tg, options, success, todo)
-        if not todo:
-            break
-        part = tg.select(todo)
-        sub = weights.select_motions(todo).with_windows(*submovement_windows(part, weights.P, rate=rate))
-        impedance.solve_weights(lb.body, lb.basis, sub, part, asked, ridge=ridge)
-        synthesis.take(weights, sub, list(range(len(todo))), todo)
+    if ladder:
+        def judge(sub, part):
+            s = score(lb.body, lb.basis, sub, part, options)
+            return s.failure, s.succeeded(*success)
+        synthesis.held_ladder(lb.body, lb.basis, weights, tg, [(window_rate, held), *ladder], judge, ridge)
+    else:
+        impedance.solve_weights(lb.body, lb.basis, weights, tg, held, ridge=ridge)
     if shooting is None or not shooting.iterations:
         return weights
     nearest = partial(synthesis.nearest_programs, lb.basis, lb.weights)

@@ -14,6 +14,9 @@
 
 :func:`fit_programs` runs 2–3 for new motions, with a second start for those still not
 reproduced (the nearest of the basis' own programs, :func:`nearest_programs`).
+:func:`held_ladder` gives each motion the first of several stiffness settings whose NNLS
+weights reproduce it: the hold stage's (:mod:`tflearn.train.stages.hold`) and held-out
+synthesis on a held basis.
 """
 from __future__ import annotations
 
@@ -22,9 +25,10 @@ from typing import Callable, Optional
 import torch
 
 from . import parallel
+from .fit import impedance
 from .fit.receding import receding_match
 from .fit.shooting import ShootingOptions, keys_of, shooting_match
-from .fit.targets import Targets
+from .fit.targets import Targets, submovement_windows
 from .fit.torque import torque_costs
 from .metrics import Scores, score
 from .model.weights import MotionWeights
@@ -101,6 +105,33 @@ def closer(rmse: list, after: Scores, ok: Optional[list] = None) -> list:
 def take(weights: MotionWeights, source: MotionWeights, rows: list, into: list) -> None:
     """Motions ``into`` of ``weights`` take the programs of motions ``rows`` of ``source``."""
     weights.set_flat(PROGRAM, source.flat(PROGRAM)[rows], into)
+
+
+def held_ladder(body, basis, weights: MotionWeights, tg: Targets, settings: list, judge: Callable,
+                ridge: float = 0.0) -> tuple:
+    """Each motion's held program, in ``weights`` (in place): for each (window rate,
+    :class:`~tflearn.fit.impedance.Impedance`) of ``settings`` in turn, the NNLS weights of
+    the motions not yet reproduced (:func:`~tflearn.fit.impedance.solve_weights`, cut into
+    that many windows a second, up to ``weights.P``), which ``judge(weights, tg)`` — of
+    those motions — answers with (why each simulation failed or None, reproduced per
+    motion); a motion keeps the first setting that reproduces it, else the last. Returns
+    (the setting each motion took, None where none reproduces it; reproduced per motion;
+    why its last simulation failed, None where it did not)."""
+    chosen, ok, failures = [None] * tg.N, [False] * tg.N, [None] * tg.N
+    for rate, asked in settings:
+        todo = [j for j in range(tg.N) if not ok[j]]
+        if not todo:
+            break
+        part = tg.select(todo)
+        sub = weights.select_motions(todo).with_windows(*submovement_windows(part, weights.P, rate=rate))
+        impedance.solve_weights(body, basis, sub, part, asked, ridge=ridge)
+        failed, now = judge(sub, part)
+        take(weights, sub, list(range(len(todo))), todo)
+        for r, j in enumerate(todo):
+            failures[j] = failed[r]
+            if now[r]:
+                chosen[j], ok[j] = (rate, asked), True
+    return chosen, ok, failures
 
 
 def nearest_programs(basis, trained: MotionWeights, tg: Targets) -> MotionWeights:

@@ -21,7 +21,7 @@ import math
 import torch
 
 from ... import synthesis
-from ...fit import impedance, layout
+from ...fit import layout
 from ...fit.targets import Targets, submovement_windows
 from ...model.fields import FieldBasis
 from ...model.program import model_state
@@ -88,25 +88,10 @@ def held_model(body, tg: Targets, basis: FieldBasis, weights, h) -> tuple:
 
 
 def held_programs(ctx: RunContext, basis: FieldBasis, weights, settings: list) -> tuple:
-    """Each motion's held program on ``basis``, in ``weights`` (in place): for each
-    (window rate, impedance) of ``settings`` in turn, the NNLS weights of the motions not
-    yet reproduced (:func:`tflearn.fit.impedance.solve_weights`, ``solver.ridge``),
-    simulated; a motion keeps the first that reproduces it, else the last. Returns (the
-    setting each motion took, None where none reproduces it; reproduced per motion; why
-    the last simulation of each motion failed, None where it did not)."""
-    tg = ctx.tg
-    chosen, ok, failures = [None] * tg.N, [False] * tg.N, [None] * tg.N
-    for rate, asked in settings:
-        todo = [j for j in range(tg.N) if not ok[j]]
-        if not todo:
-            break
-        part = tg.select(todo)
-        sub = weights.select_motions(todo).with_windows(*submovement_windows(part, weights.P, rate=rate))
-        impedance.solve_weights(ctx.body, basis, sub, part, asked, ridge=ctx.cfg.solver.ridge)
+    """Each motion's held program on ``basis``, in ``weights`` (in place):
+    :func:`tflearn.synthesis.held_ladder` over ``settings`` with ``solver.ridge``, each
+    setting's programs judged by the run's simulation and bars (:meth:`RunContext.check`)."""
+    def judge(sub, part):
         scores, now = ctx.check(basis, sub, part)
-        synthesis.take(weights, sub, list(range(len(todo))), todo)
-        for r, j in enumerate(todo):
-            failures[j] = scores.failure[r]
-            if now[r]:
-                chosen[j], ok[j] = (rate, asked), True
-    return chosen, ok, failures
+        return scores.failure, now
+    return synthesis.held_ladder(ctx.body, basis, weights, ctx.tg, settings, judge, ctx.cfg.solver.ridge)
