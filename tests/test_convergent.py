@@ -53,8 +53,10 @@ def keyframes():
     return body, targets.prepare(body, random_keyframes(body, 3, seed=11))
 
 
-def _pairs(body, tg, windows=16, damping=0.1, shape="pairs"):
-    tmpl = FieldBasis.empty(body.nv, "diag" if shape == "pairs" else "block", body.blocks, damping)
+def _laid(body, tg, windows=16, damping=0.1, shape="pairs"):
+    """The convergent layout of ``shape`` (pairs, or joint simplices, which take block K
+    themselves) around the motions, and zero weights with ``windows`` sub-movement windows each."""
+    tmpl = FieldBasis.empty(body.nv, "diag", body.blocks, damping)
     basis = layout.spanning_basis(body, tg, tmpl, 2.0, 0.25, shape)
     windows = targets.submovement_windows(tg, windows)
     return basis, MotionWeights.zeros(basis.M, tg.duration, tg.names, windows)
@@ -64,7 +66,7 @@ def test_stiffness_design_is_the_programs_jacobian(keyframes):
     """J_j(t) = D_j(t) x_j is the Jacobian in ν of the program's torque at the path's
     samples (velocities held), for random weights."""
     body, tg = keyframes
-    basis, weights = _pairs(body, tg, windows=4)
+    basis, weights = _laid(body, tg, windows=4)
     g = torch.Generator().manual_seed(0)
     x = torch.rand(tg.N, weights.vector().shape[-1], generator=g, dtype=DT)
     with torch.no_grad():
@@ -148,10 +150,10 @@ def test_the_stiffness_asked_is_given(keyframes):
     less; the torque cost stays a fit."""
     body, tg = keyframes
     asked = impedance.Impedance(frequency=10.0, deviation=0.1)
-    basis, weights = _pairs(body, tg)
+    basis, weights = _laid(body, tg)
     costs = impedance.solve_weights(body, basis, weights, tg, asked)
     held = impedance.path_stiffness(body, basis, weights, tg)
-    basis0, weights0 = _pairs(body, tg)
+    basis0, weights0 = _laid(body, tg)
     torque.solve_weights(basis0, weights0, tg)
     loose = impedance.path_stiffness(body, basis0, weights0, tg)
     assert bool(((held > 5.0) & (held < 20.0)).all()), held
@@ -168,11 +170,11 @@ def test_held_keyframes_are_reproduced_by_one_simulation(keyframes, shape, devia
     matching alone on the same fields does not."""
     body, tg = keyframes
     opt = SimOptions(rtol=1e-7, atol=1e-9)
-    basis, weights = _pairs(body, tg, shape=shape)
+    basis, weights = _laid(body, tg, shape=shape)
     impedance.solve_weights(body, basis, weights, tg, impedance.Impedance(10.0, deviation))
     held = score(body, basis, weights, tg, opt)
     assert max(held.rmse) <= 0.03 and max(held.tip) <= 0.02, (held.rmse, held.tip)
-    basis0, weights0 = _pairs(body, tg, shape=shape)
+    basis0, weights0 = _laid(body, tg, shape=shape)
     torque.solve_weights(basis0, weights0, tg)
     loose = score(body, basis0, weights0, tg, opt)
     assert max(loose.rmse) > 0.03, loose.rmse
@@ -195,10 +197,10 @@ def test_held_equilibrium_stays_near_the_path(keyframes):
     joint space and near the limb (the stiffness ω²M makes the offset K⁻¹τ small): closer
     than the equilibrium of torque matching alone on the same fields."""
     body, tg = keyframes
-    basis, weights = _pairs(body, tg)
+    basis, weights = _laid(body, tg)
     impedance.solve_weights(body, basis, weights, tg, impedance.Impedance(10.0, 0.1))
     nu, found = impedance.equilibria(basis, weights, tg)
-    basis0, weights0 = _pairs(body, tg)
+    basis0, weights0 = _laid(body, tg)
     torque.solve_weights(basis0, weights0, tg)
     nu0, found0 = impedance.equilibria(basis0, weights0, tg)
     real = tg.mask & (tg.wt > 0)
@@ -217,7 +219,7 @@ def test_sparsity_keeps_fewer_weights_unshrunk(keyframes):
     would be left with."""
     body, tg = keyframes
     plain, sparse = impedance.Impedance(10.0, 0.1), impedance.Impedance(10.0, 0.1, sparsity=0.01)
-    basis, weights = _pairs(body, tg)
+    basis, weights = _laid(body, tg)
     impedance.solve_weights(body, basis, weights, tg, plain)
     full = (weights.vector() > 0).sum(-1)
     impedance.solve_weights(body, basis, weights, tg, sparse)
@@ -239,7 +241,7 @@ def test_held_out_synthesis_asks_the_runs_stiffness(keyframes):
     from tflearn.evaluate import synthesize
     from tflearn.io.basis import LearnedBasis
     body, tg = keyframes
-    basis, weights = _pairs(body, tg.select([0]))
+    basis, weights = _laid(body, tg.select([0]))
     lb = LearnedBasis(body, basis, weights, tg.q0[:1], tg.qd0[:1], torch.full((1,), 100.0, dtype=DT))
     new = tg.select([1, 2])
     held = synthesize(lb, new, shooting=None, held=impedance.Impedance(10.0, 0.1))
@@ -270,7 +272,7 @@ def test_each_motion_uses_the_windows_its_length_asks(keyframes):
     that many alone; the rest start 1 s after its end, where their pulses are 0 all along
     it: their torque columns are 0 and NNLS leaves their weights at 0."""
     body, tg = keyframes
-    basis = _pairs(body, tg)[0]
+    basis = _laid(body, tg)[0]
     rate, P = 2.0, math.ceil(2.0 * float(tg.duration.max()))
     onset, length = targets.submovement_windows(tg, P, rate=rate)
     for j in range(tg.N):
