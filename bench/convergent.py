@@ -7,7 +7,8 @@ torques and the stiffness ω = 10 rad/s about the path, multiple shooting only o
 the NNLS leaves unreproduced), once with fewer weights (``sparsity=0.01``, no shooting:
 the NNLS alone) and once with the stiffness off (``frequency=0``, torque matching alone on
 the same fields), with joint simplices instead of pairs (``joints``: b + 1 fields per joint of
-b coordinates, δ = 0.03), and once with fewer weights and multiple shooting on their support
+b coordinates, δ = 0.03; ``joints, 12 fields``: the most anisotropic joints paired within a
+budget of 12, ``solver.layout.fields``), and once with fewer weights and multiple shooting on their support
 (``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0), also with
 windows sized by each motion's length (``model.window_rate=4``), and with all weights
 free at 3 windows per second (also with the hand in shooting's residuals,
@@ -57,10 +58,17 @@ SETTINGS = {"held": [], "held, sparse": ["solver.layout.sparsity=0.01", "solver.
             "held, 3 windows/s": ["model.window_rate=3"],
             "held, 3 windows/s, hand": ["model.window_rate=3", "solver.shooting.tip_weight=100"],
             "torques only": ["solver.layout.frequency=0"],
-            "joints": ["solver.layout.shape=joints", "solver.layout.deviation=0.03"]}
+            "joints": ["solver.layout.shape=joints", "solver.layout.deviation=0.03"],
+            "joints, 12 fields": ["solver.layout.shape=joints", "solver.layout.deviation=0.03",
+                                  "solver.layout.fields=12"]}
 
 #: The settings whose first-seed runs ``--push`` pushes (those held on the path by default).
-PUSHED = ("held", "joints")
+PUSHED = ("held", "joints", "joints, 12 fields")
+
+
+def _slug(label: str) -> str:
+    """A setting's label as a folder name's part."""
+    return label.replace(", ", "_").replace(" ", "_")
 
 
 def make(folder: Path, seed: int, n: int) -> list:
@@ -108,7 +116,7 @@ def main() -> None:
         motions = make(data, seed, args.motions)
         for label in args.settings.split(";"):
             extra = SETTINGS[label]
-            run = out / f"run{seed}_{label.replace(', ', '_').replace(' ', '_')}"
+            run = out / f"run{seed}_{_slug(label)}"
             cfg = config.load(ROOT / "configs" / "convergent.yaml", [f"data={data}", f"out={run}", *extra])
             t0 = time.perf_counter()
             metrics = train.run(cfg, restart=True)
@@ -120,8 +128,8 @@ def main() -> None:
         first = int(args.seeds.split(",")[0])
         names = [f"keys{first}_{i}" for i in range(args.motions)]
         pushed = [label for label in args.settings.split(";") if label in PUSHED]
-        result["push"] = {label: sweep(out / f"run{first}_{label}", names, out / f"push_{label}")
-                          for label in pushed}
+        result["push"] = {label: sweep(out / f"run{first}_{_slug(label)}", names,
+                                       out / f"push_{_slug(label)}") for label in pushed}
         print(json.dumps(result["push"], indent=1))
     (out / "convergent.json").write_text(json.dumps(result, indent=1))
 

@@ -136,6 +136,8 @@ def test_unknown_key_in_override(override, key):
     ("solver.each.max_fields=0", "solver.each.max_fields", "≥ 1"),
     ("data=3", "data", "data"),
     ("solver.init.stiffness_grid=2", "solver.init.stiffness_grid", "list"),
+    ("solver.layout.fields=12", "solver.layout", "applies to shape joints, not simplex"),
+    ("solver.hold.fields=12", "solver.hold", "applies to shape joints, not pairs"),
 ])
 def test_bad_value_in_override(override, key, what):
     with pytest.raises(ConfigError) as err:

@@ -107,8 +107,10 @@ def test_pairs_centres_stay_inside_joint_space():
     assert all(inside)
 
 
-def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes):
-    """The ``joints`` layout: b + 1 fields per joint of b coordinates (10 on the arm),
+@pytest.mark.parametrize("fields, paired", [(None, (False, False, False)), (12, (False, False, True))])
+def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes, fields, paired):
+    """The ``joints`` layout: b + 1 fields per joint of b coordinates (10 on the arm), or
+    within a budget of 12 the wrist, whose inertia is the most anisotropic, paired (2b);
     each centre a posture the joint can hold that differs from the middle of the range on
     its own joint only; at every sample of the motions every torque is a non-negative
     combination of the fields' (an NNLS leaves no residual), and all of them active at
@@ -119,16 +121,16 @@ def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         basis = layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, "block", body.blocks), 2.0,
-                                      0.25, "joints")
-    assert basis.M == body.nv + len(body.blocks) == 10
+                                      0.25, "joints", fields)
+    assert basis.M == fields or basis.M == body.nv + len(body.blocks) == 10
     eta = basis.eta.detach()
     moved = (eta - eta.median(0).values).abs() > 1e-12                     # M×n: off the middle
     start = 0
-    for b in body.blocks:
+    for b, pairs in zip(body.blocks, paired):
         own = slice(start, start + b)
         assert float(eta[:, own].norm(dim=-1).max()) <= layout.JOINT_LIMIT + 1e-12
-        fields = moved[:, own].any(-1)
-        assert int(fields.sum()) == b + 1 and not bool(moved[fields][:, :start].any())
+        mine = moved[:, own].any(-1)
+        assert int(mine.sum()) == (2 * b if pairs else b + 1) and not bool(moved[mine][:, :start].any())
         start += b
     q = tg.q[tg.mask][::25]                                                # postures on the paths
     chi = basis(q)                                                         # S×M×n
@@ -140,8 +142,28 @@ def test_joint_simplices_push_every_way_from_inside_joint_space(keyframes):
     assert float(torch.linalg.eigvalsh(-0.5 * (J + J.mT)).min()) > 0
     for kind in ("diag", "scalar"):                                        # a kind that holds them
         laid = layout.spanning_basis(body, tg, FieldBasis.empty(body.nv, kind, body.blocks, 0.2), 2.0,
-                                     0.25, "joints")
+                                     0.25, "joints", fields)
         assert laid.kind == "block" and laid.damping == 0.2 and torch.allclose(laid.K(), basis.K())
+
+
+def test_a_budget_of_2n_fields_pairs_every_joint(keyframes):
+    """With room for 2n = 14 fields every joint takes a pair per coordinate: the centres
+    are the pairs' (``pairs_basis``) and the stiffness differs only by the pairs' small
+    coupling on the pulled coordinate; a budget below the simplices' 10 is refused."""
+    body, tg = keyframes
+    template = FieldBasis.empty(body.nv, "diag")
+    pairs = layout.pairs_basis(body, tg, template, 2.0, 0.25)
+    both = layout.spanning_basis(body, tg, template, 2.0, 0.25, "joints", 14)
+    assert both.M == pairs.M == 14
+    eta = both.eta.detach()
+    order = [min(range(14), key=lambda i: float((eta[i] - e).abs().max())) for e in pairs.eta.detach()]
+    assert sorted(order) == list(range(14))
+    assert torch.allclose(eta[order], pairs.eta.detach(), atol=1e-12)
+    Kb, Kp = both.K().detach(), pairs.K().detach()
+    rel = (Kb[order] - Kp).abs().amax((-1, -2)) / Kp.abs().amax((-1, -2))
+    assert float(rel.max()) <= 1.1 * layout.PAIR_COUPLING
+    with pytest.raises(ValueError, match="budget of 9 fields"):
+        layout.spanning_basis(body, tg, template, 2.0, 0.25, "joints", 9)
 
 
 def test_the_stiffness_asked_is_given(keyframes):

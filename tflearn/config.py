@@ -238,12 +238,23 @@ class Layout(Section):
     stiffness: float = Field(0.0625, gt=0, allow_inf_nan=False)  # K = stiffness · diag(m̄) (1/s²)
 
 
+def _budget_of_joints(section):
+    """``fields`` is a budget of the ``joints`` shape; refused with any other."""
+    if section.fields is not None and section.shape != "joints":
+        raise ValueError(f"fields (a budget of {section.fields}) applies to shape joints, "
+                         f"not {section.shape}")
+    return section
+
+
 class LayoutSection(Layout):                    # method layout: fields spanning joint space
     # the stiffness the weights give about the path (tflearn.fit.impedance): the closed
     # loop's natural frequency ω (rad/s; 0: torques only) and the deviation δ (rad) at
     # which a stiffness error weighs as much as a torque error
     frequency: float = Field(0.0, ge=0, allow_inf_nan=False)
     deviation: float = Field(0.1, gt=0, allow_inf_nan=False)
+    # shape joints: a budget of fields (null: n + the joints); the joints of most anisotropic
+    # inertia take a pair per coordinate instead of their simplex while M stays within it
+    fields: Optional[int] = Field(None, ge=2)
     # λ of an ℓ1 term that first sets the least useful weights to 0 (then the others are
     # solved again without it; 0: off): fewer numbers per motion
     sparsity: float = Field(0.0, ge=0, allow_inf_nan=False)
@@ -252,6 +263,8 @@ class LayoutSection(Layout):                    # method layout: fields spanning
         """These settings as :class:`tflearn.fit.impedance.Impedance`."""
         from .fit.impedance import Impedance
         return Impedance(frequency=self.frequency, deviation=self.deviation, sparsity=self.sparsity)
+
+    _budget = model_validator(mode="after")(_budget_of_joints)
 
     @model_validator(mode="before")
     @classmethod
@@ -295,6 +308,8 @@ class HoldSection(Layout):
     shape: Literal["cross", "simplex", "pairs", "joints"] = "pairs"
     radius: float = Field(2.0, gt=0, allow_inf_nan=False)
     stiffness: float = Field(0.25, gt=0, allow_inf_nan=False)
+    fields: Optional[int] = Field(None, ge=2)      # shape joints: as solver.layout.fields
+    _budget = model_validator(mode="after")(_budget_of_joints)
     frequency: float = Field(10.0, gt=0, allow_inf_nan=False)
     damping: float = Field(0.1, ge=0, allow_inf_nan=False)
     deviations: list[Annotated[float, Field(gt=0, allow_inf_nan=False)]] = Field([0.1, 0.02], min_length=1)

@@ -13,7 +13,8 @@ with unit directions u_i that positively span ℝⁿ (``SHAPES``: ``cross``, u =
 M = 2n; ``simplex``, the n + 1 vertices of a regular simplex, the fewest that can).
 Two convergent shapes keep every centre inside joint space instead, each field pulling
 one joint: :func:`pairs_basis` (2n) and :func:`joints_basis` (b + 1 per joint of b
-coordinates).
+coordinates; within a budget of fields, a pair per coordinate on the joints of most
+anisotropic inertia).
 Where a field's Gaussian is ≈ 1 it is the spring K(η_i − ν), and the fields' sum is
 
     Σ_i w_i K(η_i − ν) = K [ W (ν̄ − ν) + r Σ_i w_i u_i ],     W = Σ_i w_i ≥ 0:
@@ -42,6 +43,7 @@ from __future__ import annotations
 import itertools
 import math
 import warnings
+from typing import Optional
 
 import torch
 
@@ -112,14 +114,14 @@ def reach(shape: str, x: torch.Tensor) -> torch.Tensor:
 
 
 def spanning_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
-                   stiffness: float, shape: str) -> FieldBasis:
+                   stiffness: float, shape: str, fields: Optional[int] = None) -> FieldBasis:
     """The fields of ``SHAPES[shape]`` like ``template`` (its kind must hold a diagonal K:
     not ``scalar``; its damping ratio is kept) at ν̄ + ``radius`` u_i, K = ``stiffness`` ·
     diag(m̄), ν̄ and m̄ the mean posture and mean inertia over every real sample of the
     motions in ``tg`` (module docstring). Warns when a motion leaves the hull of the
     centres (:func:`reach` ≥ ``radius``), where the fields no longer push every way."""
     if shape == "joints":
-        return joints_basis(body, tg, template, radius, stiffness)
+        return joints_basis(body, tg, template, radius, stiffness, fields)
     if template.kind == "scalar":
         raise ValueError("spanning_basis: the layout's stiffness is per coordinate; "
                          "it needs model.stiffness diag, block or full, not scalar")
@@ -170,7 +172,7 @@ def pairs_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
 
 
 def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
-                 stiffness: float) -> FieldBasis:
+                 stiffness: float, fields: Optional[int] = None) -> FieldBasis:
     """Convergent joint simplices: for each joint of b coordinates, b + 1 fields that pull
     that joint only (a hinge's two are :func:`pairs_basis`' pair), M = Σ (b + 1) = n + the
     number of joints (10 for the arm, against 14 pairs). Field i of a joint pulls along
@@ -188,12 +190,20 @@ def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     and scales with the joint's inertia, as the pairs' does. The basis is of a kind that
     holds a joint's oblique pulls: ``template``'s where it is ``block`` or ``full``, else
     ``block`` (its blocks and damping kept). Warns when a motion leaves a joint's
-    polytope."""
+    polytope.
+
+    ``fields`` F (None: n + the joints) spends what a budget of F fields allows on pairs:
+    joints take a pair per coordinate (u = ±e_k, 2b fields, :func:`pairs_basis`' fields
+    of that joint) instead of their simplex, in the order of their inertia's anisotropy
+    max m̄/min m̄ over the joint (one co-activation holds coordinates of unequal inertia
+    worst), while M stays ≤ F (:func:`pairs_per_joint`)."""
     hi, lo = _range(tg)
     centre, n, inertia = 0.5 * (hi + lo), body.nv, _inertia(body, tg)
+    paired = pairs_per_joint(body, inertia, fields)
     pulls = []                                                                  # s_i, each n
-    for k, b in zip(itertools.accumulate([0] + body.blocks), body.blocks):
-        u = _simplex(b)[0] if b > 1 else torch.tensor([[1.0], [-1.0]], dtype=torch.float64)
+    for j, (k, b) in enumerate(zip(itertools.accumulate([0] + body.blocks), body.blocks)):
+        eye = torch.eye(b, dtype=torch.float64)
+        u = torch.cat([eye, -eye]) if b == 1 or paired[j] else _simplex(b)[0]
         s = torch.zeros(len(u), n, dtype=torch.float64)
         s[:, k:k + b] = u * inertia[k:k + b].sqrt()
         pulls.append(s)
@@ -211,6 +221,26 @@ def joints_basis(body: Body, tg: Targets, template: FieldBasis, radius: float,
     kind = template.kind if template.kind in ("block", "full") else "block"
     return FieldBasis(centre + r[:, None] * normal, K, kind=kind, blocks=template.blocks,
                       damping=template.damping)
+
+
+def pairs_per_joint(body: Body, inertia: torch.Tensor, fields: Optional[int]) -> list:
+    """Which joints of the joint simplices take a pair per coordinate (list of bool, one
+    per joint) within a budget of ``fields`` (None: none): the simplices' n + the joints,
+    then each joint of b > 1 coordinates, most anisotropic inertia first (max m̄/min m̄
+    over its coordinates), paired where its b − 1 more fields keep M ≤ ``fields``.
+    Raises ValueError when ``fields`` is below the simplices' count."""
+    blocks = body.blocks
+    M = sum(b + 1 for b in blocks)
+    if fields is not None and fields < M:
+        raise ValueError(f"joints_basis: a budget of {fields} fields is below the joint simplices' {M} "
+                         f"(n + the number of joints)")
+    start = list(itertools.accumulate([0] + blocks))
+    spread = [float(inertia[k:k + b].max() / inertia[k:k + b].min()) for k, b in zip(start, blocks)]
+    paired = [False] * len(blocks)
+    for j in sorted(range(len(blocks)), key=lambda j: -spread[j]):
+        if fields is not None and blocks[j] > 1 and M + blocks[j] - 1 <= fields:
+            paired[j], M = True, M + blocks[j] - 1
+    return paired
 
 
 def _within_joints(body: Body, centre: torch.Tensor, u: torch.Tensor, radius: float) -> torch.Tensor:

@@ -33,7 +33,8 @@ def layout_basis(cfg: Config, body, tg: Targets, c=None) -> FieldBasis:
     """The spanning basis (:func:`tflearn.fit.layout.spanning_basis`) of ``c``'s shape,
     radius and stiffness (by default ``solver.layout``) around the motions of ``tg``."""
     c = c or cfg.solver.layout
-    return layout.spanning_basis(body, tg, empty_basis(cfg, body), c.radius, c.stiffness, c.shape)
+    fields = c.fields if c.shape == "joints" else None          # rescue's shapes have no budget
+    return layout.spanning_basis(body, tg, empty_basis(cfg, body), c.radius, c.stiffness, c.shape, fields)
 
 
 def windows(cfg: Config, tg: Targets) -> tuple:

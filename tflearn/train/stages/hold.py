@@ -80,7 +80,7 @@ def held_model(body, tg: Targets, basis: FieldBasis, weights, h) -> tuple:
     P = ⌈max(``h.window_rates``) × the longest duration⌉, all zero, cut at the first rate."""
     kind = "diag" if basis.kind == "scalar" else basis.kind
     template = FieldBasis.empty(body.nv, kind, body.blocks, h.damping)
-    laid = layout.spanning_basis(body, tg, template, h.radius, h.stiffness, h.shape)
+    laid = layout.spanning_basis(body, tg, template, h.radius, h.stiffness, h.shape, h.fields)
     grown = laid.like(torch.cat([basis.eta.detach(), laid.eta]), torch.cat([basis.K().detach(), laid.K()]))
     P = math.ceil(max(h.window_rates) * float(tg.duration.max()))
     windows = submovement_windows(tg, P, rate=h.window_rates[0])
