@@ -422,3 +422,29 @@ def test_a_refused_hold_names_what_it_would_lose_and_why():
     assert "2 motion(s) would be lost: tuck, come_here" in text
     assert "come_here (ran past 20000 evaluations)" in text and "solver.path.max_evals" in text
     assert "max_evals" not in _refusal(["tuck"], [None])
+
+
+@pytest.mark.slow
+def test_a_motion_its_windows_leave_unreproduced_is_cut_finer(tmp_path):
+    """Windows sized by what a motion needs (``model.finer``): a three-key animation at 1
+    window a second, which the NNLS and two shooting iterations leave unreproduced on the
+    convergent pairs (2.1 cm at the hand), is cut into 2 windows a second, fitted again
+    and reproduced; the run records the rate it kept, and the motion is described by
+    more numbers for it."""
+    from pathlib import Path
+
+    from tflearn import config, train
+    from tflearn.motions import motion as motion_mod
+    for m in random_keyframes(tb.arm(), 1, seed=11):
+        motion_mod.save(m, tmp_path / f"{m.name}.npz")
+
+    def run(finer):
+        preset = Path(__file__).resolve().parents[1] / "configs" / "convergent.yaml"
+        return train.run(config.load(preset, [
+            f"data={tmp_path}", f"out={tmp_path / str(finer)}", "model.window_rate=1", f"model.finer={finer}",
+            "solver.shooting.iterations=2", "log.progress=false", "log.tensorboard=false"]))
+    coarse, fine = run(0)["motions"]["keys11_0"], run(2)
+    assert not coarse["success"]
+    assert fine["history"]["finer"] == {"keys11_0": 2.0}
+    row = fine["motions"]["keys11_0"]
+    assert row["success"] and row["tip"] < coarse["tip"] and row["numbers"] > coarse["numbers"]

@@ -53,6 +53,16 @@ class ModelSection(Section):
     # each motion uses ⌈rate × its own duration⌉ of them, the others past its end, inert
     # (tflearn.train.pipeline.sized_windows, fit.targets.submovement_windows; 0: model.windows)
     window_rate: float = Field(0.0, ge=0, allow_inf_nan=False)
+    # with window_rate: a motion that path matching leaves unreproduced is cut into twice as
+    # many windows and fitted again (NNLS, then shooting), up to this many times, keeping the
+    # program simulated closer (tflearn.train.stages.path; P sized for the finest; 0: off)
+    finer: int = Field(0, ge=0, le=4)
+
+    @model_validator(mode="after")
+    def _finer_needs_a_rate(self):
+        if self.finer and not self.window_rate:
+            raise ValueError("finer windows are twice model.window_rate's: set model.window_rate too")
+        return self
 
 
 class InitSection(Section):

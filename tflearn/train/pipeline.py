@@ -76,10 +76,10 @@ def load(cfg: Config, body) -> tuple:
 
 
 def sized_windows(cfg: Config, tg) -> Config:
-    """``cfg`` with ``model.windows`` P = ⌈``model.window_rate`` × the longest motion's
-    duration⌉ when that rate is set (> 0), else as it is: the run, its checkpoint and
-    its config.yaml then hold that P."""
-    rate = cfg.model.window_rate
+    """``cfg`` with ``model.windows`` P = ⌈``model.window_rate`` × 2^``model.finer`` × the
+    longest motion's duration⌉ when that rate is set (> 0), else as it is: the run, its
+    checkpoint and its config.yaml then hold that P."""
+    rate = cfg.model.window_rate * 2 ** cfg.model.finer          # the finest windows asked
     if not rate:
         return cfg
     P = max(1, math.ceil(rate * float(tg.duration.max()) - 1e-9))

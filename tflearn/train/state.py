@@ -169,7 +169,8 @@ class History:
     """What the run did, reported in metrics.json (``history``; docs/guide.md): the method
     ``solver.method: auto`` chose and why (``method``: :func:`tflearn.train.choice.choose`'s
     decision; a resumed run takes it from here), one entry per stage that ran,
-    ``shooting`` per motion {"loss", "failure"} of the last multiple shooting, ``path`` why
+    ``shooting`` per motion {"loss", "failure"} of the last multiple shooting, ``finer`` per
+    motion cut into finer windows the windows a second it kept (``model.finer``), ``path`` why
     path matching stopped when its simulation failed, ``slsqp`` the baseline's report
     (:func:`tflearn.fit.slsqp.fit_slsqp`)."""
 
@@ -179,6 +180,7 @@ class History:
     layout: Optional[ModelRecord] = None
     reduce: list = field(default_factory=list)
     shooting: Optional[dict] = None
+    finer: Optional[dict] = None
     path: Optional[str] = None
     rescue: list = field(default_factory=list)
     hold: Optional[HoldRecord] = None
@@ -190,7 +192,7 @@ class History:
                "pool": None if self.pool is None else self.pool.to_dict(),
                "layout": None if self.layout is None else self.layout.to_dict(),
                "reduce": [r.to_dict() for r in self.reduce] or None, "shooting": self.shooting,
-               "path": self.path, "rescue": [_plain(r) for r in self.rescue] or None,
+               "finer": self.finer, "path": self.path, "rescue": [_plain(r) for r in self.rescue] or None,
                "hold": None if self.hold is None else _plain(self.hold), "slsqp": self.slsqp}
         return {k: v for k, v in doc.items() if v is not None}
 
@@ -201,7 +203,8 @@ class History:
                    pool=None if pool is None else ModelRecord(**pool),
                    layout=None if layout is None else ModelRecord(**layout),
                    reduce=[Removal(**r) for r in doc.get("reduce", [])], shooting=doc.get("shooting"),
-                   path=doc.get("path"), rescue=[RescueRound(**r) for r in doc.get("rescue", [])],
+                   finer=doc.get("finer"), path=doc.get("path"),
+                   rescue=[RescueRound(**r) for r in doc.get("rescue", [])],
                    hold=None if doc.get("hold") is None else HoldRecord(**doc["hold"]),
                    slsqp=doc.get("slsqp"))
 

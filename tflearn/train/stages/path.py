@@ -8,7 +8,10 @@ run's result is then the best point Adam found (:func:`~tflearn.train.models.fin
 """
 from __future__ import annotations
 
+from ... import synthesis
+from ...fit import impedance
 from ...fit import path as path_fit
+from ...fit.targets import submovement_windows
 from ...model.program import model_from_state, model_state
 from ..context import RunContext
 from ..state import PathProgress, RunState
@@ -64,6 +67,9 @@ def start(ctx: RunContext, state: RunState, basis, weights) -> None:
     if shoot:
         ctx.shoot(state, basis, weights, [j for j, x in enumerate(ok) if not x])
         scores, ok = ctx.check(basis, weights, tg)
+        if ctx.cfg.model.finer and not all(ok):
+            finer(ctx, state, basis, weights, scores, ok)
+            scores, ok = ctx.check(basis, weights, tg)
         ctx.log.scores(scores, tg, ctx.tick(state), figures=True)
         state.model = model_state(basis, weights)
     state.path = PathProgress(needed=not all(ok), lr=p.lr,
@@ -80,3 +86,35 @@ def start(ctx: RunContext, state: RunState, basis, weights) -> None:
         ctx.log.status(advance=0, failed="the simulation fails at the start")
     if shoot:
         ctx.save(state)
+
+
+def finer(ctx: RunContext, state: RunState, basis, weights, scores, ok: list) -> None:
+    """Activation sequences sized by what each motion needs: a motion that shooting left
+    unreproduced is cut into twice as many sub-movement windows
+    (:func:`~tflearn.fit.targets.submovement_windows`, ``model.window_rate`` × 2ᵏ a
+    second, k = 1 … ``model.finer``), its weights solved by NNLS (with the stiffness
+    about the path that ``solver.layout`` asks, for a laid-out basis) and shot again; it
+    keeps the new program where that simulates closer (:func:`~tflearn.synthesis.closer`),
+    in ``weights`` (in place). ``history.finer``: the windows a second each such motion
+    kept."""
+    tg, m = ctx.tg, ctx.cfg.model
+    asked = ctx.cfg.solver.layout.impedance() if ctx.cfg.solver.method == "layout" else impedance.Impedance()
+    todo, rmse = [j for j, x in enumerate(ok) if not x], [scores.rmse[j] for j, x in enumerate(ok) if not x]
+    kept = {}
+    for k in range(1, m.finer + 1):
+        if not todo:
+            break
+        rate, part = m.window_rate * 2 ** k, tg.select(todo)
+        sub = weights.select_motions(todo).with_windows(*submovement_windows(part, weights.P, rate=rate))
+        impedance.solve_weights(ctx.body, basis, sub, part, asked, ridge=ctx.cfg.solver.ridge)
+        ctx.log.busy(finer=f"{rate:g} windows/s", motions=len(todo))
+        synthesis.shoot(ctx.body, basis, sub, part, list(range(part.N)), ctx.cfg.solver.shooting.options(
+            ctx.variable_phases), ctx.options, distributed=True)
+        after, now = ctx.check(basis, sub, part)
+        better = synthesis.closer(rmse, after, now)
+        rows = [r for r, b in enumerate(better) if b]
+        synthesis.take(weights, sub, rows, [todo[r] for r in rows])
+        kept.update({tg.names[todo[r]]: rate for r in rows})
+        todo, rmse = ([todo[r] for r in range(len(todo)) if not now[r]],
+                      [after.rmse[r] if better[r] else rmse[r] for r in range(len(todo)) if not now[r]])
+    state.history.finer = kept or None
