@@ -99,22 +99,21 @@ def finer(ctx: RunContext, state: RunState, basis, weights, scores, ok: list) ->
     kept."""
     tg, m = ctx.tg, ctx.cfg.model
     asked = ctx.cfg.solver.layout.impedance() if ctx.cfg.solver.method == "layout" else impedance.Impedance()
-    todo, rmse = [j for j, x in enumerate(ok) if not x], [scores.rmse[j] for j, x in enumerate(ok) if not x]
+    todo = {j: scores.rmse[j] for j, x in enumerate(ok) if not x}       # motion → its closest joint RMSE
     kept = {}
     for k in range(1, m.finer + 1):
         if not todo:
             break
-        rate, part = m.window_rate * 2 ** k, tg.select(todo)
-        sub = weights.select_motions(todo).with_windows(*submovement_windows(part, weights.P, rate=rate))
+        rows, rate = list(todo), m.window_rate * 2 ** k
+        part = tg.select(rows)
+        sub = weights.select_motions(rows).with_windows(*submovement_windows(part, weights.P, rate=rate))
         impedance.solve_weights(ctx.body, basis, sub, part, asked, ridge=ctx.cfg.solver.ridge)
-        ctx.log.busy(finer=f"{rate:g} windows/s", motions=len(todo))
+        ctx.log.busy(finer=f"{rate:g} windows/s", motions=len(rows))
         synthesis.shoot(ctx.body, basis, sub, part, list(range(part.N)), ctx.cfg.solver.shooting.options(
             ctx.variable_phases), ctx.options, distributed=True)
         after, now = ctx.check(basis, sub, part)
-        better = synthesis.closer(rmse, after, now)
-        rows = [r for r, b in enumerate(better) if b]
-        synthesis.take(weights, sub, rows, [todo[r] for r in rows])
-        kept.update({tg.names[todo[r]]: rate for r in rows})
-        todo, rmse = ([todo[r] for r in range(len(todo)) if not now[r]],
-                      [after.rmse[r] if better[r] else rmse[r] for r in range(len(todo)) if not now[r]])
+        better = [r for r, b in enumerate(synthesis.closer(list(todo.values()), after, now)) if b]
+        synthesis.take(weights, sub, better, [rows[r] for r in better])
+        kept.update({tg.names[rows[r]]: rate for r in better})
+        todo = {j: after.rmse[r] if r in better else todo[j] for r, j in enumerate(rows) if not now[r]}
     state.history.finer = kept or None
