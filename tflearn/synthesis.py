@@ -107,6 +107,18 @@ def take(weights: MotionWeights, source: MotionWeights, rows: list, into: list) 
     weights.set_flat(PROGRAM, source.flat(PROGRAM)[rows], into)
 
 
+def recut(body, basis, weights: MotionWeights, tg: Targets, rows: list, rate: float,
+          asked: impedance.Impedance, ridge: float = 0.0) -> tuple:
+    """(new weights of motions ``rows`` cut into ``rate`` sub-movement windows a second, up
+    to ``weights.P`` (:func:`~tflearn.fit.targets.submovement_windows`), solved by NNLS on
+    their torques and the stiffness ``asked`` (:func:`~tflearn.fit.impedance.solve_weights`);
+    those motions' targets)."""
+    part = tg.select(rows)
+    sub = weights.select_motions(rows).with_windows(*submovement_windows(part, weights.P, rate=rate))
+    impedance.solve_weights(body, basis, sub, part, asked, ridge=ridge)
+    return sub, part
+
+
 def held_ladder(body, basis, weights: MotionWeights, tg: Targets, settings: list, judge: Callable,
                 ridge: float = 0.0) -> tuple:
     """Each motion's held program, in ``weights`` (in place): for each (window rate,
@@ -122,9 +134,7 @@ def held_ladder(body, basis, weights: MotionWeights, tg: Targets, settings: list
         todo = [j for j in range(tg.N) if not ok[j]]
         if not todo:
             break
-        part = tg.select(todo)
-        sub = weights.select_motions(todo).with_windows(*submovement_windows(part, weights.P, rate=rate))
-        impedance.solve_weights(body, basis, sub, part, asked, ridge=ridge)
+        sub, part = recut(body, basis, weights, tg, todo, rate, asked, ridge)
         failed, now = judge(sub, part)
         take(weights, sub, list(range(len(todo))), todo)
         for r, j in enumerate(todo):

@@ -11,7 +11,6 @@ from __future__ import annotations
 from ... import synthesis
 from ...fit import impedance
 from ...fit import path as path_fit
-from ...fit.targets import submovement_windows
 from ...model.program import model_from_state, model_state
 from ..context import RunContext
 from ..state import PathProgress, RunState
@@ -92,8 +91,9 @@ def finer(ctx: RunContext, state: RunState, basis, weights, scores, ok: list) ->
     """Activation sequences sized by what each motion needs: a motion that shooting left
     unreproduced is cut into twice as many sub-movement windows
     (:func:`~tflearn.fit.targets.submovement_windows`, ``model.window_rate`` × 2ᵏ a
-    second, k = 1 … ``model.finer``), its weights solved by NNLS (with the stiffness
-    about the path that ``solver.layout`` asks, for a laid-out basis) and shot again; it
+    second, k = 1 … ``model.finer``), its weights solved by NNLS
+    (:func:`~tflearn.synthesis.recut`, with the stiffness about the path that
+    ``solver.layout`` asks, for a laid-out basis) and shot again; it
     keeps the new program where that simulates closer (:func:`~tflearn.synthesis.closer`),
     in ``weights`` (in place). ``history.finer``: the windows a second each such motion
     kept."""
@@ -105,9 +105,7 @@ def finer(ctx: RunContext, state: RunState, basis, weights, scores, ok: list) ->
         if not todo:
             break
         rows, rate = list(todo), m.window_rate * 2 ** k
-        part = tg.select(rows)
-        sub = weights.select_motions(rows).with_windows(*submovement_windows(part, weights.P, rate=rate))
-        impedance.solve_weights(ctx.body, basis, sub, part, asked, ridge=ctx.cfg.solver.ridge)
+        sub, part = synthesis.recut(ctx.body, basis, weights, tg, rows, rate, asked, ctx.cfg.solver.ridge)
         ctx.log.busy(finer=f"{rate:g} windows/s", motions=len(rows))
         synthesis.shoot(ctx.body, basis, sub, part, list(range(part.N)), ctx.cfg.solver.shooting.options(
             ctx.variable_phases), ctx.options, distributed=True)
