@@ -43,7 +43,7 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
                shooting: Optional[ShootingOptions] = ShootingOptions(),
                options: SimOptions = SimOptions(), success: tuple = (0.03, 0.02), *,
                ridge: float = 0.0, held: impedance.Impedance = impedance.Impedance(),
-               window_rate: float = 0.0, ladder: Sequence[tuple] = ()) -> MotionWeights:
+               window_rate: float = 0.0, ladder: Sequence[tuple] = (), finer: int = 0) -> MotionWeights:
     """Held-out synthesis (:mod:`tflearn.synthesis`): with the basis frozen, fit new
     motions' weights by NNLS on their torques (exact, or with a ``ridge``:
     :func:`~tflearn.fit.torque.solve_weights`; with ``held``, also on the stiffness about
@@ -62,7 +62,10 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
     length asks, up to that many). ``ladder``: further (window rate, impedance) settings
     that the motions the NNLS leaves unreproduced try in turn before shooting
     (:func:`~tflearn.synthesis.held_ladder`: a held run's ``solver.hold.settings()`` after
-    its first, as training held its own motions)."""
+    its first, as training held its own motions). ``finer``: a motion still not reproduced
+    is cut into ``window_rate`` × 2ᵏ windows a second, k = 1 … ``finer``, and shot again,
+    keeping the closer program (:func:`~tflearn.synthesis.finer`, as training's
+    ``model.finer``; the windows up to the run's P)."""
     weights = MotionWeights.zeros(lb.basis.M, tg.duration, tg.names,
                                   submovement_windows(tg, lb.weights.P, rate=window_rate))
     if ladder:
@@ -76,10 +79,30 @@ def synthesize(lb: basis_io.LearnedBasis, tg: Targets,
         return weights
     nearest = partial(synthesis.nearest_programs, lb.basis, lb.weights)
     failures = synthesis.fit_programs(lb.body, lb.basis, weights, tg, shooting, options, success, nearest)
+    if finer and window_rate:
+        kept = _finer(lb, weights, tg, shooting, options, success, held, ridge,
+                      [window_rate * 2 ** k for k in range(1, finer + 1)])
+        failures = {name: why for name, why in failures.items() if tg.names.index(name) not in kept}
     for name, why in failures.items():
         warnings.warn(f"synthesis of {name}: multiple shooting stopped: {why}", DivergenceWarning,
                       stacklevel=2)
     return weights
+
+
+def _finer(lb: basis_io.LearnedBasis, weights: MotionWeights, tg: Targets, shooting: ShootingOptions,
+           options: SimOptions, success: tuple, held: impedance.Impedance, ridge: float, rates: list) -> dict:
+    """:func:`synthesize`'s finer windows (``rates`` a second in turn) for the motions its
+    fits leave unreproduced; {motion index: the rate it kept}."""
+    todo, rmse = synthesis.unreproduced(lb.body, lb.basis, weights, tg, options, success, range(tg.N))
+
+    def shoot(sub, part):
+        synthesis.shoot(lb.body, lb.basis, sub, part, list(range(part.N)), shooting, options)
+
+    def judge(sub, part):
+        s = score(lb.body, lb.basis, sub, part, options)
+        return s, s.succeeded(*success)
+    return synthesis.finer(lb.body, lb.basis, weights, tg, dict(zip(todo, rmse)), rates, held, shoot, judge,
+                           ridge)
 
 
 def weights_for(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:
@@ -125,7 +148,8 @@ def evaluate_run(run, data=None, out=None, progress: bool = True, simulation: Op
         tg = prepare(lb.body, group, weight=cfg.solver.torque_weight,   # the run's cost and torso
                      base=torsos(source, group, cfg.torso))
         weights = (synthesize(lb, tg, shoot, options, (cfg.success.rmse, cfg.success.tip),
-                              ridge=cfg.solver.ridge, held=held, window_rate=rate, ladder=ladder) if synth
+                              ridge=cfg.solver.ridge, held=held, window_rate=rate, ladder=ladder,
+                              finer=cfg.model.finer) if synth
                    else weights_for(lb, tg))
         s = score(lb.body, lb.basis, weights, tg, options)
         ok = s.succeeded(cfg.success.rmse, cfg.success.tip)

@@ -16,7 +16,8 @@
 reproduced (the nearest of the basis' own programs, :func:`nearest_programs`).
 :func:`held_ladder` gives each motion the first of several stiffness settings whose NNLS
 weights reproduce it: the hold stage's (:mod:`tflearn.train.stages.hold`) and held-out
-synthesis on a held basis.
+synthesis on a held basis. :func:`finer` cuts the motions still not reproduced into
+more windows (``model.finer``): the path stage's and held-out synthesis'.
 """
 from __future__ import annotations
 
@@ -117,6 +118,34 @@ def recut(body, basis, weights: MotionWeights, tg: Targets, rows: list, rate: fl
     sub = weights.select_motions(rows).with_windows(*submovement_windows(part, weights.P, rate=rate))
     impedance.solve_weights(body, basis, sub, part, asked, ridge=ridge)
     return sub, part
+
+
+def finer(body, basis, weights: MotionWeights, tg: Targets, todo: dict, rates: list,
+          asked: impedance.Impedance, shoot: Callable, judge: Callable, ridge: float = 0.0,
+          told: Optional[Callable] = None) -> dict:
+    """Activation sequences sized by what each motion needs: motions ``todo`` (index →
+    the joint RMSE of their closest program so far) are cut at each window rate of
+    ``rates`` in turn (:func:`recut`: NNLS on their torques and the stiffness ``asked``),
+    shot (``shoot(weights, tg)`` of those motions, in place) and judged (``judge(weights,
+    tg)`` → (:class:`~tflearn.metrics.Scores`, reproduced per motion)); a motion keeps
+    the new program where it simulates closer (:func:`closer`), in ``weights`` (in
+    place), and leaves the ladder once reproduced. ``told(rate, count)`` hears each rung.
+    Returns {motion index: the window rate it kept}."""
+    kept = {}
+    for rate in rates:
+        if not todo:
+            break
+        rows = list(todo)
+        sub, part = recut(body, basis, weights, tg, rows, rate, asked, ridge)
+        if told is not None:
+            told(rate, len(rows))
+        shoot(sub, part)
+        after, now = judge(sub, part)
+        better = [r for r, b in enumerate(closer(list(todo.values()), after, now)) if b]
+        take(weights, sub, better, [rows[r] for r in better])
+        kept.update({rows[r]: rate for r in better})
+        todo = {j: after.rmse[r] if r in better else todo[j] for r, j in enumerate(rows) if not now[r]}
+    return kept
 
 
 def held_ladder(body, basis, weights: MotionWeights, tg: Targets, settings: list, judge: Callable,

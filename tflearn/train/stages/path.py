@@ -8,6 +8,8 @@ run's result is then the best point Adam found (:func:`~tflearn.train.models.fin
 """
 from __future__ import annotations
 
+from functools import partial
+
 from ... import synthesis
 from ...fit import impedance
 from ...fit import path as path_fit
@@ -89,29 +91,20 @@ def start(ctx: RunContext, state: RunState, basis, weights) -> None:
 
 def finer(ctx: RunContext, state: RunState, basis, weights, scores, ok: list) -> None:
     """Activation sequences sized by what each motion needs: a motion that shooting left
-    unreproduced is cut into twice as many sub-movement windows
-    (:func:`~tflearn.fit.targets.submovement_windows`, ``model.window_rate`` × 2ᵏ a
-    second, k = 1 … ``model.finer``), its weights solved by NNLS
-    (:func:`~tflearn.synthesis.recut`, with the stiffness about the path that
-    ``solver.layout`` asks, for a laid-out basis) and shot again; it
-    keeps the new program where that simulates closer (:func:`~tflearn.synthesis.closer`),
+    unreproduced is cut into ``model.window_rate`` × 2ᵏ sub-movement windows a second,
+    k = 1 … ``model.finer``, with the stiffness about the path that ``solver.layout``
+    asks for a laid-out basis, and shot again (:func:`~tflearn.synthesis.finer`; the
+    motions shared by the ranks); it keeps the new program where that simulates closer,
     in ``weights`` (in place). ``history.finer``: the windows a second each such motion
     kept."""
     tg, m = ctx.tg, ctx.cfg.model
     asked = ctx.cfg.solver.layout.impedance() if ctx.cfg.solver.method == "layout" else impedance.Impedance()
-    todo = {j: scores.rmse[j] for j, x in enumerate(ok) if not x}       # motion → its closest joint RMSE
-    kept = {}
-    for k in range(1, m.finer + 1):
-        if not todo:
-            break
-        rows, rate = list(todo), m.window_rate * 2 ** k
-        sub, part = synthesis.recut(ctx.body, basis, weights, tg, rows, rate, asked, ctx.cfg.solver.ridge)
-        ctx.log.busy(finer=f"{rate:g} windows/s", motions=len(rows))
-        synthesis.shoot(ctx.body, basis, sub, part, list(range(part.N)), ctx.cfg.solver.shooting.options(
-            ctx.variable_phases), ctx.options, distributed=True)
-        after, now = ctx.check(basis, sub, part)
-        better = [r for r, b in enumerate(synthesis.closer(list(todo.values()), after, now)) if b]
-        synthesis.take(weights, sub, better, [rows[r] for r in better])
-        kept.update({tg.names[rows[r]]: rate for r in better})
-        todo = {j: after.rmse[r] if r in better else todo[j] for r, j in enumerate(rows) if not now[r]}
-    state.history.finer = kept or None
+    options = ctx.cfg.solver.shooting.options(ctx.variable_phases)
+    kept = synthesis.finer(
+        ctx.body, basis, weights, tg, {j: scores.rmse[j] for j, x in enumerate(ok) if not x},
+        [m.window_rate * 2 ** k for k in range(1, m.finer + 1)], asked,
+        shoot=lambda sub, part: synthesis.shoot(ctx.body, basis, sub, part, list(range(part.N)), options,
+                                                ctx.options, distributed=True),
+        judge=partial(ctx.check, basis), ridge=ctx.cfg.solver.ridge,
+        told=lambda rate, n: ctx.log.busy(finer=f"{rate:g} windows/s", motions=n))
+    state.history.finer = {tg.names[j]: rate for j, rate in kept.items()} or None
