@@ -227,6 +227,31 @@ def test_sparse_holds_the_zero_weights_where_they_start(problem, monkeypatch):
     assert losses[True] > 1e-4 and losses[False] < 1e-9
 
 
+def test_windows_past_a_motions_end_are_not_differenced(problem, monkeypatch):
+    """A window that starts at its motion's end (as a window rate places the windows a
+    shorter motion does not need) moves no sample: its weights (and timing) are held, the
+    Jacobians difference the 2 steps, 2 pulses and 4 window weights that matter (9 copies
+    of a segment, not 11), and the generating weights are recovered as before."""
+    body, basis, weights, tg = problem
+    w0 = _perturbed(weights)
+    end = tg.duration[:, None]
+    w = MotionWeights(w0.a.detach(), w0.b.detach(), tg.duration, names=w0.names,
+                      c=torch.cat([w0.c.detach(), torch.full((2, 2, 1), 1.5, dtype=DT)], 2),
+                      window_onset=torch.cat([w0.window_onset, end], 1),
+                      window_duration=torch.cat([w0.window_duration, torch.full_like(end, 0.5)], 1))
+    copies, real = [], shooting._Problem._run
+
+    def run(self, theta, seg, rows, n=1):
+        copies.append(n)
+        return real(self, theta, seg, rows, n)
+    monkeypatch.setattr(shooting._Problem, "_run", run)
+    res = shooting.shooting_match(body, basis, w, tg)
+    assert max(res.loss) < 1e-9 and not res.failures and max(copies) == 9
+    assert torch.equal(w.c[:, :, 2].detach(), torch.full((2, 2), 1.5, dtype=DT))
+    assert torch.equal(w.window_onset[:, 2], end[:, 0])
+    assert torch.allclose(w.c[:, :, :2].detach(), weights.c.detach(), atol=1e-3)
+
+
 def test_used_fits_each_motion_on_the_fields_it_has_a_weight_on(problem, monkeypatch):
     """``ShootingOptions(used=True)`` with a third field, 2 rad from both paths, on which
     no motion has a weight: each motion is fitted alone on its two fields (Jacobians of

@@ -256,10 +256,12 @@ class _Problem:
             self.lower = torch.cat([self.lower, free])
         weight = torch.cat([torch.full((d,), k in WEIGHTS) for k, d in layout]
                            + [torch.zeros(len(self.lower) - self.dw, dtype=torch.bool)])
-        # the parameters held where they start (N×D): with opts.sparse, the weights at 0;
+        # the parameters held where they start (N×D): those of windows that start after
+        # their motion's end (no sample sees them); with opts.sparse, the weights at 0;
         # with opts.windows, all but those windows' weights
-        self.held = (self.theta() == 0) & weight if opts.sparse else torch.zeros(
-            weights.N, len(self.lower), dtype=torch.bool)
+        self.held = _inert_windows(layout, weights, tg, len(self.lower))
+        if opts.sparse:
+            self.held |= (self.theta() == 0) & weight
         if opts.windows is not None:
             self.held |= _outside_windows(layout, weights, opts.windows, len(self.lower))
 
@@ -370,6 +372,25 @@ class _Problem:
         """(JᵀJ (n_m×D×D), Jᵀr (n_m×D)) of each motion at θ (n_m×D), J from
         :meth:`jacobian`. Raises SimulationFailed."""
         return _normal(self.jacobian(theta, h, motions))
+
+
+def _inert_windows(layout: list, weights: MotionWeights, tg: Targets, D: int) -> torch.Tensor:
+    """(N×D) True for the parameters of θ (``layout``: (key, size) in order) of the windows
+    that start at or after their motion's end — placed there by a window rate for motions
+    shorter than the longest: their pulses are 0 at every sample, so are their columns."""
+    inert = weights.window_onset >= tg.duration[:, None]                  # N×P
+    parts = []
+    for key, d in layout:
+        x = getattr(weights, key)
+        if key == "c_raw":
+            x = inert[:, None, :].expand(x.shape)
+        elif key in ("window_onset", "window_duration"):
+            x = inert
+        else:
+            x = torch.zeros(x.shape, dtype=torch.bool)
+        parts.append(x.reshape(weights.N, d))
+    parts.append(torch.zeros(weights.N, D - sum(d for _, d in layout), dtype=torch.bool))
+    return torch.cat(parts, 1)
 
 
 def _outside_windows(layout: list, weights: MotionWeights, windows: tuple, D: int) -> torch.Tensor:
