@@ -308,7 +308,8 @@ def test_a_rescue_round_that_reproduces_no_motion_is_not_kept(tmp_path, monkeypa
     reproduced (no shooting), the round keeps nothing."""
     from tflearn import train
     from tflearn.train.stages import rescue
-    monkeypatch.setattr(rescue.synthesis, "closer", lambda rmse, after, ok=None: [True] * len(rmse))
+    monkeypatch.setattr(rescue.synthesis, "closer",
+                        lambda before, after, success, ok=None: [True] * len(before))
     metrics = train.run(_spline_run(tmp_path, "solver.rescue.iterations=0"))
     assert metrics["history"]["rescue"][0]["reproduced"] == []
     assert metrics["history"]["rescue"][0]["kept"] is False and metrics["overall"]["M"] == 1

@@ -568,6 +568,21 @@ def _tuck_and_come_here():
     return lb, [m for m, _ in pairs]
 
 
+def test_closer_is_nearer_the_bar_in_joints_and_hand_alike():
+    """:func:`synthesis.closer` against the bar (0.05 rad, 3 cm): a program 0.0327 rad /
+    3.9 cm off (1.3 bars, at the hand) is nearer than one 0.0269 rad / 7.1 cm off (2.4
+    bars), though its joint RMSE is larger; a failed simulation is never nearer; one
+    that reproduces its motion always is."""
+    from tflearn.metrics import Scores
+    bar = (0.05, 0.03)
+    now = Scores(rmse=[0.0269, 0.0327, 0.01, math.inf], tip=[0.071, 0.039, 0.01, math.inf],
+                 torque=[0.0] * 4, q_sim=torch.zeros(4, 1, 1), failure=[None, None, None, "budget"])
+    assert now.off_bar(*bar) == pytest.approx([0.071 / 0.03, 0.039 / 0.03, 0.01 / 0.03, math.inf])
+    before = [0.039 / 0.03, 0.071 / 0.03, 2.0, 2.0]
+    assert synthesis.closer(before, now, bar) == [False, True, True, False]
+    assert synthesis.closer(before, now, bar, ok=[True, False, False, False])[0]
+
+
 def test_nearest_programs_are_the_best_matching_ones_scaled_in_time():
     """:func:`synthesis.nearest_programs`: each motion gets the basis' program whose torques
     match it best — a motion's own (cost 0) —, its onsets and durations scaled by the

@@ -93,7 +93,7 @@ def _finer(lb: basis_io.LearnedBasis, weights: MotionWeights, tg: Targets, shoot
            options: SimOptions, success: tuple, held: impedance.Impedance, ridge: float, rates: list) -> dict:
     """:func:`synthesize`'s finer windows (``rates`` a second in turn) for the motions its
     fits leave unreproduced; {motion index: the rate it kept}."""
-    todo, rmse = synthesis.unreproduced(lb.body, lb.basis, weights, tg, options, success, range(tg.N))
+    todo, far = synthesis.unreproduced(lb.body, lb.basis, weights, tg, options, success, range(tg.N))
 
     def shoot(sub, part):
         synthesis.shoot(lb.body, lb.basis, sub, part, list(range(part.N)), shooting, options)
@@ -101,8 +101,8 @@ def _finer(lb: basis_io.LearnedBasis, weights: MotionWeights, tg: Targets, shoot
     def judge(sub, part):
         s = score(lb.body, lb.basis, sub, part, options)
         return s, s.succeeded(*success)
-    return synthesis.finer(lb.body, lb.basis, weights, tg, dict(zip(todo, rmse)), rates, held, shoot, judge,
-                           ridge)
+    return synthesis.finer(lb.body, lb.basis, weights, tg, dict(zip(todo, far)), rates, held, shoot, judge,
+                           success, ridge)
 
 
 def weights_for(lb: basis_io.LearnedBasis, tg: Targets) -> MotionWeights:

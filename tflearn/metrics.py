@@ -78,6 +78,12 @@ class Scores:
         return [f is None and r <= rmse and p <= tip
                 for f, r, p in zip(self.failure, self.rmse, self.tip)]
 
+    def off_bar(self, rmse: float, tip: float) -> list:
+        """Per motion how far it lies from the bar: max(joint RMSE / rmse, tip error / tip),
+        ≤ 1 where it succeeded, ∞ where its simulation failed."""
+        return [math.inf if f is not None else max(r / rmse, p / tip)
+                for f, r, p in zip(self.failure, self.rmse, self.tip)]
+
 
 def path_errors(body: Body, q_sim: torch.Tensor, tg: Targets):
     """(joint RMSE (N), maximum tip distance (N)) of simulated paths against the targets."""

@@ -9,8 +9,8 @@
    weights — and with ``options.phases`` their activation timing — by multiple-shooting
    path matching (:func:`shoot`, :func:`tflearn.fit.shooting.shooting_match`);
 3. of two programs for a motion, the one simulated closer is kept (:func:`closer`): one
-   that reproduces it, else the smaller joint RMSE of a simulation that reaches its end
-   (a failed simulation is farthest).
+   that reproduces it, else the one nearer the bar — the worse of joint RMSE and tip
+   error, each against its own bar (a failed simulation is farthest).
 
 :func:`fit_programs` runs 2–3 for new motions, with a second start for those still not
 reproduced (the nearest of the basis' own programs, :func:`nearest_programs`).
@@ -41,12 +41,14 @@ PROGRAM = MotionWeights.PER_FIELD + MotionWeights.WINDOWS
 
 def unreproduced(body, basis, weights: MotionWeights, tg: Targets, sim: SimOptions, success: tuple,
                  motions) -> tuple:
-    """(the motions of ``motions`` (indices) that ``weights`` does not reproduce, their
-    joint RMSEs), the motions simulated together."""
+    """(the motions of ``motions`` (indices) that ``weights`` does not reproduce, how far
+    each lies from the bar (:meth:`~tflearn.metrics.Scores.off_bar`)), the motions
+    simulated together."""
     motions = list(motions)
     s = score(body, basis, weights.select_motions(motions), tg.select(motions), sim)
+    far = s.off_bar(*success)
     bad = [r for r, ok in enumerate(s.succeeded(*success)) if not ok]
-    return [motions[r] for r in bad], [s.rmse[r] for r in bad]
+    return [motions[r] for r in bad], [far[r] for r in bad]
 
 
 def shoot(body, basis, weights: MotionWeights, tg: Targets, motions: list, options: ShootingOptions,
@@ -95,12 +97,14 @@ def _by_method(options: ShootingOptions, weights: MotionWeights, tg: Targets, mo
     return [(f, part) for f, part in ((shooting_match, rest), (receding_match, long)) if part]
 
 
-def closer(rmse: list, after: Scores, ok: Optional[list] = None) -> list:
+def closer(before: list, after: Scores, success: tuple, ok: Optional[list] = None) -> list:
     """Per motion, whether the programs ``after`` was scored with simulate it closer than
-    programs of joint RMSEs ``rmse``: ``after`` reproduces it (``ok``, when given), or its
-    simulation reaches the end with a smaller joint RMSE (a failed one never does)."""
-    ok = ok or [False] * len(rmse)
-    return [o or (f is None and r < r0) for o, f, r, r0 in zip(ok, after.failure, after.rmse, rmse)]
+    programs ``before`` (each motion's distance from the bar ``success``,
+    :meth:`~tflearn.metrics.Scores.off_bar`): ``after`` reproduces it (``ok``, when
+    given), or its simulation ends nearer the bar — the worse of joint RMSE and tip
+    error, each against its own bar (a failed simulation never does)."""
+    ok = ok or [False] * len(before)
+    return [o or d < d0 for o, d, d0 in zip(ok, after.off_bar(*success), before)]
 
 
 def take(weights: MotionWeights, source: MotionWeights, rows: list, into: list) -> None:
@@ -121,10 +125,11 @@ def recut(body, basis, weights: MotionWeights, tg: Targets, rows: list, rate: fl
 
 
 def finer(body, basis, weights: MotionWeights, tg: Targets, todo: dict, rates: list,
-          asked: impedance.Impedance, shoot: Callable, judge: Callable, ridge: float = 0.0,
-          told: Optional[Callable] = None) -> dict:
+          asked: impedance.Impedance, shoot: Callable, judge: Callable, success: tuple,
+          ridge: float = 0.0, told: Optional[Callable] = None) -> dict:
     """Activation sequences sized by what each motion needs: motions ``todo`` (index →
-    the joint RMSE of their closest program so far) are cut at each window rate of
+    how far their closest program so far lies from the bar ``success``,
+    :meth:`~tflearn.metrics.Scores.off_bar`) are cut at each window rate of
     ``rates`` in turn (:func:`recut`: NNLS on their torques and the stiffness ``asked``),
     shot (``shoot(weights, tg)`` of those motions, in place) and judged (``judge(weights,
     tg)`` → (:class:`~tflearn.metrics.Scores`, reproduced per motion)); a motion keeps
@@ -141,10 +146,11 @@ def finer(body, basis, weights: MotionWeights, tg: Targets, todo: dict, rates: l
             told(rate, len(rows))
         shoot(sub, part)
         after, now = judge(sub, part)
-        better = [r for r, b in enumerate(closer(list(todo.values()), after, now)) if b]
+        better = [r for r, b in enumerate(closer(list(todo.values()), after, success, now)) if b]
         take(weights, sub, better, [rows[r] for r in better])
         kept.update({rows[r]: rate for r in better})
-        todo = {j: after.rmse[r] if r in better else todo[j] for r, j in enumerate(rows) if not now[r]}
+        far = after.off_bar(*success)
+        todo = {j: far[r] if r in better else todo[j] for r, j in enumerate(rows) if not now[r]}
     return kept
 
 
@@ -206,7 +212,7 @@ def fit_programs(body, basis, weights: MotionWeights, tg: Targets, options: Shoo
         return {}
     failures = {name: r["failure"] for name, r in shoot(body, basis, weights, tg, todo, options, sim).items()
                 if r["failure"]}
-    still, rmse = unreproduced(body, basis, weights, tg, sim, success, todo)
+    still, far = unreproduced(body, basis, weights, tg, sim, success, todo)
     if not still or second is None:
         return failures
     sub = tg.select(still)
@@ -216,9 +222,9 @@ def fit_programs(body, basis, weights: MotionWeights, tg: Targets, options: Shoo
                                                      sim).items() if r["failure"]}
     kept = [None] * sub.N
     for program, s in [(w, score(body, basis, w, sub, sim)) for w in (alt, start)]:
-        for r, better in enumerate(closer(rmse, s)):
+        for r, (better, d) in enumerate(zip(closer(far, s, success), s.off_bar(*success))):
             if better:
-                kept[r], rmse[r] = program, s.rmse[r]
+                kept[r], far[r] = program, d
     for r, (name, j) in enumerate(zip(sub.names, still)):
         if kept[r] is not None:
             take(weights, kept[r], [r], [j])

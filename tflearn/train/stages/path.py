@@ -100,11 +100,13 @@ def finer(ctx: RunContext, state: RunState, basis, weights, scores, ok: list) ->
     tg, m = ctx.tg, ctx.cfg.model
     asked = ctx.cfg.solver.layout.impedance() if ctx.cfg.solver.method == "layout" else impedance.Impedance()
     options = ctx.cfg.solver.shooting.options(ctx.variable_phases)
+    success = (ctx.cfg.success.rmse, ctx.cfg.success.tip)
+    far = scores.off_bar(*success)
     kept = synthesis.finer(
-        ctx.body, basis, weights, tg, {j: scores.rmse[j] for j, x in enumerate(ok) if not x},
+        ctx.body, basis, weights, tg, {j: far[j] for j, x in enumerate(ok) if not x},
         [m.window_rate * 2 ** k for k in range(1, m.finer + 1)], asked,
         shoot=lambda sub, part: synthesis.shoot(ctx.body, basis, sub, part, list(range(part.N)), options,
                                                 ctx.options, distributed=True),
-        judge=partial(ctx.check, basis), ridge=ctx.cfg.solver.ridge,
+        judge=partial(ctx.check, basis), success=success, ridge=ctx.cfg.solver.ridge,
         told=lambda rate, n: ctx.log.busy(finer=f"{rate:g} windows/s", motions=n))
     state.history.finer = {tg.names[j]: rate for j, rate in kept.items()} or None

@@ -60,8 +60,8 @@ def rescue_round(ctx: RunContext, state: RunState, basis, weights, scores: Score
     and velocity weights) then fits them over the whole basis (with
     ``solver.shooting.used``, over the new fields their weights are on). If the new
     fields reproduce some motion, a motion takes its new program where that is closer
-    (:func:`tflearn.synthesis.closer`: it reproduces the motion, or is simulated closer
-    to it); the others keep theirs, with zero weight on the new fields. The grown model
+    (:func:`tflearn.synthesis.closer`: it reproduces the motion, or is simulated nearer
+    the bar); the others keep theirs, with zero weight on the new fields. The grown model
     becomes the run's result if some motion took its new program; returns the round's
     record."""
     r, tg = ctx.cfg.solver.rescue, ctx.tg
@@ -78,7 +78,8 @@ def rescue_round(ctx: RunContext, state: RunState, basis, weights, scores: Score
                    tip_weight=r.tip_weight, velocity_weight=r.velocity_weight)
     ctx.shoot(state, grown, more, todo, opts)
     after, now = ctx.check(grown, more, tg)
-    better = synthesis.closer(scores.rmse, after, now)
+    success = (ctx.cfg.success.rmse, ctx.cfg.success.tip)
+    better = synthesis.closer(scores.off_bar(*success), after, success, now)
     if not any(now[j] for j in todo):     # fields that reproduce nothing are not kept
         better = [False] * tg.N
     took, back = [j for j in todo if better[j]], [j for j in todo if not better[j]]
