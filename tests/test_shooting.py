@@ -581,6 +581,8 @@ def test_closer_is_nearer_the_bar_in_joints_and_hand_alike():
     before = [0.039 / 0.03, 0.071 / 0.03, 2.0, 2.0]
     assert synthesis.closer(before, now, bar) == [False, True, True, False]
     assert synthesis.closer(before, now, bar, ok=[True, False, False, False])[0]
+    zero = now.off_bar(0.0, 0.0)                         # a bar of 0: the errors still rank
+    assert zero[2] < zero[1] < zero[0] < math.inf == zero[3]
 
 
 def test_nearest_programs_are_the_best_matching_ones_scaled_in_time():

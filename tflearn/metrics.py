@@ -80,7 +80,9 @@ class Scores:
 
     def off_bar(self, rmse: float, tip: float) -> list:
         """Per motion how far it lies from the bar: max(joint RMSE / rmse, tip error / tip),
-        ≤ 1 where it succeeded, ∞ where its simulation failed."""
+        ≤ 1 where it succeeded, ∞ where its simulation failed (a bar of 0 counts as
+        10⁻¹², so that errors against it still rank)."""
+        rmse, tip = max(rmse, 1e-12), max(tip, 1e-12)
         return [math.inf if f is not None else max(r / rmse, p / tip)
                 for f, r, p in zip(self.failure, self.rmse, self.tip)]
 
