@@ -7,13 +7,14 @@ torques and the stiffness ω = 10 rad/s about the path, multiple shooting only o
 the NNLS leaves unreproduced), once with fewer weights (``sparsity=0.01``, no shooting:
 the NNLS alone) and once with the stiffness off (``frequency=0``, torque matching alone on
 the same fields), with joint simplices instead of pairs (``joints``: b + 1 fields per joint of
-b coordinates, δ = 0.03; ``joints, 12 fields``: the most anisotropic joints paired within a
-budget of 12, ``solver.layout.fields``), and once with fewer weights and multiple shooting on their support
-(``sparsity=0.01``, ``solver.shooting.sparse``: the zero weights held at 0), also with
-windows sized by each motion's length (``model.window_rate=4``), and with all weights
-free at 3 windows per second (also with the hand in shooting's residuals,
-``tip_weight=100``: 1 cm counts as 0.1 rad). Printed per
-seed and setting: motions reproduced, the worst joint RMSE and hand-tip error, the worst
+b coordinates, the stiffness asked of a simplex weighted by δ/3,
+:func:`tflearn.fit.impedance.free_share`; ``joints, 12 fields``: the most anisotropic
+joints paired within a budget of 12, ``solver.layout.fields``), and once with fewer weights
+and multiple shooting on their support (``sparsity=0.01``, ``solver.shooting.sparse``:
+the zero weights held at 0), also with windows sized by each motion's length
+(``model.window_rate=4``), and with all weights free at 3 windows per second (also with
+the hand in shooting's residuals, ``tip_weight=100``: 1 cm counts as 0.1 rad). Printed
+per seed and setting: motions reproduced, the worst joint RMSE and hand-tip error, the worst
 relative torque error, the fields' median stiffness about the path (rad/s,
 :func:`tflearn.fit.impedance.path_stiffness`), the non-zero weights per second of motion
 and the numbers per second that describe a motion (non-zero weights, its windows' onsets
@@ -58,9 +59,8 @@ SETTINGS = {"held": [], "held, sparse": ["solver.layout.sparsity=0.01", "solver.
             "held, 3 windows/s": ["model.window_rate=3"],
             "held, 3 windows/s, hand": ["model.window_rate=3", "solver.shooting.tip_weight=100"],
             "torques only": ["solver.layout.frequency=0"],
-            "joints": ["solver.layout.shape=joints", "solver.layout.deviation=0.03"],
-            "joints, 12 fields": ["solver.layout.shape=joints", "solver.layout.deviation=0.03",
-                                  "solver.layout.fields=12"]}
+            "joints": ["solver.layout.shape=joints"],
+            "joints, 12 fields": ["solver.layout.shape=joints", "solver.layout.fields=12"]}
 
 #: The settings whose first-seed runs ``--push`` pushes (those held on the path by default).
 PUSHED = ("held", "joints", "joints, 12 fields")

@@ -45,8 +45,8 @@ from . import torque
 from .nnls import nnls, warn_unconverged
 from .targets import Targets, chunks
 
-__all__ = ["Impedance", "field_jacobians", "stiffness_design", "stiffness_equations", "solve_weights",
-           "path_stiffness", "equilibria"]
+__all__ = ["Impedance", "field_jacobians", "stiffness_design", "free_share", "stiffness_equations",
+           "solve_weights", "path_stiffness", "equilibria"]
 
 
 @dataclass(frozen=True)
@@ -87,17 +87,44 @@ def stiffness_equations(body: Body, basis: FieldBasis, weights: MotionWeights, t
     """(G_s N×X×X, h_s N×X): the stiffness residual's normal equations, to add to the
     torque cost's (G, h) — the residual is ‖A x + B‖² = const − 2 h_sᵀx + xᵀG_s x with
     A = δ s ⊙ D, B = δ s ⊙ ω²M, s = √(w_t / S_j), G_s = AᵀA, h_s = −AᵀB. Rows of torque
-    coordinate k weighted by the cost's ω_k, as the torque residuals are."""
+    coordinate k weighted by the cost's ω_k, as the torque residuals are, and by the
+    share f_k of its stiffness that the fields leave free (:func:`free_share`)."""
     D = stiffness_design(basis, weights, tg)
     target = impedance.frequency ** 2 * dynamics.mass_matrix(body, tg.q)      # N×T×n×n
     scale = (tg.wt / tg.torque_scale()[:, None]).sqrt() * impedance.deviation  # N×T
-    rows = scale[:, :, None, None]
+    rows = scale[:, :, None, None] * free_share(body, basis)[:, None]
     if tg.coord_weight is not None:
         rows = rows * tg.coord_weight.sqrt()[:, None, :, None]
     A = (rows.unsqueeze(-1) * D).reshape(tg.N, -1, D.shape[-1])
     B = (rows * target).reshape(tg.N, -1)
     At = A.transpose(-1, -2)
     return At @ A, -(At @ B.unsqueeze(-1)).squeeze(-1)
+
+
+@torch.no_grad()
+def free_share(body: Body, basis: FieldBasis) -> torch.Tensor:
+    """f (n): the share of each coordinate's stiffness that its joint's fields can set
+    apart from its torque, by which the stiffness residual's rows are weighted (δ f_k).
+    A joint of b coordinates pulled by m ≥ b + 1 fields of its own has m − b
+    co-activations its torque leaves free, and f = min(1, (m − b)/b) on its coordinates:
+    1 for a pair per coordinate, where each coordinate's stiffness has its own
+    co-activation, and 1/b for a joint simplex, whose one co-activation must serve b
+    coordinates' stiffness as the weights also give their torques. A field is the
+    joint's own where its centre differs on that joint only from the posture most
+    centres share, coordinate by coordinate (the convergent layouts of :mod:`.layout`,
+    alone or beside learned fields). f = 1 on a joint with no such fields (any other
+    basis, where δ alone weighs the residual)."""
+    eta = basis.eta.detach()
+    moved = (eta - eta.mode(0).values).abs() > 1e-12                              # M×n
+    joints = [body.slice(i) for i in range(len(body.links))]
+    touched = torch.stack([moved[:, c].any(-1) for c in joints], -1)             # M×joints
+    alone = touched.sum(-1) == 1
+    share = torch.ones(body.nv, dtype=torch.float64)
+    for i, c in enumerate(joints):
+        own, b = int((touched[:, i] & alone).sum()), c.stop - c.start
+        if own > b:
+            share[c] = min(1.0, (own - b) / b)
+    return share
 
 
 @torch.no_grad()
