@@ -198,3 +198,23 @@ def test_progress_and_summary(tb_run, capsys):
     assert f"M = {o['M']} fields" in table and f"at most {o['numbers_per_s']:.0f} numbers per second" in table
     assert o["numbers_per_s"] == max(m["numbers_per_s"] for m in tb_run["metrics"]["motions"].values()) > 0
     assert str(tb_run["out"]) in lines[-1] and "tensorboard/" in lines[-1]
+
+
+def test_the_summary_says_why_a_motion_is_not_reproduced():
+    """A motion not reproduced reads "simulation failed" where its simulation did, "nor by
+    its own fit" where its own per-motion fit (history.each) failed it as well, and plain
+    "no" where only the shared basis loses it."""
+    def motion(success, failure=None):
+        m = {"rmse": 0.01 if success else 0.2, "tip": 0.01, "torque_rel_rms": 0.1, "growth_efolds": 3.0,
+             "success": success, "numbers_per_s": 20.0}
+        return {**m, "failure": failure} if failure else m
+    metrics = {"motions": {"a": motion(True), "b": motion(False), "c": motion(False),
+                           "d": motion(False, "simulation failed (budget)")},
+               "overall": {"rmse": 0.1, "tip": 0.01, "torque_rel_rms": 0.1, "growth_efolds": 3.0,
+                           "success": False, "M": 2, "numbers_per_s": 20.0, "wall_time_s": 5.0},
+               "history": {"each": {"reproduced": [True, True, False, False]}}}
+    cells = {line.split()[0]: line.split(None, 5)[5] for line in summary_table(metrics).splitlines()
+             if line[:1] in "abcd" and len(line.split()) > 5}
+    assert cells == {"a": "yes", "b": "no", "c": "no: nor by its own fit", "d": "no: simulation failed"}
+    del metrics["history"]
+    assert "nor by its own fit" not in summary_table(metrics)

@@ -284,16 +284,18 @@ def _duration(seconds: float) -> str:
 def summary_table(metrics: dict, out=None) -> str:
     """The results of a run as a table (metrics.json's dict): per motion joint RMSE
     (rad), maximum tip error (cm), relative RMS torque error (%), the e-folds of error
-    growth along its path and whether it was reproduced; then M, the overall figures, the
+    growth along its path and whether it was reproduced (if not, whether its simulation
+    failed or its own fit failed too); then M, the overall figures, the
     most numbers per second of motion that describe a motion, the wall time, the method
     ``solver.method: auto`` chose (:func:`method_line`), the generating fields matched
     (:func:`identity_line`, for data that carries them), the bad data files skipped and,
     given ``out`` (the run folder), where the artefacts were written. No trailing newline."""
     rows = [("motion", "rmse (rad)", "tip (cm)", "torque err (%)", "growth (e-folds)", "reproduced")]
-    for name, m in metrics["motions"].items():
-        ok = "yes" if m["success"] else ("no: simulation failed" if m.get("failure") else "no")
+    alone = (metrics.get("history", {}).get("each") or {}).get("reproduced") or []
+    for j, (name, m) in enumerate(metrics["motions"].items()):
         rows.append((name, f"{m['rmse']:.4f}", f"{100 * m['tip']:.2f}",
-                     f"{100 * m['torque_rel_rms']:.2f}", f"{m['growth_efolds']:.2f}", ok))
+                     f"{100 * m['torque_rel_rms']:.2f}", f"{m['growth_efolds']:.2f}",
+                     _verdict(m, alone[j] if j < len(alone) else None)))
     o = metrics["overall"]
     n_ok = sum(bool(m["success"]) for m in metrics["motions"].values())
     rows.append(("overall", f"{o['rmse']:.4f}", f"{100 * o['tip']:.2f}",
@@ -319,6 +321,17 @@ def summary_table(metrics: dict, out=None) -> str:
         lines.append(f"artefacts in {out}: basis.json, metrics.json, config.yaml, figures/"
                      + (", tensorboard/" if (Path(out) / "tensorboard").is_dir() else ""))
     return "\n".join(lines)
+
+
+def _verdict(motion: dict, alone: Optional[bool]) -> str:
+    """A motion's "reproduced" cell, and why not: its simulation failed, or its own fit
+    (``alone``: the ``each`` stage's verdict, None where no motion was fitted alone) did
+    not reproduce it either."""
+    if motion["success"]:
+        return "yes"
+    if motion.get("failure"):
+        return "no: simulation failed"
+    return "no: nor by its own fit" if alone is False else "no"
 
 
 def method_line(decision: dict) -> str:
